@@ -1,0 +1,260 @@
+"""Triangle-mesh input: OBJ reading, validation and the facts a bake report needs.
+
+Everything here works on plain arrays, ``V`` (n, 3) float vertices in object
+units and ``F`` (m, 3) int triangles, so that the Blender side (evaluated mesh)
+and the command line (OBJ files) feed the bake the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import MeshError
+
+# A bake is refused when its estimated peak memory exceeds this, unless the
+# caller passes another budget.  The estimate is deliberately pessimistic.
+DEFAULT_MEMORY_BUDGET_BYTES = 4 * 1024**3
+
+
+def load_obj(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read vertices and faces from a Wavefront OBJ file; polygons are fanned.
+
+    Supports ``f a b c``, ``f a/t/n ...``, ``f a//n`` and negative indices.
+    Raises :class:`MeshError` for a file without vertices or faces.
+    """
+    verts: list[list[float]] = []
+    faces: list[list[int]] = []
+    with open(path, "r", encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            if line.startswith("v "):
+                parts = line.split()
+                if len(parts) < 4:
+                    raise MeshError(f"{path}: malformed vertex line {line.strip()!r}")
+                verts.append([float(x) for x in parts[1:4]])
+            elif line.startswith("f "):
+                idx = []
+                for tok in line.split()[1:]:
+                    i = int(tok.split("/")[0])
+                    idx.append(i - 1 if i > 0 else len(verts) + i)
+                for k in range(1, len(idx) - 1):
+                    faces.append([idx[0], idx[k], idx[k + 1]])
+    if not verts:
+        raise MeshError(f"{path}: no vertices")
+    if not faces:
+        raise MeshError(f"{path}: no faces (a point cloud or an outline cannot be baked)")
+    return np.asarray(verts, dtype=np.float64), np.asarray(faces, dtype=np.int64)
+
+
+def save_obj(path, V: np.ndarray, F: np.ndarray) -> None:
+    """Write a triangle mesh as OBJ (used by tests, benches and the demo)."""
+    with open(path, "w", encoding="utf-8") as fh:
+        np.savetxt(fh, np.asarray(V, dtype=np.float64), fmt="v %.9g %.9g %.9g")
+        np.savetxt(fh, np.asarray(F, dtype=np.int64) + 1, fmt="f %d %d %d")
+
+
+def triangle_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Area of every triangle."""
+    p = V[F]
+    return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+
+
+def triangle_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Unit normal of every triangle (zero for degenerate ones)."""
+    p = V[F]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    ln = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, ln, out=np.zeros_like(n), where=ln > 0)
+
+
+def vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals; unreferenced vertices get (0, 0, 1)."""
+    p = V[F]
+    fn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # length = 2 * area
+    vn = np.zeros_like(V, dtype=np.float64)
+    for k in range(3):
+        np.add.at(vn, F[:, k], fn)
+    ln = np.linalg.norm(vn, axis=1, keepdims=True)
+    vn = np.divide(vn, ln, out=np.zeros_like(vn), where=ln > 0)
+    vn[ln[:, 0] == 0] = (0.0, 0.0, 1.0)
+    return vn
+
+
+def signed_volume(V: np.ndarray, F: np.ndarray) -> float:
+    """Enclosed volume by the divergence theorem (exact for a closed mesh)."""
+    p = V[F]
+    return float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0)
+
+
+def boundary_edges(F: np.ndarray) -> np.ndarray:
+    """Edges used by exactly one triangle (the rims of holes), as (k, 2) vertex pairs."""
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    u, c = np.unique(e, axis=0, return_counts=True)
+    return u[c == 1]
+
+
+def count_holes(F: np.ndarray) -> tuple[int, int]:
+    """(number of boundary loops, number of boundary edges)."""
+    be = boundary_edges(F)
+    if len(be) == 0:
+        return 0, 0
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    verts, inv = np.unique(be, return_inverse=True)
+    inv = inv.reshape(-1, 2)
+    n = len(verts)
+    g = coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(n, n))
+    ncomp, _ = connected_components(g, directed=False)
+    return int(ncomp), int(len(be))
+
+
+@dataclass
+class MeshReport:
+    """What validation found; printed by the bake and shown in the panel."""
+
+    n_vertices: int
+    n_triangles: int
+    n_degenerate: int
+    n_unreferenced: int
+    holes: int
+    boundary_edges: int
+    volume: float  # object units cubed, absolute value of the signed volume
+    extent: tuple[float, float, float]  # principal extents, largest first
+    warnings: list[str] = field(default_factory=list)
+
+
+def principal_extents(V: np.ndarray) -> np.ndarray:
+    """Extents of the point set along its principal axes, largest first."""
+    c = V - V.mean(axis=0)
+    # SVD of a thin matrix is cheap; the singular vectors are the principal axes.
+    _, _, vt = np.linalg.svd(c, full_matrices=False)
+    proj = c @ vt.T
+    return np.sort(proj.max(axis=0) - proj.min(axis=0))[::-1]
+
+
+def estimate_bake_bytes(n_triangles: int, target_nodes: int) -> int:
+    """Pessimistic peak memory of a bake.
+
+    The original surface is kept (BVH, normals: ~400 B/triangle) and every
+    QuadGraph node costs ~600 B over all intermediate arrays (tets, faces,
+    sort keys, Shepard weights).
+    """
+    return int(400 * n_triangles + 600 * target_nodes)
+
+
+def validate_mesh(
+    V,
+    F,
+    *,
+    target_nodes: int = 0,
+    memory_budget: int = DEFAULT_MEMORY_BUDGET_BYTES,
+) -> MeshReport:
+    """Check a triangle mesh before a bake and return a report.
+
+    Raises :class:`MeshError` with a message naming the problem for: NaN or Inf
+    coordinates, fewer than 4 vertices, no triangles, indices out of range,
+    zero or near-zero enclosed volume (flat meshes, outlines), and an
+    estimated bake memory above ``memory_budget``.  Holes, degenerate
+    triangles and unreferenced vertices are only warnings: they still bake.
+    """
+    V = np.asarray(V)
+    F = np.asarray(F)
+    if V.ndim != 2 or V.shape[1] != 3:
+        raise MeshError(f"vertices must be an (n, 3) array, got shape {V.shape}")
+    if len(V) < 4:
+        raise MeshError(f"mesh has {len(V)} vertices; at least 4 are needed to enclose a volume")
+    if not np.all(np.isfinite(V)):
+        bad = int((~np.isfinite(V).all(axis=1)).sum())
+        raise MeshError(f"mesh has {bad} vertices with NaN or Inf coordinates")
+    if F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
+        raise MeshError("mesh has no triangles (a point cloud or an outline cannot be baked)")
+    if F.min() < 0 or F.max() >= len(V):
+        raise MeshError("mesh has face indices out of range")
+
+    used = np.zeros(len(V), dtype=bool)
+    used[F.ravel()] = True
+    Vu = V[used]
+    if len(Vu) < 4:
+        raise MeshError(f"mesh uses {len(Vu)} vertices; at least 4 are needed to enclose a volume")
+
+    ext = principal_extents(Vu)
+    diag = float(np.linalg.norm(Vu.max(axis=0) - Vu.min(axis=0)))
+    if diag <= 0 or ext[0] <= 0:
+        raise MeshError("mesh has zero size: all vertices coincide")
+    flat_ratio = ext[2] / ext[0]
+    if flat_ratio < 1e-4:
+        raise MeshError(
+            f"mesh is flat (thickness/size = {flat_ratio:.1e}): it encloses no volume. "
+            "Translucency needs a closed solid; give planes a Solidify modifier."
+        )
+    areas = triangle_areas(V, F)
+    degenerate = int((areas <= 1e-12 * diag * diag).sum())
+    vol = abs(signed_volume(V, F))
+    holes, nbe = count_holes(F)
+    # For a closed mesh the signed volume is exact; compare it with the
+    # volume of the principal box so a closed-but-flat mesh is refused too.
+    if holes == 0 and vol < 1e-6 * ext[0] * ext[1] * ext[2] + 1e-30:
+        raise MeshError(
+            f"mesh encloses zero volume ({vol:.3g} units^3): it is flat or inside-out cancels out"
+        )
+
+    est = estimate_bake_bytes(len(F), target_nodes)
+    if est > memory_budget:
+        raise MeshError(
+            f"mesh is too large: the bake would need about {est / 1024**3:.1f} GiB, "
+            f"above the {memory_budget / 1024**3:.1f} GiB budget. Decimate it or lower the quality."
+        )
+
+    warnings = []
+    if holes:
+        warnings.append(
+            f"mesh is open: {holes} hole(s), {nbe} boundary edges; the bake closes them "
+            "(the tetrahedralizer fills by winding number)"
+        )
+    if degenerate:
+        warnings.append(f"{degenerate} degenerate (zero-area) triangles ignored")
+    n_unref = int((~used).sum())
+    if n_unref:
+        warnings.append(f"{n_unref} unreferenced vertices ignored")
+    return MeshReport(
+        n_vertices=int(len(V)),
+        n_triangles=int(len(F)),
+        n_degenerate=degenerate,
+        n_unreferenced=n_unref,
+        holes=holes,
+        boundary_edges=nbe,
+        volume=vol,
+        extent=tuple(float(x) for x in ext),
+        warnings=warnings,
+    )
+
+
+def clean_mesh(V: np.ndarray, F: np.ndarray, merge_tol: float | None = None):
+    """Merge duplicate vertices, drop degenerate triangles and unused vertices.
+
+    Returns ``(V2, F2, vmap)`` where ``vmap[i]`` is the new index of old vertex
+    ``i`` (-1 if it was dropped).  Used on the tetrahedralizer's input only;
+    the user's mesh is never modified.
+    """
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    tol = merge_tol if merge_tol is not None else 1e-9 * diag
+    key = np.round(V / max(tol, 1e-300)).astype(np.int64) if tol > 0 else V
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inv = inv.reshape(-1)
+    F2 = inv[F]
+    ok = (F2[:, 0] != F2[:, 1]) & (F2[:, 1] != F2[:, 2]) & (F2[:, 0] != F2[:, 2])
+    F2 = F2[ok]
+    V2 = V[first]
+    if len(F2):
+        ok = triangle_areas(V2, F2) > 1e-14 * diag * diag
+        F2 = F2[ok]
+    used = np.zeros(len(V2), dtype=bool)
+    used[F2.ravel()] = True
+    remap = -np.ones(len(V2), dtype=np.int64)
+    remap[used] = np.arange(used.sum())
+    vmap = remap[inv]
+    return V2[used], remap[F2], vmap

@@ -1,0 +1,362 @@
+"""Bulk ray casting and closest-point queries against a triangle BVH, in numpy.
+
+The bake places surface nodes by casting rays onto the original surface, the
+light pass casts shadow rays from every surface node, single scattering clips
+view rays at the surface, and the tests measure distances to the surface.  All
+of them query many points at once, so the traversal is vectorised over rays:
+every ray keeps its own small stack, and each loop iteration pops one node for
+*every* active ray with a handful of array operations.  The loop runs about as
+many times as the deepest traversal, never once per ray.
+
+The tree is an implicit, complete binary tree over triangles sorted by the
+Morton code of their centroids (a linear BVH): node ``k`` has children
+``2k+1`` and ``2k+2``; leaves hold ``LEAF`` consecutive triangles.  Building it
+is a sort plus ``log2(n)`` vectorised min/max reductions.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+LEAF = 4
+
+
+def _balanced_order(centroids: np.ndarray, n_slots: int) -> np.ndarray:
+    """Order triangles for a complete binary tree by recursive median splits.
+
+    Level by level, every node's range of slots is sorted along the longest
+    axis of its centroids' bounding box; the implicit tree then splits each
+    range in the middle.  Padding slots (-1) sort last.  One lexsort per level.
+    """
+    m = len(centroids)
+    perm = np.full(n_slots, -1, dtype=np.int64)
+    perm[:m] = np.argsort(_morton_codes(centroids), kind="stable")
+    c = np.vstack([centroids, np.full((1, 3), np.nan)])  # index -1 -> NaN row
+    n_nodes = 1
+    while n_slots // n_nodes > LEAF:
+        size = n_slots // n_nodes
+        cc = c[perm].reshape(n_nodes, size, 3)
+        with warnings.catch_warnings():  # all-padding ranges are all-NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ext = np.nanmax(cc, axis=1) - np.nanmin(cc, axis=1)
+        axis = np.argmax(np.nan_to_num(ext, nan=-1.0), axis=1)
+        key = cc[np.arange(n_nodes)[:, None], np.arange(size)[None, :], axis[:, None]]
+        key = np.where(np.isnan(key), np.inf, key)
+        node = np.repeat(np.arange(n_nodes), size)
+        perm = perm[np.lexsort((key.ravel(), node))]
+        n_nodes *= 2
+    return perm
+
+
+def _morton_codes(c: np.ndarray) -> np.ndarray:
+    lo = c.min(axis=0)
+    ext = np.maximum(c.max(axis=0) - lo, 1e-300)
+    q = np.clip(((c - lo) / ext * 1023.0).astype(np.int64), 0, 1023)
+
+    def spread(x):
+        x = (x | (x << 16)) & 0x030000FF
+        x = (x | (x << 8)) & 0x0300F00F
+        x = (x | (x << 4)) & 0x030C30C3
+        x = (x | (x << 2)) & 0x09249249
+        return x
+
+    return (spread(q[:, 0]) << 2) | (spread(q[:, 1]) << 1) | spread(q[:, 2])
+
+
+class TriangleBVH:
+    """Linear BVH over a triangle soup ``V[F]``.
+
+    Degenerate triangles are kept (they never report a hit).  Coordinates are
+    float64 throughout.
+    """
+
+    def __init__(self, V, F):
+        V = np.asarray(V, dtype=np.float64)
+        F = np.asarray(F, dtype=np.int64)
+        if len(F) == 0:
+            raise ValueError("TriangleBVH needs at least one triangle")
+        tri = V[F]  # (m, 3, 3)
+        m = len(F)
+        n_leaves = 1
+        while n_leaves * LEAF < m:
+            n_leaves *= 2
+        order = _balanced_order(tri.mean(axis=1), n_leaves * LEAF)
+        self.n_leaves = n_leaves
+        self.depth = int(np.log2(n_leaves))
+        slots = order
+        self.leaf_tris = slots.reshape(n_leaves, LEAF)  # original triangle ids, -1 padding
+        valid = slots >= 0
+        t = np.zeros((n_leaves * LEAF, 3, 3))
+        t[valid] = tri[slots[valid]]
+        self.v0 = t[:, 0].reshape(n_leaves, LEAF, 3)
+        self.e1 = (t[:, 1] - t[:, 0]).reshape(n_leaves, LEAF, 3)
+        self.e2 = (t[:, 2] - t[:, 0]).reshape(n_leaves, LEAF, 3)
+        self.valid = valid.reshape(n_leaves, LEAF)
+        tmin = np.where(valid[:, None], t.min(axis=1), np.inf).reshape(n_leaves, LEAF, 3).min(axis=1)
+        tmax = np.where(valid[:, None], t.max(axis=1), -np.inf).reshape(n_leaves, LEAF, 3).max(axis=1)
+        n_nodes = 2 * n_leaves - 1
+        lo = np.empty((n_nodes, 3))
+        hi = np.empty((n_nodes, 3))
+        lo[n_leaves - 1 :] = tmin
+        hi[n_leaves - 1 :] = tmax
+        start = n_leaves - 1
+        while start > 0:
+            count = (start + 1) // 2
+            parent = np.arange(start - count, start)
+            lo[parent] = np.minimum(lo[2 * parent + 1], lo[2 * parent + 2])
+            hi[parent] = np.maximum(hi[2 * parent + 1], hi[2 * parent + 2])
+            start -= count
+        # Pad boxes by a relative epsilon so that axis-aligned flat leaves
+        # are still hit by the slab test.
+        pad = 1e-9 * (float(np.max(hi[0] - lo[0])) + 1e-300)
+        self.nonempty = np.all(lo <= hi, axis=1)
+        lo = np.where(self.nonempty[:, None], lo - pad, 0.0)
+        hi = np.where(self.nonempty[:, None], hi + pad, 0.0)
+        self.lo = lo
+        self.hi = hi
+        # For front-to-back traversal: the axis along which the two children's
+        # centres differ most, and whether the second child lies on its + side.
+        internal = np.arange(n_leaves - 1)
+        cen = 0.5 * (lo + hi)
+        diff = cen[2 * internal + 2] - cen[2 * internal + 1]
+        self.split_axis = np.argmax(np.abs(diff), axis=1)
+        self.second_is_plus = diff[internal, self.split_axis] >= 0
+        self.first_leaf = n_leaves - 1
+        self.F = F
+        self.V = V
+
+    # ------------------------------------------------------------------ rays
+    def intersect(self, origins, directions, tmin: float = 0.0, tmax=np.inf, any_hit: bool = False):
+        """Cast rays; return ``(t, tri, u, v)`` for the closest hit of each ray.
+
+        ``t`` is ``inf`` and ``tri`` is -1 where a ray misses.  ``directions``
+        need not be normalised: ``t`` is in units of the given direction.
+        With ``any_hit`` each ray stops at its first hit found (shadow rays);
+        ``t`` is then a hit distance, not necessarily the closest.
+        ``tmax`` may be a scalar or one value per ray.
+        """
+        o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+        d = np.broadcast_to(np.asarray(directions, dtype=np.float64).reshape(-1, 3), o.shape)
+        R = len(o)
+        best_t = np.broadcast_to(np.asarray(tmax, dtype=np.float64), (R,)).copy()
+        best_tri = np.full(R, -1, dtype=np.int64)
+        best_u = np.zeros(R)
+        best_v = np.zeros(R)
+        if R == 0:
+            return best_t, best_tri, best_u, best_v
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / d
+        inv = np.where(np.isfinite(inv), inv, 1e300)
+        stack = np.zeros((R, self.depth + 2), dtype=np.int64)
+        sp = np.ones(R, dtype=np.int64)
+        active = np.arange(R)
+        while active.size:
+            node = stack[active, sp[active] - 1]
+            sp[active] -= 1
+            oa, ia = o[active], inv[active]
+            t1 = (self.lo[node] - oa) * ia
+            t2 = (self.hi[node] - oa) * ia
+            tn = np.minimum(t1, t2).max(axis=1)
+            tf = np.maximum(t1, t2).min(axis=1)
+            hit = (tf >= np.maximum(tn, tmin)) & (tn <= best_t[active]) & self.nonempty[node]
+            leaf = node >= self.first_leaf
+            sel = hit & leaf
+            if sel.any():
+                rays = active[sel]
+                lf = node[sel] - self.first_leaf
+                self._leaf_test(o[rays], d[rays], lf, rays, tmin, best_t, best_tri, best_u, best_v)
+                if any_hit:
+                    sp[rays[best_tri[rays] >= 0]] = 0
+            sel = hit & ~leaf
+            if sel.any():
+                rays = active[sel]
+                nd = node[sel]
+                s = sp[rays]
+                # Push the far child first so the near one is popped next.
+                dplus = d[rays, self.split_axis[nd]] >= 0
+                near_is_second = dplus != self.second_is_plus[nd]
+                stack[rays, s] = np.where(near_is_second, 2 * nd + 1, 2 * nd + 2)
+                stack[rays, s + 1] = np.where(near_is_second, 2 * nd + 2, 2 * nd + 1)
+                sp[rays] = s + 2
+            active = active[sp[active] > 0]
+        return best_t, best_tri, best_u, best_v
+
+    def _leaf_test(self, o, d, leaf, rays, tmin, best_t, best_tri, best_u, best_v):
+        """Moller-Trumbore against the LEAF triangles of each (ray, leaf) pair."""
+        v0 = self.v0[leaf]  # (k, LEAF, 3)
+        e1 = self.e1[leaf]
+        e2 = self.e2[leaf]
+        dd = d[:, None, :]
+        p = np.cross(dd, e2)
+        det = np.einsum("kij,kij->ki", e1, p)
+        ok = self.valid[leaf] & (np.abs(det) > 1e-300)
+        inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        s = o[:, None, :] - v0
+        u = np.einsum("kij,kij->ki", s, p) * inv_det
+        qv = np.cross(s, e1)
+        v = np.einsum("kij,kij->ki", dd.repeat(LEAF, axis=1), qv) * inv_det
+        t = np.einsum("kij,kij->ki", e2, qv) * inv_det
+        ok &= (u >= 0) & (v >= 0) & (u + v <= 1) & (t > tmin) & (t < best_t[rays][:, None])
+        t = np.where(ok, t, np.inf)
+        j = np.argmin(t, axis=1)
+        tj = t[np.arange(len(t)), j]
+        better = tj < best_t[rays]
+        if better.any():
+            r = rays[better]
+            k = np.nonzero(better)[0]
+            best_t[r] = tj[better]
+            best_tri[r] = self.leaf_tris[leaf[k], j[k]]
+            best_u[r] = u[k, j[k]]
+            best_v[r] = v[k, j[k]]
+
+    def occluded(self, origins, directions, tmax, tmin: float = 0.0) -> np.ndarray:
+        """True where the segment ``origin + t dir``, ``tmin < t < tmax``, hits a triangle."""
+        _, tri, _, _ = self.intersect(origins, directions, tmin=tmin, tmax=tmax, any_hit=True)
+        return tri >= 0
+
+    # ------------------------------------------------------- closest points
+    def closest_point(self, points):
+        """Closest point on the surface for each query point.
+
+        Returns ``(closest (n, 3), triangle id (n,), distance (n,))``.
+        """
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        R = len(p)
+        # Seed every query with the triangle of its nearest centroid: a tight
+        # upper bound prunes almost the whole tree from the first pop.
+        from scipy.spatial import cKDTree
+
+        if getattr(self, "_centroid_tree", None) is None:
+            self._centroid_tree = cKDTree(self.V[self.F].mean(axis=1))
+        _, seed = self._centroid_tree.query(p)
+        tri = self.V[self.F[seed]]
+        best_pt = closest_point_on_triangles(p, tri[:, 0], tri[:, 1], tri[:, 2])
+        best_d2 = ((best_pt - p) ** 2).sum(axis=1) * (1 + 1e-12)
+        best_tri = np.asarray(seed, dtype=np.int64)
+        stack = np.zeros((R, self.depth + 2), dtype=np.int64)
+        sp = np.ones(R, dtype=np.int64)
+        active = np.arange(R)
+        while active.size:
+            node = stack[active, sp[active] - 1]
+            sp[active] -= 1
+            pa = p[active]
+            dbox = np.maximum(np.maximum(self.lo[node] - pa, pa - self.hi[node]), 0.0)
+            near = ((dbox * dbox).sum(axis=1) < best_d2[active]) & self.nonempty[node]
+            leaf = node >= self.first_leaf
+            sel = near & leaf
+            if sel.any():
+                rays = active[sel]
+                lf = node[sel] - self.first_leaf
+                cp = closest_point_on_triangles(
+                    p[rays][:, None, :], self.v0[lf], self.v0[lf] + self.e1[lf], self.v0[lf] + self.e2[lf]
+                )
+                d2 = ((cp - p[rays][:, None, :]) ** 2).sum(axis=2)
+                d2 = np.where(self.valid[lf], d2, np.inf)
+                j = np.argmin(d2, axis=1)
+                dj = d2[np.arange(len(d2)), j]
+                better = dj < best_d2[rays]
+                r = rays[better]
+                k = np.nonzero(better)[0]
+                best_d2[r] = dj[better]
+                best_tri[r] = self.leaf_tris[lf[k], j[k]]
+                best_pt[r] = cp[k, j[k]]
+            sel = near & ~leaf
+            if sel.any():
+                rays = active[sel]
+                nd = node[sel]
+                s = sp[rays]
+                # Visit the nearer child first: push it last.
+                c1, c2 = 2 * nd + 1, 2 * nd + 2
+                pr = p[rays]
+                d1 = (np.maximum(np.maximum(self.lo[c1] - pr, pr - self.hi[c1]), 0) ** 2).sum(axis=1)
+                d2_ = (np.maximum(np.maximum(self.lo[c2] - pr, pr - self.hi[c2]), 0) ** 2).sum(axis=1)
+                first = np.where(d1 <= d2_, c1, c2)
+                second = np.where(d1 <= d2_, c2, c1)
+                stack[rays, s] = second
+                stack[rays, s + 1] = first
+                sp[rays] = s + 2
+            active = active[sp[active] > 0]
+        return best_pt, best_tri, np.sqrt(best_d2)
+
+
+def closest_point_on_triangles(p, a, b, c):
+    """Closest point on triangle (a, b, c) to p, broadcast over leading axes.
+
+    Ericson, *Real-Time Collision Detection*, sec. 5.1.5, vectorised: the
+    Voronoi region of the point is resolved with masks instead of branches.
+    """
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = (ab * ap).sum(-1)
+    d2 = (ac * ap).sum(-1)
+    bp = p - b
+    d3 = (ab * bp).sum(-1)
+    d4 = (ac * bp).sum(-1)
+    cp = p - c
+    d5 = (ab * cp).sum(-1)
+    d6 = (ac * cp).sum(-1)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = va + vb + vc
+        v_in = np.where(denom != 0, vb / denom, 0.0)
+        w_in = np.where(denom != 0, vc / denom, 0.0)
+        # edge regions
+        v_ab = np.where(d1 - d3 != 0, d1 / (d1 - d3), 0.0)
+        w_ac = np.where(d2 - d6 != 0, d2 / (d2 - d6), 0.0)
+        w_bc = np.where((d4 - d3) + (d5 - d6) != 0, (d4 - d3) / ((d4 - d3) + (d5 - d6)), 0.0)
+    out = a + ab * v_in[..., None] + ac * w_in[..., None]
+    # Resolve regions from the least to the most specific so later masks win.
+    m_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+    out = np.where(m_bc[..., None], b + (c - b) * w_bc[..., None], out)
+    m_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    out = np.where(m_ac[..., None], a + ac * w_ac[..., None], out)
+    m_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    out = np.where(m_ab[..., None], a + ab * v_ab[..., None], out)
+    m_c = (d6 >= 0) & (d5 <= d6)
+    out = np.where(m_c[..., None], c, out)
+    m_b = (d3 >= 0) & (d4 <= d3)
+    out = np.where(m_b[..., None], b, out)
+    m_a = (d1 <= 0) & (d2 <= 0)
+    out = np.where(m_a[..., None], a, out)
+    return np.broadcast_to(out, np.broadcast_shapes(p.shape, a.shape)).copy()
+
+
+def inside_mesh(bvh: TriangleBVH, points, n_rays: int = 3) -> np.ndarray:
+    """Point-in-solid test by majority vote of ray-parity along several directions.
+
+    Robust to small holes (a few rays may leak through a hole; the vote
+    does not).  ``n_rays`` should be odd.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    dirs = np.array([[0.5773, 0.5774, 0.5775], [-0.7071, 0.0123, 0.7070], [0.0213, -0.9995, 0.0231],
+                     [0.8, 0.36, -0.48], [-0.3, -0.5, -0.81]])[:n_rays]
+    votes = np.zeros(len(p), dtype=np.int64)
+    for d in dirs:
+        d = d / np.linalg.norm(d)
+        votes += count_crossings(bvh, p, d) % 2
+    return votes * 2 > n_rays
+
+
+def count_crossings(bvh: TriangleBVH, points, direction) -> np.ndarray:
+    """Number of surface crossings of the ray ``p + t d``, t > 0, for each point."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    d = np.broadcast_to(np.asarray(direction, dtype=np.float64), p.shape)
+    count = np.zeros(len(p), dtype=np.int64)
+    origin = p.copy()
+    active = np.arange(len(p))
+    scale = float(np.linalg.norm(bvh.hi[0] - bvh.lo[0]))
+    eps = 1e-9 * scale
+    for _ in range(256):
+        if active.size == 0:
+            break
+        t, tri, _, _ = bvh.intersect(origin[active], d[active], tmin=eps)
+        hit = tri >= 0
+        count[active[hit]] += 1
+        origin[active[hit]] = origin[active[hit]] + t[hit, None] * d[active[hit]]
+        active = active[hit]
+    return count
