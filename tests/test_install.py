@@ -1,0 +1,178 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Build the extension zip, validate it, and install it with Blender's real
+mechanism (``bpy.ops.extensions.package_install_files``), then disable it.
+
+Runs on the bpy pinned for tests (5.0.x).  To also run it on another Blender,
+set one variable, e.g.::
+
+    TRANSLUCENCY_BPY=4.5 .venv/bin/python -m pytest -q tests/test_install.py
+
+``test_install_on_other_blender`` then creates ``.venv-bpy45`` (bpy 4.5 LTS,
+numpy and pytest only, via ``tools/setup.sh``) and runs this file there; the
+bundled wheels must then come from the extension, because that environment has
+no scipy, pytetwild or fast_simplification of its own.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tomllib
+import zipfile
+from pathlib import Path
+
+import bpy
+import pytest
+
+from conftest import ROOT, addon_is_registered, factory_reset
+
+MODULE = "bl_ext.user_default.translucency"
+EXPECTED_TOP_LEVEL = {"__init__.py", "blender_manifest.toml", "LICENSE", "ops", "translucency_addon", "wheels"}
+BUNDLED = ("scipy", "pytetwild", "fast_simplification")
+
+
+def _blender_ext() -> Path:
+    scripts = Path(bpy.utils.system_resource('SCRIPTS'))
+    return scripts / "addons_core" / "bl_pkg" / "cli" / "blender_ext.py"
+
+
+@pytest.fixture(scope="session")
+def extension_zip(tmp_path_factory):
+    """Build the zip once per session with tools/build_extension.py."""
+    out = tmp_path_factory.mktemp("dist")
+    summary_path = out / "summary.json"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "tools" / "build_extension.py"),
+         "--output-dir", str(out), "--json", str(summary_path)],
+        capture_output=True, text=True, timeout=1800, cwd=ROOT)
+    assert proc.returncode == 0, f"build failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
+    summary = json.loads(summary_path.read_text())
+    assert len(summary["zips"]) == 1
+    return Path(summary["zips"][0]), summary
+
+
+def test_zip_validates_and_holds_only_the_extension(extension_zip):
+    zip_path, summary = extension_zip
+    proc = subprocess.run([sys.executable, str(_blender_ext()), "validate", str(zip_path)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    with zipfile.ZipFile(zip_path) as zf:
+        names = zf.namelist()
+        manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
+    top = {name.split("/", 1)[0] for name in names}
+    assert top <= EXPECTED_TOP_LEVEL | {"gpu_shaders"}, top - EXPECTED_TOP_LEVEL
+    assert EXPECTED_TOP_LEVEL <= top
+    assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc")]
+
+    assert manifest["id"] == "translucency"
+    assert manifest["type"] == "add-on"
+    assert manifest["license"] == ["SPDX:GPL-3.0-or-later"]
+    # Blender older than 4.2 has no extension system and refuses this manifest;
+    # 4.2+ compares blender_version_min before installing.
+    assert tuple(int(x) for x in manifest["blender_version_min"].split(".")) == (4, 2, 0)
+    assert "linux-x64" in manifest["platforms"]
+    wheels = [Path(w).name for w in manifest["wheels"]]
+    assert sorted("wheels/" + w for w in wheels) == sorted(n for n in names if n.startswith("wheels/") and n != "wheels/")
+    assert not [w for w in wheels if w.startswith("numpy-")], "numpy ships with Blender"
+    linux = summary["wheels"]["linux-x64"]
+    for dist in BUNDLED:
+        assert any(w.startswith(dist + "-") and "linux" in w for w in linux), (dist, linux)
+
+
+def _local_site_packages() -> Path:
+    local = Path(bpy.utils.user_resource('EXTENSIONS', path=".local"))
+    return local / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
+
+
+def _registered_now() -> dict:
+    return {
+        "panel_object": hasattr(bpy.types, "OBJECT_PT_translucency"),
+        "panel_sidebar": hasattr(bpy.types, "VIEW3D_PT_translucency"),
+        "operator": hasattr(bpy.types, "TRANSLUCENCY_OT_check_dependencies"),
+        "object_settings": "translucency" in bpy.types.Object.bl_rna.properties,
+        "scene_settings": "translucency" in bpy.types.Scene.bl_rna.properties,
+    }
+
+
+def test_install_enable_disable(extension_zip, tmp_path):
+    zip_path, _summary = extension_zip
+    working_tree = sys.modules.get("translucency")
+    if working_tree is not None and addon_is_registered(working_tree):
+        working_tree.unregister()
+    factory_reset()
+    assert not any(_registered_now().values()), "nothing may be registered before the install"
+
+    result = bpy.ops.extensions.package_install_files(
+        filepath=str(zip_path), repo='user_default', enable_on_install=True)
+    try:
+        assert result == {'FINISHED'}
+        assert MODULE in bpy.context.preferences.addons
+        assert all(_registered_now().values()), _registered_now()
+        assert hasattr(bpy.ops.translucency, "check_dependencies")
+        module = sys.modules[MODULE]
+        assert Path(module.__file__).parent == Path(bpy.utils.user_resource('EXTENSIONS')) / "user_default" / "translucency"
+
+        # Blender unpacked the linux wheels into the extensions' site-packages.
+        site = _local_site_packages()
+        for dist in BUNDLED:
+            assert (site / dist).is_dir(), f"{dist} was not installed into {site}"
+        module.ops.dependencies.clear_cache()
+        assert module.ops.dependencies.missing() == []
+        bpy.ops.translucency.check_dependencies()
+
+        # The installed wheels work on their own: import them (and tetrahedralize
+        # a tetrahedron) with the extensions' site-packages first on the path.
+        code = (
+            "import numpy as np, scipy.sparse.linalg, fast_simplification, pytetwild\n"
+            "V = np.array([[0,0,0],[1,0,0],[0,1,0],[0,0,1]], float)\n"
+            "F = np.array([[0,2,1],[0,1,3],[0,3,2],[1,2,3]], np.int32)\n"
+            "v, t = pytetwild.tetrahedralize(V, F, optimize=False, quiet=True)\n"
+            "assert len(t) > 0\n"
+            "print(scipy.__file__); print(pytetwild.__file__); print(fast_simplification.__file__)\n")
+        env = dict(os.environ, PYTHONPATH=str(site))
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              env=env, cwd=tmp_path, timeout=300)
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        for line in proc.stdout.split():
+            assert Path(line).is_relative_to(site), f"{line} is not from the extension's wheels"
+
+        # Disable: every class and property is gone.
+        assert bpy.ops.preferences.addon_disable(module=MODULE) == {'FINISHED'}
+        assert MODULE not in bpy.context.preferences.addons
+        assert not any(_registered_now().values()), _registered_now()
+    finally:
+        if MODULE in bpy.context.preferences.addons:
+            bpy.ops.preferences.addon_disable(module=MODULE)
+        repo_index = next(i for i, repo in enumerate(bpy.context.preferences.extensions.repos)
+                          if repo.module == "user_default")
+        bpy.ops.extensions.package_uninstall(repo_index=repo_index, pkg_id="translucency")
+        factory_reset()
+    assert not (Path(bpy.utils.user_resource('EXTENSIONS')) / "user_default" / "translucency").exists()
+
+
+def test_install_on_other_blender():
+    """TRANSLUCENCY_BPY=4.5 runs this file again in .venv-bpy45 (bpy 4.5 LTS)."""
+    wanted = os.environ.get("TRANSLUCENCY_BPY", "").strip()
+    if not wanted:
+        pytest.skip("set TRANSLUCENCY_BPY=4.5 (or another bpy version) to also install into that Blender")
+    version = wanted.removesuffix(".x").removesuffix(".*")
+    if bpy.app.version_string.startswith(version):
+        pytest.skip(f"already running on bpy {bpy.app.version_string}")
+    major, minor = version.split(".")[:2]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("BLENDER_USER_")}
+    setup = subprocess.run(["bash", str(ROOT / "tools" / "setup.sh")], cwd=ROOT, env=env,
+                           capture_output=True, text=True, timeout=1800)
+    assert setup.returncode == 0, setup.stdout[-3000:] + setup.stderr[-3000:]
+    python = ROOT / f".venv-bpy{major}{minor}" / "bin" / "python"
+    env.pop("TRANSLUCENCY_BPY")
+    probe = subprocess.run([str(python), "-c", "import bpy; print(bpy.app.version_string)"],
+                           env=env, capture_output=True, text=True, timeout=300)
+    assert probe.stdout.strip().startswith(version), probe.stdout + probe.stderr
+    print(f"installing into bpy {probe.stdout.strip()} ({python})")
+    proc = subprocess.run([str(python), "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                           str(ROOT / "tests" / "test_install.py")],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=1800)
+    print(proc.stdout[-3000:])
+    assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-3000:]
