@@ -1,0 +1,399 @@
+"""The QuadGraph bake (Wang et al. 2010, sec. 4.1 and 5.1): mesh in, multi-resolution graph out.
+
+Stages, each reported to the ``progress`` callback:
+
+1. validate the mesh (``meshio.validate_mesh``);
+2. resample the surface to the triangle count the quality needs
+   (fast_simplification, a quadric decimator) -- the original surface is kept
+   for placing surface nodes;
+3. tetrahedralise with fTetWild (``tetra.tetrahedralize``);
+4. build the finer levels: nested 1-to-8 refinement (default) or independent
+   tetrahedralisations of 4x denser surfaces (the paper's way);
+   snap boundary vertices to the original surface; split C2/C3 tets;
+5. build every level's QuadGraph and its GPU block order;
+6. Shepard weights between consecutive levels (eq. 10) and the mapping of
+   the user's vertices onto the finest surface nodes.
+
+Timings per stage, node counts per level and tet-quality statistics go into
+``Bake.stats``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from . import meshio, tetra
+from .errors import BakeCancelled, MeshError
+from .quadgraph import BLOCK_SIZE, GraphLevel, build_level
+from .raycast import TriangleBVH
+
+BAKE_FORMAT = 1
+
+# Quality presets.  ``base_triangles``: triangles of the resampled surface
+# that the coarsest level is tetrahedralised from; ``K``: interior coarsening,
+# fTetWild's target edge length is (1 + K) times the surface triangle size
+# (the role of the paper's K: how much larger inner tets are than surface
+# ones); each finer level has ~4x the surface nodes of the previous one.
+QUALITY_PRESETS = {
+    "draft": dict(base_triangles=600, K=1.0, levels=2),
+    "preview": dict(base_triangles=1000, K=1.0, levels=3),
+    "final": dict(base_triangles=1800, K=0.5, levels=3),
+}
+
+
+@dataclass(frozen=True)
+class BakeSettings:
+    quality: str = "preview"
+    levels: int | None = None  # None: the preset's
+    base_triangles: int | None = None
+    K: float | None = None
+    level_mode: str = "refine"  # "refine" (nested) or "independent" (paper)
+    optimize: bool = True  # fTetWild optimisation; False leaves slivers
+    opt_iterations: int = 3
+    stop_energy: float = 50.0
+    snap_to_surface: bool = True
+    relax_iterations: int = 0
+    block_size: int = BLOCK_SIZE
+    mm_per_unit: float = 1.0
+    memory_budget: int = meshio.DEFAULT_MEMORY_BUDGET_BYTES
+    shepard_surface: int = 4  # b for surface nodes (eq. 10)
+    shepard_inner: int = 8  # b for inner nodes (eq. 10)
+    vertex_map_k: int = 6
+
+    def resolved(self) -> "BakeSettings":
+        q = self.quality.lower()
+        if q not in QUALITY_PRESETS:
+            raise MeshError(f"unknown quality {self.quality!r}; choose one of {', '.join(QUALITY_PRESETS)}")
+        p = QUALITY_PRESETS[q]
+        r = replace(
+            self,
+            quality=q,
+            levels=int(self.levels if self.levels is not None else p["levels"]),
+            base_triangles=int(self.base_triangles if self.base_triangles is not None else p["base_triangles"]),
+            K=float(self.K if self.K is not None else p["K"]),
+        )
+        if not 1 <= r.levels <= 6:
+            raise MeshError(f"levels must be between 1 and 6, got {r.levels}")
+        if r.level_mode not in ("refine", "independent"):
+            raise MeshError(f"level_mode must be 'refine' or 'independent', got {r.level_mode!r}")
+        if not (np.isfinite(r.mm_per_unit) and r.mm_per_unit > 0):
+            raise MeshError(f"mm_per_unit must be a positive number, got {r.mm_per_unit}")
+        if r.K < 0 or r.base_triangles < 20:
+            raise MeshError("K must be >= 0 and base_triangles >= 20")
+        return r
+
+    def expected_nodes(self) -> int:
+        """Rough node count of the finest level (for the memory estimate)."""
+        r = self.resolved()
+        surf = 1.3 * r.base_triangles * 4 ** (r.levels - 1)
+        inner = 4.0 * r.base_triangles / (1 + r.K) ** 2 * 8 ** (r.levels - 1)
+        return int(surf + inner)
+
+    def key_dict(self) -> dict:
+        """Settings that change the baked graph (mm_per_unit does not)."""
+        d = asdict(self.resolved())
+        d.pop("mm_per_unit")
+        d.pop("memory_budget")
+        return d
+
+
+@dataclass
+class Bake:
+    """A baked multi-resolution QuadGraph with everything the solver needs."""
+
+    levels: list[GraphLevel]  # coarse -> fine
+    shepard: list[tuple[np.ndarray, np.ndarray]]  # [k]: level k -> k+1, (idx (N_{k+1}, 8), w)
+    vertex_map: tuple[np.ndarray, np.ndarray]  # (idx (n_vert, K) into finest surface nodes, w)
+    mesh_vertices: np.ndarray  # the user's mesh (object units)
+    mesh_faces: np.ndarray
+    mesh_normals: np.ndarray
+    shadow_vertices: np.ndarray  # resampled surface, used as the self-occluder for shadow rays
+    shadow_faces: np.ndarray
+    settings: BakeSettings
+    mm_per_unit: float
+    key: str
+    stats: dict = field(default_factory=dict)
+    single_scattering: object | None = None  # single_scattering data, when baked
+
+    @property
+    def finest(self) -> GraphLevel:
+        return self.levels[-1]
+
+    def with_scale(self, mm_per_unit: float) -> "Bake":
+        """The same bake at another scene scale (no re-bake needed: geometry is in object units)."""
+        return replace(self, mm_per_unit=float(mm_per_unit))
+
+    def graph_bytes(self) -> int:
+        total = sum(lv.nbytes() for lv in self.levels)
+        total += sum(i.nbytes + w.nbytes for i, w in self.shepard)
+        return int(total + self.vertex_map[0].nbytes + self.vertex_map[1].nbytes)
+
+
+def mesh_key(V, F, settings: BakeSettings) -> str:
+    """Hash of the mesh and the settings that shape the graph: a stale cache has another key."""
+    h = hashlib.sha256()
+    h.update(f"translucency-bake-{BAKE_FORMAT}".encode())
+    h.update(np.ascontiguousarray(V, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(F, dtype=np.int64).tobytes())
+    h.update(json.dumps(settings.key_dict(), sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def resample_surface(V, F, n_triangles: int):
+    """Decimate to about ``n_triangles`` with quadric edge collapse (fast_simplification).
+
+    Meshes already at or below the target are returned cleaned but unchanged.
+    """
+    Vc, Fc, _ = meshio.clean_mesh(V, F)
+    if len(Fc) <= n_triangles:
+        return Vc, Fc
+    try:
+        import fast_simplification
+    except ImportError as exc:  # pragma: no cover - depends on the install
+        raise MeshError(f"the decimation library (fast_simplification) is not available: {exc}") from exc
+    reduction = 1.0 - n_triangles / len(Fc)
+    V2, F2 = fast_simplification.simplify(Vc.astype(np.float32), Fc.astype(np.int32), target_reduction=reduction)
+    V2 = np.asarray(V2, dtype=np.float64)
+    F2 = np.asarray(F2, dtype=np.int64)
+    V2, F2, _ = meshio.clean_mesh(V2, F2)
+    if len(F2) < 4:
+        raise MeshError("surface resampling collapsed the mesh; lower the reduction")
+    return V2, F2
+
+
+def triangle_size(V, F, n_triangles: int) -> float:
+    """Edge length of an equilateral triangle tiling the surface with n triangles."""
+    area = float(meshio.triangle_areas(V, F).sum())
+    return float(np.sqrt(4.0 * area / (np.sqrt(3.0) * max(n_triangles, 1))))
+
+
+def shepard_weights(fine: np.ndarray, coarse: np.ndarray, b: int):
+    """Inverse-square-distance weights of eq. 10 from b nearest coarse nodes (KD-tree).
+
+    w'_xy = 1 / |n_x - n_y|^2, w_xy = w'_xy / sum_y w'_xy.  A fine node that
+    coincides with a coarse node takes that node's value.
+    """
+    from scipy.spatial import cKDTree
+
+    b = min(b, len(coarse))
+    dist, idx = cKDTree(coarse).query(fine, k=b)
+    if b == 1:
+        dist, idx = dist[:, None], idx[:, None]
+    d2 = dist * dist
+    exact = d2[:, 0] <= 1e-30
+    w = 1.0 / np.maximum(d2, 1e-300)
+    w[exact] = 0.0
+    w[exact, 0] = 1.0
+    w /= w.sum(axis=1, keepdims=True)
+    return idx.astype(np.int64), w
+
+
+def level_transfer(coarse: GraphLevel, fine: GraphLevel, b_surface: int, b_inner: int):
+    """Shepard indices/weights from ``coarse`` to ``fine`` (surface and inner nodes separately).
+
+    Returns ``(idx (N_fine, max b) int32 global coarse indices, -1 padded; w float32)``.
+    """
+    B = max(b_surface, b_inner)
+    idx = np.full((fine.n_nodes, B), -1, dtype=np.int64)
+    w = np.zeros((fine.n_nodes, B))
+    i_idx, i_w = shepard_weights(fine.position[fine.inner], coarse.position[coarse.inner], b_inner)
+    idx[: fine.n_inner, : i_idx.shape[1]] = i_idx
+    w[: fine.n_inner, : i_w.shape[1]] = i_w
+    s_idx, s_w = shepard_weights(fine.surface_position, coarse.surface_position, b_surface)
+    idx[fine.n_inner:, : s_idx.shape[1]] = s_idx + coarse.n_inner
+    w[fine.n_inner:, : s_w.shape[1]] = s_w
+    return idx.astype(np.int32), w.astype(np.float32)
+
+
+def vertex_mapping(V, normals, level: GraphLevel, k: int = 6):
+    """Weights from the finest surface nodes to each vertex of the user's mesh.
+
+    Among the k nearest surface nodes, weight ``max(0, n_v . n_s)^2 / (d^2 + h^2)``
+    (h: median surface-node spacing) so that a vertex never takes radiance
+    from the other side of a thin part; if all weights vanish it takes its
+    nearest node.  Returns ``(idx (n, k) into surface nodes, w (n, k))``.
+    """
+    from scipy.spatial import cKDTree
+
+    sp = level.surface_position
+    k = min(k, len(sp))
+    tree = cKDTree(sp)
+    dist, idx = tree.query(V, k=k)
+    if k == 1:
+        dist, idx = dist[:, None], idx[:, None]
+    h = float(np.median(tree.query(sp, k=2)[0][:, 1])) if len(sp) > 1 else 1.0
+    agree = np.einsum("vj,vkj->vk", normals, level.normal[idx])
+    w = np.maximum(agree, 0.0) ** 2 / (dist * dist + h * h)
+    none = w.sum(axis=1) <= 0
+    w[none] = 0.0
+    w[none, 0] = 1.0
+    w /= w.sum(axis=1, keepdims=True)
+    return idx.astype(np.int32), w.astype(np.float32)
+
+
+class _Progress:
+    """Stage bookkeeping: forwards (fraction, stage) to the callback and times stages."""
+
+    def __init__(self, callback, plan: list[tuple[str, float]]):
+        self.callback = callback
+        self.weights = dict(plan)
+        total = sum(self.weights.values())
+        self.start = {}
+        acc = 0.0
+        for name, wgt in plan:
+            self.start[name] = acc / total
+            acc += wgt
+        self.total = total
+        self.timings: dict[str, float] = {}
+        self._t0 = None
+        self._stage = None
+
+    def stage(self, name: str):
+        self._finish()
+        self._stage = name
+        self._t0 = time.perf_counter()
+        self._emit(self.start.get(name, 0.0), name)
+
+    def within(self, name: str, fraction: float):
+        """Report progress ``fraction`` (0..1) of the way through stage ``name``."""
+        self._emit(self.start.get(name, 0.0) + fraction * self.weights.get(name, 0.0) / self.total, name)
+
+    def _emit(self, frac, name):
+        if self.callback is not None:
+            if self.callback(float(min(frac, 1.0)), name) is False:
+                raise BakeCancelled(f"bake cancelled during '{name}'")
+
+    def _finish(self):
+        if self._stage is not None:
+            self.timings[self._stage] = self.timings.get(self._stage, 0.0) + time.perf_counter() - self._t0
+            self._stage = None
+
+    def done(self):
+        self._finish()
+        self._emit(1.0, "done")
+
+
+def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> Bake:
+    """Bake the multi-resolution QuadGraph of a triangle mesh (object units).
+
+    ``progress(fraction, stage)`` is called between stages; returning False
+    (or raising :class:`BakeCancelled`) cancels the bake, which then raises
+    :class:`BakeCancelled` and returns nothing.
+    """
+    s = settings.resolved()
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    plan = [("validate", 1), ("resample", 1), ("tetrahedralize", 10), ("levels", 4), ("quadgraph", 6), ("transfer", 2)]
+    pr = _Progress(progress, plan)
+    t_start = time.perf_counter()
+
+    pr.stage("validate")
+    report = meshio.validate_mesh(V, F, target_nodes=s.expected_nodes(), memory_budget=s.memory_budget)
+    key = mesh_key(V, F, s)
+    used = np.zeros(len(V), dtype=bool)
+    used[F.ravel()] = True
+    Fo = F
+    normals = meshio.vertex_normals(V, Fo)
+    bvh = TriangleBVH(V, Fo)
+
+    pr.stage("resample")
+    target = s.base_triangles
+    surfaces = []
+    if s.level_mode == "independent":
+        for lvl in range(s.levels):
+            surfaces.append(resample_surface(V, Fo, target * 4**lvl))
+    else:
+        surfaces.append(resample_surface(V, Fo, target))
+    Vb, Fb = surfaces[0]
+
+    pr.stage("tetrahedralize")
+    tets = []
+    for lvl, (Vs, Fs) in enumerate(surfaces):
+        h = triangle_size(Vs, Fs, len(Fs))
+        TV, TT = tetra.tetrahedralize(Vs, Fs, edge_length=(1.0 + s.K) * h, optimize=s.optimize,
+                                      opt_iterations=s.opt_iterations, stop_energy=s.stop_energy)
+        tets.append((TV, TT, h))
+        pr.within("tetrahedralize", (lvl + 1) / len(surfaces))
+
+    pr.stage("levels")
+    meshes = []  # final (TV, TT, topo) per level
+    level_stats = []
+    prev = None
+    for lvl in range(s.levels):
+        st = {}
+        if s.level_mode == "independent" or lvl == 0:
+            TV, TT, h = tets[lvl if s.level_mode == "independent" else 0]
+            st["surface_triangles"] = int(len(surfaces[lvl if s.level_mode == "independent" else 0][1]))
+        else:
+            TV, TT, _ = tetra.refine(*prev[:2])
+            h = prev[2] * 0.5
+        topo = tetra.topology(TT, len(TV))
+        if s.snap_to_surface:
+            TV, moved = tetra.snap_boundary(TV, TT, topo, bvh, max_move=0.5 * h)
+            st["snapped_vertices"] = moved
+        TV, TT, n_split = tetra.split_multi_boundary(TV, TT, topo)
+        st["split_tets"] = int(n_split)
+        topo = tetra.topology(TT, len(TV)) if n_split else topo
+        meshes.append((TV, TT, topo))
+        level_stats.append(st)
+        prev = (TV, TT, h)
+
+    pr.stage("quadgraph")
+    levels = []
+    for lvl, (TV, TT, topo) in enumerate(meshes):
+        gl = build_level(TV, TT, bvh, normals, relax_iterations=s.relax_iterations,
+                         block_size=s.block_size, topo=topo)
+        gl.stats.update(level_stats[lvl])
+        levels.append(gl)
+        pr.within("quadgraph", (lvl + 1) / len(meshes))
+
+    pr.stage("transfer")
+    shepard = [level_transfer(levels[k], levels[k + 1], s.shepard_surface, s.shepard_inner)
+               for k in range(len(levels) - 1)]
+    vmap = vertex_mapping(V, normals, levels[-1], s.vertex_map_k)
+    pr.done()
+
+    stats = {
+        "mesh": {
+            "vertices": report.n_vertices, "triangles": report.n_triangles, "holes": report.holes,
+            "boundary_edges": report.boundary_edges, "warnings": report.warnings,
+        },
+        "resampled_triangles": [int(len(f)) for _, f in surfaces],
+        "levels": [dict(lv.stats) for lv in levels],
+        "timings": {k: round(v, 4) for k, v in pr.timings.items()},
+        "seconds": round(time.perf_counter() - t_start, 4),
+        "settings": asdict(s),
+    }
+    bake = Bake(levels=levels, shepard=shepard, vertex_map=vmap, mesh_vertices=V, mesh_faces=F,
+                mesh_normals=normals, shadow_vertices=Vb, shadow_faces=Fb, settings=s,
+                mm_per_unit=float(s.mm_per_unit), key=key, stats=stats)
+    stats["graph_bytes"] = bake.graph_bytes()
+    return bake
+
+
+def format_stats(bake: Bake) -> str:
+    """Human-readable bake report (CLI and Info log)."""
+    st = bake.stats
+    lines = [
+        f"mesh: {st['mesh']['vertices']} vertices, {st['mesh']['triangles']} triangles"
+        + (f", {st['mesh']['holes']} holes" if st['mesh']['holes'] else ""),
+        f"resampled surface: {', '.join(str(x) for x in st['resampled_triangles'])} triangles",
+    ]
+    for i, lv in enumerate(bake.levels):
+        q = lv.stats
+        lines.append(
+            f"level {i}: N_s={lv.n_surface:,} N_i={lv.n_inner:,} "
+            f"tet quality min {q.get('tet_quality_min', 0):.3g} median {q.get('tet_quality_median', 0):.3g}"
+            + (f", split {q['split_tets']}" if q.get("split_tets") else "")
+        )
+    t = st["timings"]
+    lines.append("seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in t.items()) + f"; total {st['seconds']:.2f}")
+    lines.append(f"graph memory: {bake.graph_bytes() / 2**20:.1f} MiB")
+    for w in st["mesh"]["warnings"]:
+        lines.append(f"warning: {w}")
+    return "\n".join(lines)

@@ -1,0 +1,186 @@
+"""Versioned bake cache: one ``.npz`` per object, read with ``allow_pickle=False``.
+
+Layout: numeric arrays only.  Metadata (format version, key, settings,
+statistics) is JSON stored as a ``uint8`` array, never a pickled object, so a
+cache file that a .blend points to can never execute code.  Writes go to a
+temporary file that is renamed into place, so a crash or a cancelled bake
+never leaves a half-written cache under the real name.
+
+Errors (missing, truncated, corrupt, wrong version, stale key) raise
+:class:`CacheError` with a message naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+
+import numpy as np
+
+from .bake import Bake, BakeSettings
+from .errors import CacheError
+from .quadgraph import GraphLevel
+
+CACHE_FORMAT = 1
+MAGIC = "translucency-cache"
+
+
+def _json_array(obj) -> np.ndarray:
+    return np.frombuffer(json.dumps(obj, sort_keys=True, default=_json_default).encode("utf-8"), dtype=np.uint8)
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def _read_json(arr) -> dict:
+    return json.loads(np.asarray(arr, dtype=np.uint8).tobytes().decode("utf-8"))
+
+
+def bake_to_arrays(bake: Bake) -> dict:
+    d: dict[str, np.ndarray] = {}
+    for i, lv in enumerate(bake.levels):
+        d.update(lv.to_arrays(f"L{i}/"))
+    for i, (idx, w) in enumerate(bake.shepard):
+        d[f"T{i}/idx"] = idx
+        d[f"T{i}/w"] = w
+    d["vmap/idx"], d["vmap/w"] = bake.vertex_map
+    d["mesh/V"] = bake.mesh_vertices
+    d["mesh/F"] = bake.mesh_faces
+    d["mesh/N"] = bake.mesh_normals
+    d["shadow/V"] = bake.shadow_vertices
+    d["shadow/F"] = bake.shadow_faces
+    meta = {
+        "magic": MAGIC,
+        "format": CACHE_FORMAT,
+        "key": bake.key,
+        "mm_per_unit": bake.mm_per_unit,
+        "settings": bake.settings.__dict__,
+        "stats": bake.stats,
+        "level_stats": [lv.stats for lv in bake.levels],
+        "n_levels": len(bake.levels),
+        "single_scattering": bake.single_scattering is not None,
+    }
+    if bake.single_scattering is not None:
+        d.update(bake.single_scattering.to_arrays(prefix="ss/"))
+    d["meta"] = _json_array(meta)
+    return d
+
+
+def save_bake(path, bake: Bake) -> str:
+    """Write ``bake`` to ``path`` atomically; returns the path."""
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    arrays = bake_to_arrays(bake)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".npz", dir=folder)
+    os.close(fd)
+    try:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    return path
+
+
+def read_meta(path) -> dict:
+    """Only the metadata of a cache (cheap; used to show stats and detect staleness)."""
+    with _open(path) as z:
+        return _meta(z, path)
+
+
+def _open(path):
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise CacheError(f"bake cache {path!r} does not exist (re-bake the object)")
+    try:
+        return np.load(path, allow_pickle=False)
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        raise CacheError(f"bake cache {path!r} is corrupt or truncated: {exc}") from exc
+
+
+def _meta(z, path) -> dict:
+    try:
+        meta = _read_json(z["meta"])
+    except KeyError as exc:
+        raise CacheError(f"{path!r} is not a Translucency bake cache (no metadata)") from exc
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, UnicodeDecodeError) as exc:
+        raise CacheError(f"bake cache {path!r} is corrupt or truncated: {exc}") from exc
+    if meta.get("magic") != MAGIC:
+        raise CacheError(f"{path!r} is not a Translucency bake cache")
+    if meta.get("format") != CACHE_FORMAT:
+        raise CacheError(
+            f"bake cache {path!r} has format version {meta.get('format')}, this version reads "
+            f"{CACHE_FORMAT}; re-bake the object"
+        )
+    return meta
+
+
+def load_bake(path, expected_key: str | None = None) -> Bake:
+    """Read a bake back.  ``expected_key`` (from :func:`bake.mesh_key`) detects a stale cache."""
+    with _open(path) as z:
+        meta = _meta(z, path)
+        if expected_key is not None and meta["key"] != expected_key:
+            raise CacheError(
+                f"bake cache {os.fspath(path)!r} is stale: the mesh or the bake settings changed since it was "
+                "written; re-bake the object"
+            )
+        try:
+            arrays = {k: z[k] for k in z.files}
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+            raise CacheError(f"bake cache {os.fspath(path)!r} is corrupt or truncated: {exc}") from exc
+    try:
+        n = int(meta["n_levels"])
+        levels = [GraphLevel.from_arrays(arrays, f"L{i}/", stats=meta["level_stats"][i]) for i in range(n)]
+        shepard = [(arrays[f"T{i}/idx"], arrays[f"T{i}/w"]) for i in range(n - 1)]
+        settings = BakeSettings(**meta["settings"])
+        ss = None
+        if meta.get("single_scattering"):
+            from .single_scattering import SingleScatteringData
+
+            ss = SingleScatteringData.from_arrays(arrays, prefix="ss/")
+        bake = Bake(
+            levels=levels, shepard=shepard, vertex_map=(arrays["vmap/idx"], arrays["vmap/w"]),
+            mesh_vertices=arrays["mesh/V"], mesh_faces=arrays["mesh/F"], mesh_normals=arrays["mesh/N"],
+            shadow_vertices=arrays["shadow/V"], shadow_faces=arrays["shadow/F"], settings=settings,
+            mm_per_unit=float(meta["mm_per_unit"]), key=meta["key"], stats=meta["stats"],
+            single_scattering=ss,
+        )
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise CacheError(f"bake cache {os.fspath(path)!r} is incomplete or inconsistent: {exc}") from exc
+    _check_consistency(bake, path)
+    return bake
+
+
+def _check_consistency(bake: Bake, path) -> None:
+    """Reject caches whose arrays disagree with each other (hand-edited or damaged files)."""
+    for i, lv in enumerate(bake.levels):
+        N = lv.n_nodes
+        shapes = {
+            "position": (N, 3), "neighbors": (N, 4), "edge_length": (N, 4), "face_area": (N, 4),
+            "volume": (lv.n_inner,), "normal": (lv.n_surface, 3), "area": (lv.n_surface,),
+        }
+        for name, shape in shapes.items():
+            if getattr(lv, name).shape != shape:
+                raise CacheError(f"bake cache {os.fspath(path)!r}: level {i} {name} has shape "
+                                 f"{getattr(lv, name).shape}, expected {shape}")
+        nb = lv.neighbors
+        if nb.size and (nb.max() >= N or nb.min() < -1):
+            raise CacheError(f"bake cache {os.fspath(path)!r}: level {i} has neighbour indices out of range")
+        for name in ("position", "edge_length", "face_area", "volume", "normal", "area"):
+            if not np.all(np.isfinite(getattr(lv, name))):
+                raise CacheError(f"bake cache {os.fspath(path)!r}: level {i} {name} contains NaN or Inf")
+    idx, w = bake.vertex_map
+    if len(idx) != len(bake.mesh_vertices) or (idx.size and idx.max() >= bake.levels[-1].n_surface):
+        raise CacheError(f"bake cache {os.fspath(path)!r}: vertex mapping does not match the mesh")

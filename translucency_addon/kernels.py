@@ -1,0 +1,85 @@
+"""Numpy twins of the GPU compute kernels (``gpu_shaders/*.glsl``).
+
+Each function here does, for all nodes at once, exactly what one dispatch of
+the matching GLSL kernel does per texel, on the same packed data:
+
+* ``nbr`` (N, 4) int: neighbour node indices, -1 where there is none;
+* ``off`` (N, 4, 3): the positive off-diagonal coefficients c_ij per channel;
+* ``diag`` (N, 3): the diagonal a_ii;
+* a row reads  ``diag_i phi_i - sum_j c_ij phi_j = b_i``.
+
+Both discretisations (the paper's eq. 5/6 and our conservative one) are
+expressed in this form, so the kernels do not know which one they run.  The
+CPU solver calls these functions; the GPU path dispatches the GLSL twins; the
+parity tests run both on the same inputs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def gather(nbr: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """x at the 4 neighbours of every node, zero where there is no neighbour: (N, 4, C)."""
+    xp = np.concatenate([x, np.zeros((1,) + x.shape[1:], dtype=x.dtype)])
+    return xp[nbr]  # index -1 picks the zero row
+
+
+def offdiag_product(nbr, off, x) -> np.ndarray:
+    """sum_j c_ij x_j for every node: (N, C)."""
+    return np.einsum("nkc,nkc->nc", off, gather(nbr, x))
+
+
+def apply_matrix(nbr, off, diag, x) -> np.ndarray:
+    """A x = diag x - sum_j c_ij x_j."""
+    return diag * x - offdiag_product(nbr, off, x)
+
+
+def jacobi_sweep(nbr, off, diag, b, x) -> np.ndarray:
+    """One Jacobi relaxation: x_i <- (b_i + sum_j c_ij x_j) / diag_i.
+
+    With the paper's coefficients this is exactly eqs. 8 and 9 (kernel
+    ``jacobi.glsl``).
+    """
+    return (b + offdiag_product(nbr, off, x)) / diag
+
+
+def residual(nbr, off, diag, b, x) -> np.ndarray:
+    """r = b - A x (kernel ``residual.glsl``)."""
+    return b - apply_matrix(nbr, off, diag, x)
+
+
+def chebyshev_step(nbr, off, diag, x, r, d, coef_d, coef_r):
+    """One fused step of Chebyshev semi-iteration (kernel ``chebyshev.glsl``).
+
+    x' = x + d;  r' = r - A d;  d' = coef_d * d + coef_r * r' / diag
+
+    (Saad, *Iterative Methods for Sparse Linear Systems*, 2nd ed., Alg. 12.1,
+    with the Jacobi preconditioner D; ``coef_d = rho_{k+1} rho_k`` and
+    ``coef_r = 2 rho_{k+1} / delta`` are per channel scalars computed on the
+    host.)  Every output of node i needs only its own x, r, d and the d of its
+    4 neighbours, so one dispatch does the whole step.
+    """
+    x2 = x + d
+    r2 = r - apply_matrix(nbr, off, diag, d)
+    d2 = coef_d * d + coef_r * r2 / diag
+    return x2, r2, d2
+
+
+def squared_norms(v: np.ndarray) -> np.ndarray:
+    """Per-channel sum of squares (the reduction of ``reduce.glsl``)."""
+    return np.einsum("nc,nc->c", v, v)
+
+
+def shepard_upsample(idx: np.ndarray, w: np.ndarray, x_coarse: np.ndarray) -> np.ndarray:
+    """Eq. 10: x_fine = sum_y w_xy x_coarse[y] over b coarse nodes (kernel ``upsample.glsl``)."""
+    return np.einsum("nb,nbc->nc", w.astype(x_coarse.dtype), gather(idx, x_coarse))
+
+
+def outgoing_partial_current(phi_s: np.ndarray, q: np.ndarray, fdr: float) -> np.ndarray:
+    """J+ = max(0, phi - 2 q) / (2 (1 + F_dr)) at surface nodes (kernel ``radiance.glsl``).
+
+    Derived in ``diffusion.py``; negative values are clamped to zero (see
+    ``diffusion.outgoing_radiance`` for when they can occur and why).
+    """
+    return np.maximum(phi_s - 2.0 * q, 0.0) / (2.0 * (1.0 + fdr))

@@ -1,0 +1,114 @@
+"""Procedural test meshes (closed, outward-oriented triangle meshes): bpy-free.
+
+Used by tests, benchmarks and the reference scenes where an analytic answer
+exists (the sphere) or a hard case must be built (thin shells, high genus).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def icosphere(radius: float = 1.0, subdivisions: int = 3, center=(0.0, 0.0, 0.0)):
+    t = (1.0 + 5**0.5) / 2.0
+    V = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], dtype=np.float64)
+    F = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+                  [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+                  [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]], dtype=np.int64)
+    V /= np.linalg.norm(V, axis=1, keepdims=True)
+    for _ in range(subdivisions):
+        e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+        uniq, inv = np.unique(e, axis=0, return_inverse=True)
+        inv = inv.reshape(3, -1).T
+        mids = V[uniq].mean(axis=1)
+        mids /= np.linalg.norm(mids, axis=1, keepdims=True)
+        m = len(V) + inv
+        V = np.vstack([V, mids])
+        a, b, c = F.T
+        mab, mbc, mca = m[:, 0], m[:, 1], m[:, 2]
+        F = np.concatenate([np.stack([a, mab, mca], 1), np.stack([b, mbc, mab], 1),
+                            np.stack([c, mca, mbc], 1), np.stack([mab, mbc, mca], 1)])
+    return V * radius + np.asarray(center, dtype=np.float64), F
+
+
+def box(size=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0), subdivisions: int = 0):
+    """Axis-aligned box, optionally with each face split into (2^s)^2 quads."""
+    n = 2**subdivisions
+    g = np.linspace(-0.5, 0.5, n + 1)
+    Vs, Fs = [], []
+    off = 0
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            u, v = [a for a in range(3) if a != axis]
+            U, W = np.meshgrid(g, g, indexing="ij")
+            P = np.zeros((n + 1, n + 1, 3))
+            P[..., axis] = 0.5 * sign
+            P[..., u] = U
+            P[..., v] = W
+            idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1) + off
+            a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
+            tris = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+            # Orient outward: normal of (a,b,c) is u x v = +axis direction for even permutations.
+            nrm = np.cross(np.eye(3)[u], np.eye(3)[v])
+            if np.dot(nrm, np.eye(3)[axis]) * sign < 0:
+                tris = tris[:, [0, 2, 1]]
+            Vs.append(P.reshape(-1, 3))
+            Fs.append(tris)
+            off += (n + 1) ** 2
+    V = np.concatenate(Vs) * np.asarray(size) + np.asarray(center)
+    F = np.concatenate(Fs)
+    # Merge the duplicated edge vertices.
+    key = np.round(V * 1e9).astype(np.int64)
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return V[first], inv.reshape(-1)[F]
+
+
+def torus(major: float = 1.0, minor: float = 0.3, n_major: int = 48, n_minor: int = 16,
+          center=(0.0, 0.0, 0.0), axis: int = 2):
+    """Torus around ``axis`` (0, 1 or 2)."""
+    i, j = np.meshgrid(np.arange(n_major), np.arange(n_minor), indexing="ij")
+    u = 2 * np.pi * i / n_major
+    v = 2 * np.pi * j / n_minor
+    x = (major + minor * np.cos(v)) * np.cos(u)
+    y = (major + minor * np.cos(v)) * np.sin(u)
+    z = minor * np.sin(v)
+    P = np.stack([x, y, z], -1).reshape(-1, 3)
+    perm = {2: [0, 1, 2], 0: [2, 0, 1], 1: [1, 2, 0]}[axis]
+    P = P[:, perm]
+    idx = np.arange(n_major * n_minor).reshape(n_major, n_minor)
+    a = idx
+    b = np.roll(idx, -1, axis=0)
+    c = np.roll(np.roll(idx, -1, axis=0), -1, axis=1)
+    d = np.roll(idx, -1, axis=1)
+    F = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    return P + np.asarray(center), F
+
+
+def merge(*meshes):
+    """Concatenate meshes into one (disjoint pieces in one object)."""
+    Vs, Fs, off = [], [], 0
+    for V, F in meshes:
+        Vs.append(V)
+        Fs.append(np.asarray(F) + off)
+        off += len(V)
+    return np.concatenate(Vs), np.concatenate(Fs)
+
+
+def hollow_sphere(radius: float = 1.0, wall: float = 0.01, subdivisions: int = 4):
+    """A thin spherical shell: outer sphere plus an inward-facing inner sphere."""
+    Vo, Fo = icosphere(radius, subdivisions)
+    Vi, Fi = icosphere(radius - wall, subdivisions)
+    return merge((Vo, Fo), (Vi, Fi[:, [0, 2, 1]]))
+
+
+def torus_grid(nx: int = 3, ny: int = 2, major: float = 1.0, minor: float = 0.35, n_major: int = 32, n_minor: int = 12):
+    """Interlinked-free grid of overlapping tori: a single solid of genus >= nx*ny (when fused).
+
+    The tori overlap their neighbours, so the tetrahedraliser (which fills by
+    winding number) fuses them into one body with nx*ny handles.
+    """
+    pitch = 2.0 * major * 0.95
+    parts = [torus(major, minor, n_major, n_minor, center=(ix * pitch, iy * pitch, 0.0))
+             for ix in range(nx) for iy in range(ny)]
+    return merge(*parts)
