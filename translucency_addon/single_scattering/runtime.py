@@ -1,0 +1,428 @@
+"""Run-time evaluation of eq. 3, split like the GPU kernel.
+
+    L_ss(x, w_o) ~ sum_i  k sigma_s(b_i) psi_i(w_o)                  (per sample, view)
+                        * integral psi_i(xi) F_t L(b_i, xi) d xi       (per sample, lights)
+                        * integral_x^y gamma_i(x') dx'                (per ray and sample)
+
+with k = 1 / (4 pi) (isotropic phase function).  Three passes:
+
+1. ``light_term`` (one value per sample and frame): ``sigma_s(b_i) / (4 pi) *
+   F_in * [ sum_lights E_l(b_i) psi_i(toward l) + integral L_env psi_i ]``.
+   ``E_l`` is the irradiance on a plane facing the light at b_i
+   (``lights.light_irradiance``, W/m^2, spot cones and area cosines
+   included); the environment integral is the SH dot product (uniform
+   radiance L is the constant ``L sqrt(4 pi) Y_00``; an order-2 SH world adds
+   its 9 coefficients).  A light costs one SH evaluation per sample, which is
+   why the cost grows sub-linearly with the number of lights.
+2. ``view_term`` (optional, one value per sample): psi_i toward the camera.
+   Exact for an orthographic view (one direction); for a perspective camera
+   it uses the direction from b_i to the camera, which differs from the
+   direction of the rays that cross the Gaussian by at most its angular size.
+   Without it ``integrate_view_rays`` evaluates psi_i at each ray's own
+   direction (the GPU kernel's per-fragment form).
+3. ``integrate_view_rays`` (per ray): sum over the Gaussians the ray passes of
+   view psi * light term * the closed-form integral of the truncated Gaussian
+   over the ray segment (erf), found through the uniform sample grid.
+
+Fresnel and refraction conventions (the paper neglects the refraction of
+rays, and so do we: light and view rays are straight lines through the
+boundary):
+
+* **Entry**: light entering the object is scaled by ``F_in = 1 - F_dr,ext(eta)``,
+  the cosine-weighted hemispherical mean of the Fresnel transmittance.  The
+  entry point of the light reaching b_i is not stored by the bake, and this
+  mean is exactly the fraction of a collimated beam that enters a convex body
+  over its lit side (the projected area of a sphere has a 2 mu d mu
+  distribution of incidence cosines); it is also the mean for diffuse light.
+  No eta^2 at entry: with straight rays the irradiance (not the radiance)
+  is what is carried, and it is conserved up to F_t.
+* **Exit**: the in-medium radiance reaching the surface point x is returned
+  by ``integrate_view_rays``; ``render_vertices`` turns it into outgoing
+  radiance with ``F_t(n . w_o, eta) / eta^2``: exact Fresnel transmittance at
+  the outside angle (equal to the inside one by reciprocity) and the 1/eta^2
+  of radiance crossing into a less dense medium.  This is the same output
+  query as the diffusion term, ``L_o = F_t J+ / (pi eta^2)``, so the two add.
+
+psi is clamped to [0, 1] wherever it is evaluated from SH (ringing of a
+truncated SH series can push it slightly outside).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import erf
+
+from .. import sh as shmod
+from ..fresnel import diffuse_reflectance_external, fresnel_transmittance, check_eta
+from ..lights import light_irradiance
+
+
+def entry_transmittance(eta: float) -> float:
+    """F_in = 1 - F_dr,ext(eta): the Fresnel factor applied to light entering the medium."""
+    return 1.0 - diffuse_reflectance_external(check_eta(eta))
+
+
+def exit_factor(cos_o, eta: float):
+    """F_t(cos_o, eta) / eta^2: in-medium radiance at the surface -> outgoing radiance."""
+    eta = check_eta(eta)
+    c = np.asarray(cos_o, dtype=np.float64)
+    return np.where(c > 0, fresnel_transmittance(c, eta), 0.0) / (eta * eta)
+
+
+def eval_psi(sh: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """psi_i(dir_i) for per-sample directions: sh (N, K, 3), dirs (N, 3) -> (N, 3), clamped to [0, 1]."""
+    K = sh.shape[1]
+    order = int(round(np.sqrt(K))) - 1
+    Y = shmod.sh_basis(dirs, order).astype(np.float32)
+    return np.clip(np.einsum("nk,nkc->nc", Y, sh, dtype=np.float64), 0.0, 1.0)
+
+
+def light_term(data, lights, environment, eta: float, mm_per_unit: float | None = None) -> np.ndarray:
+    """Per-sample light factor (N, 3): sigma_s/(4 pi) * F_in * (sum_l E_l psi_i(to l) + env dot).
+
+    Units: W/m^2 per mm; times the ray integral of the Gaussians (mm) it is radiance.
+    """
+    mm = data.mm_per_unit if mm_per_unit is None else float(mm_per_unit)
+    b = data.centers
+    acc = np.zeros((len(b), 3))
+    for light in lights or ():
+        E, to_light, _ = light_irradiance(light, b, mm)
+        if not np.any(E > 0):
+            continue
+        acc += E * eval_psi(data.sh, to_light)
+    if environment is not None and not environment.is_black:
+        env = np.zeros((len(b), 3))
+        L = np.asarray(environment.radiance, dtype=np.float64)
+        env += L[None, :] * np.sqrt(4.0 * np.pi) * data.sh[:, 0, :]
+        if environment.sh is not None:
+            k = min(9, data.sh.shape[1])
+            env += np.einsum("nkc,kc->nc", data.sh[:, :k, :], np.asarray(environment.sh, dtype=np.float64)[:k])
+        acc += np.maximum(env, 0.0)
+    return data.sigma_s / (4.0 * np.pi) * entry_transmittance(eta) * acc
+
+
+def view_term(data, camera_position=None, view_dir=None) -> np.ndarray:
+    """psi_i toward the viewer, (N, 3): from b_i to ``camera_position``, or along ``view_dir``.
+
+    ``view_dir`` points from the object *to* the (orthographic) camera.
+    """
+    if (camera_position is None) == (view_dir is None):
+        raise ValueError("give exactly one of camera_position and view_dir")
+    if view_dir is not None:
+        w = np.asarray(view_dir, dtype=np.float64).reshape(3)
+        w = np.broadcast_to(w / np.linalg.norm(w), data.centers.shape)
+    else:
+        w = np.asarray(camera_position, dtype=np.float64).reshape(3) - data.centers
+        w = w / np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-300)
+    return eval_psi(data.sh, w)
+
+
+# ------------------------------------------------------------------- rays
+
+def _dda(grid, o, d, t0, t1):
+    """Cells crossed by the segments o + t d, t in [t0, t1] (3D DDA, vectorised over rays).
+
+    Returns (ray, cell, t_in, t_out) sorted by ray then along the ray; the
+    first interval of every ray starts at -inf and the last ends at +inf so
+    that the intervals of a ray partition the whole line.
+    """
+    lo = grid.origin
+    c = grid.cell_size
+    dims = grid.dims
+    hi = lo + dims * c
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        ta = (lo - o) * inv
+        tb = (hi - o) * inv
+    ta = np.where(np.isnan(ta), -np.inf, ta)
+    tb = np.where(np.isnan(tb), np.inf, tb)
+    tn = np.minimum(ta, tb).max(axis=1)
+    tf = np.maximum(ta, tb).min(axis=1)
+    t_enter = np.maximum(t0, tn)
+    t_leave = np.minimum(t1, tf)
+    ray = np.flatnonzero(t_enter < t_leave)
+    if ray.size == 0:
+        e = np.zeros(0, dtype=np.int64)
+        return e, e, np.zeros(0), np.zeros(0)
+    o, d, inv = o[ray], d[ray], inv[ray]
+    t_cur = t_enter[ray]
+    t_end = t_leave[ray]
+    p = o + t_cur[:, None] * d
+    cell = np.clip(np.floor((p - lo) / c).astype(np.int64), 0, dims - 1)
+    pos = d > 0
+    strides = np.array([dims[1] * dims[2], dims[2], 1])
+    lin = cell @ strides
+    lstep = np.where(pos, 1, np.where(d < 0, -1, 0)) * strides  # linear index step per axis
+    # how many more cells each ray may enter along each axis before leaving the grid
+    left = np.where(pos, dims - 1 - cell, np.where(d < 0, cell, 0))
+    with np.errstate(invalid="ignore"):
+        tmax = np.where(d != 0, (lo + (cell + pos) * c - o) * inv, np.inf)
+        tdelta = np.where(d != 0, c * np.abs(inv), np.inf)
+    out_r, out_c, out_a, out_b = [], [], [], []
+    while ray.size:
+        ax = np.argmin(tmax, axis=1)
+        k = np.arange(len(ray))
+        tn_ = tmax[k, ax]
+        t_next = np.minimum(tn_, t_end)
+        out_r.append(ray)
+        out_c.append(lin)
+        out_a.append(t_cur)
+        out_b.append(t_next)
+        ok = (tn_ < t_end) & (left[k, ax] > 0)
+        lin = lin + lstep[k, ax]
+        left[k, ax] -= 1
+        tmax[k, ax] += tdelta[k, ax]
+        t_cur = t_next
+        if not ok.all():
+            ray, lin, t_cur, t_end, tmax, tdelta, lstep, left = (
+                ray[ok], lin[ok], t_cur[ok], t_end[ok], tmax[ok], tdelta[ok], lstep[ok], left[ok])
+    r = np.concatenate(out_r)
+    order = np.argsort(r, kind="stable")
+    r = r[order]
+    cells = np.concatenate(out_c)[order]
+    a = np.concatenate(out_a)[order]
+    b = np.concatenate(out_b)[order]
+    first = np.ones(len(r), dtype=bool)
+    first[1:] = r[1:] != r[:-1]
+    last = np.ones(len(r), dtype=bool)
+    last[:-1] = r[1:] != r[:-1]
+    a[first] = -np.inf
+    b[last] = np.inf
+    return r, cells, a, b
+
+
+def ray_sample_pairs(data, origins, dirs, t_exit):
+    """Every (ray, sample) pair whose truncated Gaussian meets the segment, exactly once.
+
+    Returns ``(ray, sample, g)`` with g the integral of the sample's weighted,
+    truncated Gaussian along the segment, in object units.
+
+    A pair is evaluated in the cell that contains the point of the ray's line
+    closest to the sample centre, ``m = (b - o) . d``; the intervals of one
+    ray's cells partition the line (the first starts at -inf, the last ends at
+    +inf), so this needs no clamping to the segment and no de-duplication.
+    """
+    grid = data.grid
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    t1 = np.asarray(t_exit, dtype=np.float64).reshape(-1)
+    vr, vc, va, vb = _dda(grid, o, d, np.zeros(len(o)), t1)
+    start = grid.cell_start[vc]
+    cnt = grid.cell_start[vc + 1] - start
+    keep = cnt > 0
+    vr, va, vb, start, cnt = vr[keep], va[keep], vb[keep], start[keep], cnt[keep]
+    total = int(cnt.sum())
+    if total == 0:
+        e = np.zeros(0, dtype=np.int64)
+        return e, e, np.zeros(0)
+    cum = np.cumsum(cnt) - cnt
+    cache = _cache(data)
+    s = cache["items"].take(np.arange(total) + np.repeat(start - cum, cnt))
+    # Ownership needs m = b . d - o . d for every candidate: float32, explicit
+    # products (so equal inputs give bit-equal m in every cell of a ray).
+    bs = cache["b32"].take(s, axis=0)
+    dv = d[vr].astype(np.float32)
+    m = bs[:, 0] * np.repeat(dv[:, 0], cnt)
+    m += bs[:, 1] * np.repeat(dv[:, 1], cnt)
+    m += bs[:, 2] * np.repeat(dv[:, 2], cnt)
+    m -= np.repeat(np.einsum("ij,ij->i", o[vr], d[vr]).astype(np.float32), cnt)
+    own = (m >= np.repeat(va, cnt)) & (m < np.repeat(vb, cnt))
+    s = s[own]
+    r = np.repeat(vr, cnt)[own]
+    # exact geometry in float64 for the owned pairs
+    bo = data.centers.take(s, axis=0) - o.take(r, axis=0)
+    m = np.einsum("ij,ij->i", bo, d.take(r, axis=0))
+    dp2 = np.maximum(np.einsum("ij,ij->i", bo, bo) - m * m, 0.0)
+    R2 = cache["support2"].take(s)
+    hit = dp2 < R2
+    r, s, m, dp2, R2 = r[hit], s[hit], m[hit], dp2[hit], R2[hit]
+    hc = np.sqrt(R2 - dp2)
+    ta = np.maximum(0.0, m - hc)
+    tb = np.minimum(t1.take(r), m + hc)
+    ok = tb > ta
+    r, s, m, dp2, ta, tb = r[ok], s[ok], m[ok], dp2[ok], ta[ok], tb[ok]
+    a = cache["alpha"].take(s)
+    sa = np.sqrt(a)
+    g = cache["weight"].take(s) * (0.5 * np.sqrt(np.pi) / sa) * np.exp(-a * dp2) * (erf(sa * (tb - m)) - erf(sa * (ta - m)))
+    return r, s, g
+
+
+def _cache(data):
+    """Per-data derived arrays for the ray loop (int64 cell items, float32 centres, ...)."""
+    c = getattr(data, "_ray_cache", None)
+    key = (id(data.centers), id(data.grid.cell_items), id(data.weight), id(data.sigma))
+    if c is None or c["key"] != key:
+        c = {"key": key, "items": data.grid.cell_items.astype(np.int64), "b32": data.centers.astype(np.float32),
+             "support2": data.support**2, "alpha": data.alpha, "weight": np.asarray(data.weight, dtype=np.float64)}
+        data._ray_cache = c
+    return c
+
+
+def integrate_view_rays(data, light_term, origins, dirs, t_exit, mm_per_unit: float | None = None, *,
+                        view_term=None, chunk: int = 2048, pairs=None) -> np.ndarray:
+    """In-medium single-scattering radiance arriving at each ray origin, (n_rays, 3).
+
+    ``origins`` are surface points (mesh vertices), ``dirs`` unit directions
+    *into* the object (minus the view direction) and ``t_exit`` the distance
+    to the far side (object units).  ``light_term`` comes from
+    :func:`light_term`; ``view_term`` (N, 3) from :func:`view_term`, or None to
+    evaluate psi_i at each ray's own direction.  ``pairs``: the output of
+    :func:`ray_sample_pairs` for these rays (all of them at once), to skip the
+    geometry when only the lights changed.
+
+    Result = mm_per_unit * sum_i psi_i(-dir) * light_term_i * integral gamma_i.
+    """
+    mm = data.mm_per_unit if mm_per_unit is None else float(mm_per_unit)
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    t1 = np.asarray(t_exit, dtype=np.float64).reshape(-1)
+    n = len(o)
+    out = np.zeros((n, 3))
+    LT = np.asarray(light_term, dtype=np.float64)
+    A = LT * np.asarray(view_term, dtype=np.float64) if view_term is not None else None
+    order = int(round(np.sqrt(data.sh.shape[1]))) - 1
+
+    def accumulate(r, s, g, r0, m):
+        if r.size == 0:
+            return
+        if A is not None:
+            val = A.take(s, axis=0) * g[:, None]
+        else:
+            Y = shmod.sh_basis(-d[r0 : r0 + m], order).astype(np.float32)  # psi toward the viewer = -dir
+            psi = np.clip(np.einsum("pk,pkc->pc", Y[r], data.sh[s], dtype=np.float64), 0.0, 1.0)
+            val = LT[s] * psi * g[:, None]
+        for ch in range(3):
+            out[r0 : r0 + m, ch] += np.bincount(r, weights=val[:, ch], minlength=m)
+
+    if pairs is not None:
+        r, s, g = pairs
+        for c0 in range(0, n, chunk):  # chunked only to bound the per-ray SH memory
+            lo, hi = np.searchsorted(r, [c0, c0 + chunk])
+            accumulate(r[lo:hi] - c0, s[lo:hi], g[lo:hi], c0, min(chunk, n - c0))
+        return out * mm
+    for c0 in range(0, n, chunk):
+        m = min(chunk, n - c0)
+        r, s, g = ray_sample_pairs(data, o[c0 : c0 + m], d[c0 : c0 + m], t1[c0 : c0 + m])
+        accumulate(r, s, g, c0, m)
+    return out * mm
+
+
+def all_ray_sample_pairs(data, origins, dirs, t_exit, chunk: int = 2048):
+    """:func:`ray_sample_pairs` over many rays in chunks, concatenated (sorted by ray)."""
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    t1 = np.asarray(t_exit, dtype=np.float64).reshape(-1)
+    R, S, G = [], [], []
+    for c0 in range(0, len(o), chunk):
+        r, s, g = ray_sample_pairs(data, o[c0 : c0 + chunk], d[c0 : c0 + chunk], t1[c0 : c0 + chunk])
+        order = np.argsort(r, kind="stable")
+        R.append(r[order] + c0)
+        S.append(s[order])
+        G.append(g[order])
+    if not R:
+        e = np.zeros(0, dtype=np.int64)
+        return e, e, np.zeros(0)
+    return np.concatenate(R), np.concatenate(S), np.concatenate(G)
+
+
+@dataclass
+class ViewRays:
+    """The view rays of the front-facing vertices for one camera pose (reusable while it stays)."""
+
+    n_vertices: int
+    vertices: np.ndarray  # (n,) indices of the evaluated (front-facing) vertices
+    origins: np.ndarray  # (n, 3)
+    dirs: np.ndarray  # (n, 3) into the object
+    t_exit: np.ndarray  # (n,)
+    cos_o: np.ndarray  # (n,) n . w_o
+    camera_position: np.ndarray | None = None
+    view_dir: np.ndarray | None = None
+    pairs: tuple | None = None  # cached ray_sample_pairs (per baked data)
+    pairs_key: int | None = None
+
+
+def view_rays(V, F, normals, *, camera_position=None, view_dir=None, view_dirs=None, vertices=None, bvh=None) -> ViewRays:
+    """Rays from the front-facing vertices into the object, clipped at the far side by a BVH cast.
+
+    Exactly one of ``camera_position`` (perspective), ``view_dir``
+    (orthographic; from the object to the camera) or ``view_dirs`` (one
+    direction to the viewer per vertex, (n_vertices, 3)).
+    """
+    from ..raycast import TriangleBVH
+
+    V = np.asarray(V, dtype=np.float64)
+    N = np.asarray(normals, dtype=np.float64)
+    if sum(x is not None for x in (camera_position, view_dir, view_dirs)) != 1:
+        raise ValueError("give exactly one of camera_position, view_dir and view_dirs")
+    idx = np.arange(len(V)) if vertices is None else np.asarray(vertices, dtype=np.int64).reshape(-1)
+    P = V[idx]
+    cam = vd = None
+    if camera_position is not None:
+        cam = np.asarray(camera_position, dtype=np.float64).reshape(3)
+        wo = cam - P
+    elif view_dir is not None:
+        vd = np.asarray(view_dir, dtype=np.float64).reshape(3)
+        vd = vd / np.linalg.norm(vd)
+        wo = np.broadcast_to(vd, P.shape).copy()
+    else:
+        wo = np.asarray(view_dirs, dtype=np.float64).reshape(len(V), 3)[idx]
+    wo = wo / np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-300)
+    cos_o = np.einsum("ij,ij->i", N[idx], wo)
+    vis = cos_o > 0
+    o = P[vis]
+    d = -wo[vis]
+    if len(o):
+        bvh = bvh if bvh is not None else TriangleBVH(V, F)
+        diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+        t, tri, _, _ = bvh.intersect(o, d, tmin=1e-7 * diag)
+        t_exit = np.where(tri >= 0, t, 0.0)
+    else:
+        t_exit = np.zeros(0)
+    return ViewRays(n_vertices=len(V), vertices=idx[vis], origins=o, dirs=d, t_exit=t_exit, cos_o=cos_o[vis],
+                    camera_position=cam, view_dir=vd)
+
+
+def render_vertices(data, V, F, normals, lights, environment, material, mm_per_unit: float | None = None, *,
+                    camera_position=None, view_dir=None, view_dirs=None, vertices=None, bvh=None, rays=None,
+                    per_ray_psi: bool = False, cache_pairs: bool = False, chunk: int = 2048) -> np.ndarray:
+    """Outgoing single-scattering radiance at mesh vertices, (n_vertices, 3), W/(m^2 sr).
+
+    The viewer is given by exactly one of ``camera_position`` (perspective),
+    ``view_dir`` (orthographic; points from the object to the camera) or
+    ``view_dirs`` (one direction to the viewer per vertex), or by ``rays``
+    from :func:`view_rays` (reused while the camera stays; with
+    ``cache_pairs`` the ray-sample pairs are kept in it too, so that a frame
+    in which only the lights changed costs the light term and one weighted
+    sum).  Vertices facing away from the viewer get 0.  ``vertices``
+    restricts the evaluation to a subset of vertex indices (e.g. a decimated
+    set); the others get 0.  ``material`` is a
+    :class:`~translucency_addon.materials.Material` (for eta) or eta itself.
+    The exit factor is ``F_t(n . w_o, eta) / eta^2``.  psi_i toward the viewer
+    is evaluated per sample (toward the camera) unless ``per_ray_psi`` or
+    ``view_dirs`` ask for each ray's own direction.
+    """
+    eta = float(getattr(material, "eta", material))
+    mm = data.mm_per_unit if mm_per_unit is None else float(mm_per_unit)
+    if rays is None:
+        rays = view_rays(V, F, normals, camera_position=camera_position, view_dir=view_dir, view_dirs=view_dirs,
+                         vertices=vertices, bvh=bvh)
+    out = np.zeros((rays.n_vertices, 3))
+    if len(rays.vertices) == 0:
+        return out
+    LT = light_term(data, lights, environment, eta, mm)
+    VT = None
+    if not per_ray_psi and (rays.camera_position is not None or rays.view_dir is not None):
+        VT = view_term(data, camera_position=rays.camera_position, view_dir=rays.view_dir)
+    pairs = None
+    if cache_pairs:
+        key = id(data)
+        if rays.pairs is None or rays.pairs_key != key:
+            rays.pairs = all_ray_sample_pairs(data, rays.origins, rays.dirs, rays.t_exit, chunk)
+            rays.pairs_key = key
+        pairs = rays.pairs
+    Lin = integrate_view_rays(data, LT, rays.origins, rays.dirs, rays.t_exit, mm, view_term=VT, chunk=chunk,
+                              pairs=pairs)
+    out[rays.vertices] = Lin * exit_factor(rays.cos_o, eta)[:, None]
+    return out
