@@ -1,0 +1,124 @@
+"""GPU backend of the diffusion solve: GLSL compute kernels run through Blender's ``gpu`` module.
+
+Nothing here imports ``gpu`` at import time (``blender -b`` and add-on
+registration must not touch it).  The API the Blender side uses::
+
+    from .gpu_shaders import available, make_solver, free_all
+
+    ok, reason = available()                       # cheap; never raises
+    solver, backend, message = make_solver(bake, material, field_values, options, prefer="AUTO")
+    # backend: "GPU" or "CPU"; message: why, to show in the UI (also logged once per session)
+    result = solver.solve(lights, environment)     # same call for both backends
+    L = solver.vertex_radiance(result)             # (n_vertices, 3)
+    solver.set_material(material, field_values)    # after a material edit (re-uploads coefficients only)
+    solver.free()                                  # object/bake removed (GPU solver; safe twice)
+    free_all()                                     # add-on unregister: every GPU solver + compiled kernels
+
+Files: ``*.glsl`` (the kernels, one per numpy twin in
+``translucency_addon.kernels``), ``runtime.py`` (compile, cache, dispatch,
+textures), ``pack.py`` (texture layout and packing, numpy only),
+``device.py`` (a level's textures and kernel calls), ``solver.py``
+(``GPUDiffusionSolver``).
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+
+log = logging.getLogger(__name__)
+
+PREFERENCES = ("AUTO", "GPU", "CPU")
+_LOGGED: set = set()
+
+
+def _log_once(message: str) -> None:
+    if message not in _LOGGED:
+        _LOGGED.add(message)
+        log.warning(message)
+
+
+def available() -> tuple[bool, str]:
+    """Whether compute shaders can run now: ``(True, renderer)`` or ``(False, reason)``. Never raises."""
+    try:
+        import gpu
+    except ImportError:
+        return False, "Blender's gpu module is not available (not running inside Blender)"
+    try:
+        renderer = gpu.platform.renderer_get()
+    except SystemError as exc:  # background mode before the GPU backend is initialised
+        return False, f"no GPU context ({exc})"
+    except Exception as exc:  # noqa: BLE001 - any failure means: no GPU here
+        return False, f"no GPU context ({type(exc).__name__}: {exc})"
+    try:
+        with warnings.catch_warnings():  # deprecated (always true) in Blender 5.0, meaningful before
+            warnings.simplefilter("ignore", DeprecationWarning)
+            supported = gpu.capabilities.compute_shader_support_get()
+    except Exception as exc:  # noqa: BLE001
+        return False, f"cannot query GPU capabilities ({type(exc).__name__}: {exc})"
+    if not supported:
+        return False, f"the GPU backend ({renderer}) has no compute shader support"
+    return True, renderer or "unknown renderer"
+
+
+def make_solver(bake, material, field_values=None, options=None, prefer: str = "AUTO", **gpu_options):
+    """A diffusion solver for ``bake``: ``(solver, backend_name, message)``.
+
+    ``prefer``: ``"AUTO"`` (GPU when possible, else the CPU with a message),
+    ``"GPU"`` (raise :class:`errors.GPUUnavailable` / :class:`errors.GraphTooLarge`
+    instead of falling back) or ``"CPU"``.  ``gpu_options`` go to
+    :class:`GPUDiffusionSolver` (``precision``, ``readback``, ...).  Material
+    errors are raised whatever the backend.  The fallback reason is logged
+    once per session and returned every time.
+    """
+    from ._engine import diffusion, errors
+
+    prefer = str(prefer).upper()
+    if prefer not in PREFERENCES:
+        raise errors.TranslucencyError(f"unknown backend preference {prefer!r}; choose one of {', '.join(PREFERENCES)}")
+    options = options or diffusion.SolveOptions()
+
+    def cpu(message: str):
+        if prefer == "AUTO":
+            _log_once(message)
+        return diffusion.DiffusionSolver(bake, material, field_values, options), "CPU", message
+
+    if prefer == "CPU":
+        return cpu("CPU solver selected")
+    if options.solver == "direct":
+        if prefer == "GPU":
+            raise errors.GPUUnavailable("the direct solver has no GPU version; choose 'fast' or 'paper'")
+        return cpu("the direct solver runs on the CPU only")
+    ok, reason = available()
+    if not ok:
+        if prefer == "GPU":
+            raise errors.GPUUnavailable(f"GPU solver unavailable: {reason}")
+        return cpu(f"GPU solver unavailable ({reason}); using the CPU solver")
+    from .solver import GPUDiffusionSolver
+
+    try:
+        solver = GPUDiffusionSolver(bake, material, field_values, options, **gpu_options)
+    except errors.GraphTooLarge as exc:
+        if prefer == "GPU":
+            raise
+        return cpu(f"{exc}; using the CPU solver")
+    except errors.TranslucencyError:
+        raise  # material or option errors: the same on every backend
+    except Exception as exc:  # noqa: BLE001 - shader compile or driver failure
+        if prefer == "GPU":
+            raise errors.GPUUnavailable(f"GPU solver failed to start: {type(exc).__name__}: {exc}") from exc
+        return cpu(f"GPU solver failed to start ({type(exc).__name__}: {exc}); using the CPU solver")
+    return solver, "GPU", f"GPU solver on {reason} ({solver.precision})"
+
+
+def free_all() -> int:
+    """Free the textures of every GPU solver and the compiled kernels (call on add-on unregister)."""
+    import sys
+
+    mod = sys.modules.get(__name__ + ".solver")
+    if mod is None:  # nothing was ever created
+        return 0
+    return mod.free_all()
+
+
+__all__ = ["available", "make_solver", "free_all", "PREFERENCES"]

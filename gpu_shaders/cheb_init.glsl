@@ -1,0 +1,13 @@
+/* First Chebyshev direction d_0 = r_0 / (theta a_ii)  (as in
+ * diffusion.solve_chebyshev: d = r / diag / theta; inv_theta = 1/theta). */
+void main()
+{
+  ivec3 p = ivec3(gl_GlobalInvocationID);
+  vec3 diag = diagonal(texelFetch(off_r, p, 0), texelFetch(off_g, p, 0),
+                       texelFetch(off_b, p, 0), texelFetch(ext, p, 0));
+  if (!all(greaterThan(diag, vec3(0.0)))) {
+    imageStore(d_out, p, vec4(0.0));
+    return;
+  }
+  imageStore(d_out, p, vec4(texelFetch(r_in, p, 0).rgb * inv_theta / diag, 0.0));
+}

@@ -1,0 +1,26 @@
+/* Shared by every kernel (prepended by gpu_shaders/runtime.py; Blender adds the
+ * #version line, the sampler/image/push-constant declarations and the defines).
+ *
+ * Node addressing (gpu_shaders/pack.py, Layout): every node of a QuadGraph
+ * level is one texel (x, y, layer) of a set of 2D array textures, in the
+ * bake's block order (r x r blocks, inner nodes first, surface nodes from a
+ * new block row on).  A neighbour reference is the texel address packed into
+ * one uint:  x | y << 14 | layer << 28  (x, y < 16384, layer < 15);
+ * NONE (all bits set) means "no neighbour".
+ */
+const uint NONE = 0xFFFFFFFFu;
+
+ivec3 node_texel(uint a)
+{
+  return ivec3(int(a & 0x3FFFu), int((a >> 14u) & 0x3FFFu), int(a >> 28u));
+}
+
+/* Per-channel diagonal a_ii = e_i + sum_k c_ik (e = ext.rgb, the part of the
+ * diagonal that is not the sum of the off-diagonal coefficients: absorption
+ * and boundary terms).  Forming it here in fp32 keeps the small absorption
+ * term exact when the coefficients are stored in fp16. */
+vec3 diagonal(vec4 o_r, vec4 o_g, vec4 o_b, vec4 ext)
+{
+  const vec4 one = vec4(1.0);
+  return ext.rgb + vec3(dot(o_r, one), dot(o_g, one), dot(o_b, one));
+}

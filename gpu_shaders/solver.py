@@ -1,0 +1,355 @@
+"""The diffusion solve on the GPU: ``GPUDiffusionSolver(DiffusionSolver)``.
+
+Only the linear solves (and, optionally, the radiance output) move to the
+GPU; assembly, material sampling, the light pass and the CPU output stay in
+``diffusion.DiffusionSolver``, so the physics is written once.  Same rules as
+the CPU path:
+
+* ``options.solver == "fast"``: Chebyshev semi-iteration with the Jacobi
+  preconditioner and the bounds of ``diffusion.spectral_bounds`` (in fp16 the
+  upper bound is raised to the Gershgorin bound of the *stored* matrix if
+  that is larger, so rounding can never push an eigenvalue out of the
+  interval); ``"paper"``/``"jacobi"``: Jacobi sweeps (eqs. 8-9 on the
+  paper's scheme); ``"direct"`` has no GPU form and runs on the CPU.
+* stopping rule: relative residual ``|b - A x| / |b|`` per channel <= tol
+  (``coarse_tol`` on coarser levels), tested every ``check_every`` steps
+  (recursive residual for Chebyshev, then the true residual is reported);
+  Jacobi stops early if it diverges (residual > 1e6 or not finite).
+* multi-level warm start: coarse to fine with eq. 10 between levels; a
+  ``warm_start`` result starts the finest level directly -- from the
+  texture still on the GPU when it is this solver's latest result, else from
+  its ``phi[-1]`` (uploaded).
+
+Per frame only q is uploaded; after :meth:`set_material` only the
+coefficients.  Read back: the few numbers of each convergence test, the
+finest level's surface values (always), full phi per level only with
+``readback="phi"``, and the vertex radiance in :meth:`vertex_radiance`.
+"""
+
+from __future__ import annotations
+
+import time
+import weakref
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import device, pack, runtime
+from ._engine import diffusion, errors, kernels
+
+READBACKS = ("surface", "phi", "none")
+_LIVE = weakref.WeakSet()  # every GPU solver, for free_all()
+
+
+@dataclass
+class GPUSolveResult(diffusion.SolveResult):
+    """A :class:`diffusion.SolveResult` from the GPU.
+
+    ``phi[i]`` is a numpy array only where it was read back (``readback="phi"``);
+    ``phi_surface[i]`` holds the surface values (finest level always).
+    ``generation`` identifies the solve whose iterate is still on the GPU.
+    """
+
+    phi_surface: list = field(default_factory=list)
+    backend: str = "GPU"
+    precision: str = "fp32"
+    generation: int = -1
+    solver_id: int = 0
+
+    def surface_phi(self, level: int = -1) -> np.ndarray | None:
+        if self.phi_surface and self.phi_surface[level] is not None:
+            return self.phi_surface[level]
+        return None
+
+
+class GPUDiffusionSolver(diffusion.DiffusionSolver):
+    """``DiffusionSolver`` whose linear solves run as compute shaders (Blender ``gpu`` module).
+
+    Extra keyword arguments:
+
+    * ``precision``: ``"fp32"`` (default) or ``"fp16"`` (coefficients, q and
+      Shepard weights in RGBA16F; see ``pack.py``);
+    * ``readback``: ``"surface"`` (default), ``"phi"`` or ``"none"``;
+    * ``max_texture_size`` / ``max_layers``: override the device limits
+      (tests; levels that do not fit are split into layers or refused with
+      :class:`errors.GraphTooLarge`).
+
+    Construct it through :func:`gpu_shaders.make_solver`, which falls back to
+    the CPU when no GPU context can be had.  Call :meth:`free` when the object,
+    the bake or the add-on goes away (safe to call twice; a later solve
+    uploads everything again).
+    """
+
+    backend = "GPU"
+
+    def __init__(self, bake, material, field_values=None, options=None, *, precision: str = "fp32",
+                 readback: str = "surface", max_texture_size: int | None = None, max_layers: int | None = None):
+        if precision not in pack.PRECISIONS:
+            raise errors.TranslucencyError(f"unknown GPU precision {precision!r}; choose fp32 or fp16")
+        if readback not in READBACKS:
+            raise errors.TranslucencyError(f"unknown readback {readback!r}; choose one of {', '.join(READBACKS)}")
+        self.precision = precision
+        self.readback = readback
+        self._limits = (max_texture_size, max_layers)
+        self._gpu_levels = None
+        self._vmap = None
+        self._generation = 0
+        self._resident_generation = -1
+        self._freed = False
+        self.uploads = Counter()
+        self.last_surface = None
+        super().__init__(bake, material, field_values, options)
+        self.layouts, self.vertex_layout = self._plan()
+        self._upload_graph()
+        self._upload_coefficients()
+        _LIVE.add(self)
+
+    # ------------------------------------------------------------ resources
+    def _plan(self):
+        max_size, max_layers = self._limits
+        if max_size is None or max_layers is None:
+            import gpu
+
+            if max_size is None:
+                max_size = gpu.capabilities.max_texture_size_get()
+            if max_layers is None:
+                max_layers = gpu.capabilities.max_texture_layers_get()
+        layouts = [pack.plan_layout(lv.n_inner, lv.n_surface, lv.block_size, max_size, max_layers, what=f"level {i}")
+                   for i, lv in enumerate(self.bake.levels)]
+        vl = pack.plan_vertex_layout(len(self.bake.vertex_map[0]), max_size)
+        return layouts, vl
+
+    def _upload_graph(self) -> None:
+        """Graph textures: neighbours, Shepard transfer, vertex map (once per bake)."""
+        levels = []
+        for i, (lv, lay) in enumerate(zip(self.bake.levels, self.layouts)):
+            g = device.GPULevel(lay, lv.neighbors, self.precision)
+            if i > 0:
+                idx, w = self.bake.shepard[i - 1]
+                g.set_transfer(self.layouts[i - 1], idx, w)
+            levels.append(g)
+        idx, w = self.bake.vertex_map
+        self._vmap = device.GPUVertexMap(self.vertex_layout, self.layouts[-1], idx, w)
+        self._gpu_levels = levels
+        self._resident_generation = -1
+        self._freed = False
+        self.uploads["graph"] += 1
+
+    def _upload_coefficients(self) -> None:
+        for g, system in zip(self._gpu_levels, self.systems):
+            g.upload_coefficients(system.off, system.diag, system.b_scale)
+        self.uploads["coefficients"] += 1
+
+    def _ensure(self) -> None:
+        if self._gpu_levels is None:
+            self._upload_graph()
+            self._upload_coefficients()
+            _LIVE.add(self)
+
+    def set_material(self, material, field_values=None) -> None:
+        """Re-sample kappa and mu (CPU, shared) and re-upload only the coefficient textures."""
+        super().set_material(material, field_values)
+        if getattr(self, "_gpu_levels", None) is not None:
+            self._upload_coefficients()
+
+    def free(self) -> None:
+        """Release every GPU texture of this solver.  Safe to call more than once."""
+        if self._gpu_levels is not None:
+            for g in self._gpu_levels:
+                g.free()
+        if self._vmap is not None:
+            self._vmap.free()
+        self._gpu_levels = None
+        self._vmap = None
+        self._resident_generation = -1
+        self._freed = True
+        _LIVE.discard(self)
+
+    @property
+    def is_freed(self) -> bool:
+        return self._gpu_levels is None
+
+    @property
+    def gpu_levels(self) -> list:
+        self._ensure()
+        return self._gpu_levels
+
+    def gpu_bytes(self) -> int:
+        return sum(pack.texture_bytes(lay, self.precision, transfer=i > 0) for i, lay in enumerate(self.layouts))
+
+    # ------------------------------------------------------------ solve
+    def solve(self, lights=(), environment=None, **kw) -> GPUSolveResult:
+        res = super().solve(lights, environment, **kw)
+        if self.options.solver == "direct":
+            return res
+        return GPUSolveResult(phi=res.phi, q=res.q, level_solves=res.level_solves, seconds=res.seconds,
+                              scheme=res.scheme, phi_surface=self.last_surface, precision=self.precision,
+                              generation=self._resident_generation, solver_id=id(self))
+
+    def _q_scale(self, q, active) -> float:
+        if self.precision != "fp16":
+            return 1.0
+        m = max((float(np.abs(q[i]).max(initial=0.0)) for i in active if q[i] is not None), default=0.0)
+        return pack.pow2_scale(m)
+
+    def solve_systems(self, q, active, warm_start=None):
+        """The GPU replacement of ``DiffusionSolver.solve_systems`` (same contract)."""
+        opts = self.options
+        if opts.solver == "direct":
+            return super().solve_systems(q, active, warm_start)
+        self._ensure()
+        n_lv = len(self.bake.levels)
+        phi = [None] * n_lv
+        surface = [None] * n_lv
+        solves = []
+        sq = self._q_scale(q, active)
+        prev = None
+        for i in active:
+            t0 = time.perf_counter()
+            g = self._gpu_levels[i]
+            system = self.systems[i]
+            old_scale = g.q_scale
+            g.upload_q(q[i], sq)
+            self.uploads["q"] += 1
+            if warm_start is not None and i == n_lv - 1:
+                self._warm(g, warm_start, old_scale, sq)
+            elif prev is not None:
+                g.upsample_from(prev)
+            else:
+                g.clear_x()
+            tol = opts.tol if i == n_lv - 1 else (opts.coarse_tol or opts.tol)
+            bn = np.sqrt(kernels.squared_norms(g.stored_rhs()))
+            bn = np.where(bn > 0, bn, 1.0)
+            if opts.solver == "fast":
+                info = self._chebyshev(g, system, bn, tol, opts.max_iterations, opts.check_every)
+            else:
+                info = self._jacobi(g, bn, tol, opts.max_iterations, opts.check_every)
+            if self.readback == "phi":
+                phi[i] = g.read(g.x_current).astype(np.float64) / sq
+            info.seconds = time.perf_counter() - t0
+            solves.append(info)
+            prev = g
+        last = active[-1]
+        g = self._gpu_levels[last]
+        if self.readback == "phi":
+            surface[last] = phi[last][g.layout.n_inner:]
+        elif self.readback == "surface":
+            surface[last] = g.read_nodes(g.x_current, g.layout.n_inner, g.layout.n_surface).astype(np.float64) / sq
+        self._generation += 1
+        self._resident_generation = self._generation if last == n_lv - 1 else -1
+        self.last_surface = surface
+        return phi, solves
+
+    def _warm(self, g: device.GPULevel, ws, old_scale: float, new_scale: float) -> None:
+        if (isinstance(ws, GPUSolveResult) and ws.solver_id == id(self) and ws.generation >= 0
+                and ws.generation == self._resident_generation):
+            if new_scale != old_scale:  # the iterate on the GPU is in units of the old q scale
+                g.scale_x(new_scale / old_scale)
+            return
+        x0 = ws.phi[-1] if ws.phi else None
+        if x0 is not None:
+            g.set_x(np.asarray(x0, dtype=np.float64) * new_scale)
+        else:
+            g.clear_x()  # a result without phi that is no longer resident: start from zero
+
+    def _chebyshev(self, g: device.GPULevel, system, bn, tol, max_iter, check_every) -> diffusion.LevelSolve:
+        lam_min, lam_max = diffusion.spectral_bounds(system)
+        if self.precision == "fp16":
+            lam_max = np.maximum(lam_max, g.coef.gershgorin)
+        theta = 0.5 * (lam_max + lam_min)
+        delta = 0.5 * (lam_max - lam_min)
+        sigma = theta / delta
+        g.residual()
+        res = np.sqrt(g.norm2(g.r)) / bn
+        hist = [float(res.max())]
+        it = 0
+        if res.max() > tol:
+            rho = 1.0 / sigma
+            g.cheb_init(theta)
+            a, b = 0, 1
+            while it < max_iter:
+                rho_next = 1.0 / (2.0 * sigma - rho)
+                g.chebyshev(g.d[a], g.d[b], rho_next * rho, 2.0 * rho_next / delta)
+                a, b = b, a
+                rho = rho_next
+                it += 1
+                if it % check_every == 0:
+                    res = np.sqrt(g.norm2(g.r)) / bn
+                    hist.append(float(res.max()))
+                    if res.max() <= tol or not np.all(np.isfinite(res)):
+                        break
+            g.residual()  # the recursive r drifts from b - A x; report the true one
+            res = np.sqrt(g.norm2(g.r)) / bn
+        return diffusion.LevelSolve(it, res, hist, 0.0)
+
+    def _jacobi(self, g: device.GPULevel, bn, tol, max_iter, check_every) -> diffusion.LevelSolve:
+        g.residual()
+        res = np.sqrt(g.norm2(g.r)) / bn
+        hist = [float(res.max())]
+        it = 0
+        while it < max_iter and res.max() > tol:
+            for _ in range(check_every):
+                g.jacobi_step()
+            it += check_every
+            g.residual()
+            res = np.sqrt(g.norm2(g.r)) / bn
+            hist.append(float(res.max()))
+            if not np.all(np.isfinite(res)) or res.max() > 1e6:
+                break
+        return diffusion.LevelSolve(it, res, hist, 0.0)
+
+    # ------------------------------------------------------------ output
+    def is_resident(self, result) -> bool:
+        """True when ``result``'s finest iterate is still on the GPU."""
+        return (isinstance(result, GPUSolveResult) and result.solver_id == id(self)
+                and self._gpu_levels is not None and result.generation >= 0
+                and result.generation == self._resident_generation)
+
+    def read_phi(self, result, level: int = -1) -> np.ndarray:
+        """Full phi of a level: from the result if it was read back, else from the GPU (finest, resident)."""
+        if result.phi[level] is not None:
+            return result.phi[level]
+        n_lv = len(self.bake.levels)
+        if (level % n_lv) != n_lv - 1 or not self.is_resident(result):
+            raise errors.TranslucencyError("phi of this level was not read back and is no longer on the GPU; "
+                                           "solve with readback='phi'")
+        g = self._gpu_levels[-1]
+        return g.read(g.x_current).astype(np.float64) / g.q_scale
+
+    def surface_partial_current(self, result, level: int = -1) -> np.ndarray:
+        lv = self.bake.levels[level]
+        phi_s = result.surface_phi(level) if isinstance(result, GPUSolveResult) else None
+        if phi_s is None:
+            phi_s = self.read_phi(result, level)[lv.n_inner:]
+        return kernels.outgoing_partial_current(phi_s, result.q[level], self.fdr)
+
+    def vertex_radiance(self, result, view_dirs=None) -> np.ndarray:
+        """L_o at the user's vertices: on the GPU when the result is resident, else the CPU formula."""
+        if not self.is_resident(result):
+            return super().vertex_radiance(result, view_dirs)
+        g = self._gpu_levels[-1]
+        cos_o = None
+        if view_dirs is not None:
+            cos_o = np.einsum("vj,vj->v", self.bake.mesh_normals, np.asarray(view_dirs, dtype=np.float64))
+        g.jplus(self.fdr)  # J+ into the scratch residual texture
+        out_scale = 1.0 / (np.pi * self.eta * self.eta * g.q_scale)
+        return self._vmap.radiance(g.r, self.eta, out_scale, cos_o).astype(np.float64)
+
+    def power_balance(self, result, level: int = -1, clamp: bool = True) -> dict:
+        if result.phi[level] is None:
+            phi = list(result.phi)
+            phi[level] = self.read_phi(result, level)
+            result = diffusion.SolveResult(phi=phi, q=result.q, level_solves=result.level_solves,
+                                           scheme=result.scheme)
+        return super().power_balance(result, level, clamp)
+
+
+def free_all() -> int:
+    """Free every live GPU solver's textures and the compiled kernels (add-on unregister)."""
+    n = 0
+    for s in list(_LIVE):
+        s.free()
+        n += 1
+    runtime.free_shaders()
+    return n

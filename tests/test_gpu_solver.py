@@ -1,0 +1,321 @@
+"""GPUDiffusionSolver against the CPU DiffusionSolver, fallback, freeing, GPU state, texture limits.
+
+A small icosphere bake (2 levels, about 11k nodes on the finest) solved with
+the same options on both backends.  Tolerances (max abs difference / max of
+the CPU value):
+
+* fp32, ``fast`` (Chebyshev, tol 1e-5) and ``paper`` (Jacobi on the paper's
+  scheme, tol 1e-4): ``SOLVE_TOL = 1e-4`` on phi and on the vertex radiance.
+  Measured: 3e-6 / 6e-6 on phi, 1e-6 / 2e-6 on L_o (both backends stop after
+  the same number of iterations; the rest is fp32 rounding).
+* fp16 storage (coefficients, q, Shepard weights): ``FP16_SOLVE_TOL = 3e-3``.
+  Measured: about 6e-4 on phi and 4e-4 on L_o.
+"""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import gpu_shaders
+from gpu_shaders import pack, runtime
+from gpu_shaders.solver import GPUDiffusionSolver, GPUSolveResult
+from translucency_addon import bake as bake_mod
+from translucency_addon import diffusion, errors, lights, materials, primitives
+
+ROOT = Path(__file__).resolve().parent.parent
+SOLVE_TOL = 1e-4
+FP16_SOLVE_TOL = 3e-3
+TOLS = {"fast": 1e-5, "paper": 1e-4}
+
+
+def rel_err(got, ref) -> float:
+    return float(np.abs(np.asarray(got) - np.asarray(ref)).max() / np.abs(ref).max())
+
+
+@pytest.fixture(scope="module")
+def scene():
+    V, F = primitives.icosphere(1.0, 3)
+    bk = bake_mod.bake_mesh(V, F, bake_mod.BakeSettings(quality="draft", levels=2, base_triangles=200,
+                                                        mm_per_unit=10.0))
+    mat = materials.material_from_preset("marble")
+    sun = [lights.Light("sun", irradiance=1000.0, direction=(0.3, -0.2, -1.0))]
+    q = diffusion.DiffusionSolver(bk, mat).incident(sun)
+    return bk, mat, sun, q
+
+
+def options(solver):
+    return diffusion.SolveOptions(solver=solver, tol=TOLS[solver])
+
+
+@pytest.fixture(scope="module")
+def cpu_results(scene):
+    bk, mat, _, q = scene
+    out = {}
+    for name in TOLS:
+        s = diffusion.DiffusionSolver(bk, mat, options=options(name))
+        r = s.solve(q=q)
+        out[name] = (s, r, s.vertex_radiance(r))
+    return out
+
+
+# ------------------------------------------------------------------ parity
+@pytest.mark.gpu
+@pytest.mark.parametrize("solver", ["fast", "paper"])
+def test_gpu_solve_matches_cpu(scene, cpu_results, solver):
+    bk, mat, _, q = scene
+    _, rc, Lc = cpu_results[solver]
+    s = GPUDiffusionSolver(bk, mat, options=options(solver), readback="phi")
+    r = s.solve(q=q)
+    assert isinstance(r, GPUSolveResult) and r.backend == "GPU"
+    assert r.residual.max() <= TOLS[solver] * 1.05
+    assert abs(r.iterations - rc.iterations) <= 2 * 8 * len(bk.levels)  # same rule, fp32 rounding aside
+    for lvl in range(len(bk.levels)):
+        assert rel_err(r.phi[lvl], rc.phi[lvl]) < SOLVE_TOL
+    assert rel_err(r.phi_surface[-1], rc.phi[-1][bk.finest.n_inner:]) < SOLVE_TOL
+    L = s.vertex_radiance(r)
+    assert L.shape == Lc.shape and rel_err(L, Lc) < SOLVE_TOL
+    # GPU radiance kernel == the CPU formula on the GPU's own phi (fp32 rounding only).
+    assert rel_err(L, diffusion.DiffusionSolver.vertex_radiance(s, r)) < 1e-5
+    s.free()
+
+
+@pytest.mark.gpu
+def test_fp16_solve_error(scene, cpu_results):
+    bk, mat, _, q = scene
+    _, rc, Lc = cpu_results["fast"]
+    s = GPUDiffusionSolver(bk, mat, options=options("fast"), precision="fp16", readback="phi")
+    r = s.solve(q=q)
+    assert r.precision == "fp16" and r.residual.max() <= TOLS["fast"] * 1.05
+    assert rel_err(r.phi[-1], rc.phi[-1]) < FP16_SOLVE_TOL
+    assert rel_err(s.vertex_radiance(r), Lc) < FP16_SOLVE_TOL
+    s.free()
+
+
+@pytest.mark.gpu
+def test_view_dependent_radiance(scene):
+    bk, mat, _, q = scene
+    s = GPUDiffusionSolver(bk, mat, options=options("fast"))
+    r = s.solve(q=q)
+    rng = np.random.default_rng(0)
+    v = rng.standard_normal((len(bk.mesh_vertices), 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    L = s.vertex_radiance(r, view_dirs=v)
+    ref = diffusion.DiffusionSolver.vertex_radiance(s, r, view_dirs=v)  # CPU formula on the read-back surface
+    assert rel_err(L, ref) < 1e-5
+    assert np.all(L[np.einsum("vj,vj->v", bk.mesh_normals, v) <= 0] == 0)
+    s.free()
+
+
+# ------------------------------------------------------------------ warm start, material edits
+@pytest.mark.gpu
+@pytest.mark.parametrize("solver", ["fast", "paper"])
+def test_warm_start(scene, solver):
+    bk, mat, _, q = scene
+    q2 = [None if a is None else a * 1.05 for a in q]  # the next frame: slightly brighter
+    cpu = diffusion.DiffusionSolver(bk, mat, options=options(solver))
+    r_cpu = cpu.solve(q=q2, warm_start=cpu.solve(q=q))
+    s = GPUDiffusionSolver(bk, mat, options=options(solver))
+    r1 = s.solve(q=q)
+    x_uploads = sum(g.uploads["x"] for g in s.gpu_levels)
+    r2 = s.solve(q=q2, warm_start=r1)  # resident: no upload of the start
+    assert sum(g.uploads["x"] for g in s.gpu_levels) == x_uploads
+    assert len(r2.level_solves) == 1  # finest level only, like the CPU
+    cold = s.solve(q=q2)
+    assert r2.iterations < cold.iterations
+    assert rel_err(r2.phi_surface[-1], r_cpu.phi[-1][bk.finest.n_inner:]) < 20 * TOLS[solver]
+    # A CPU result (or any result not resident any more) is uploaded as the start.
+    r3 = s.solve(q=q2, warm_start=r_cpu)
+    assert sum(g.uploads["x"] for g in s.gpu_levels) == x_uploads + 1
+    assert r3.iterations <= r2.iterations + 8
+    s.free()
+
+
+@pytest.mark.gpu
+def test_fp16_warm_start_rescales_resident_iterate(scene):
+    """In fp16 q is stored times a power of two that follows max(q); a resident
+    warm start must be rescaled when it changes (scale.glsl), so the fp16 run
+    starts from the same physical phi as the fp32 run and needs as many steps."""
+    bk, mat, _, q = scene
+    q4 = [None if a is None else a * 4.0 for a in q]  # the q scale changes by 1/4
+    its, phis = {}, {}
+    for prec in ("fp32", "fp16"):
+        s = GPUDiffusionSolver(bk, mat, options=options("fast"), precision=prec)
+        r1 = s.solve(q=q)
+        r2 = s.solve(q=q4, warm_start=r1)
+        its[prec], phis[prec] = r2.iterations, r2.phi_surface[-1]
+        s.free()
+    assert its["fp32"] > 0 and abs(its["fp16"] - its["fp32"]) <= 16
+    assert rel_err(phis["fp16"], phis["fp32"]) < FP16_SOLVE_TOL
+
+
+@pytest.mark.gpu
+def test_material_change_reuploads_coefficients_only(scene):
+    bk, mat, _, q = scene
+    s = GPUDiffusionSolver(bk, mat, options=options("fast"))
+    s.solve(q=q)
+    before = [dict(g.uploads) for g in s.gpu_levels]
+    skin = materials.material_from_preset("skin1")
+    s.set_material(skin)
+    after = [dict(g.uploads) for g in s.gpu_levels]
+    for b, a in zip(before, after):
+        assert a["graph"] == b["graph"] and a["q"] == b["q"]
+        assert a["coefficients"] == b["coefficients"] + 1
+    assert s.uploads["graph"] == 1
+    r = s.solve(q=q)
+    ref = diffusion.DiffusionSolver(bk, skin, options=options("fast")).solve(q=q)
+    assert rel_err(r.phi_surface[-1], ref.phi[-1][bk.finest.n_inner:]) < SOLVE_TOL
+    assert all(g.uploads["graph"] == b["graph"] for g, b in zip(s.gpu_levels, before))
+    s.free()
+
+
+# ------------------------------------------------------------------ fallback
+def test_fallback_when_gpu_unavailable(scene, monkeypatch, caplog):
+    bk, mat, _, q = scene
+    monkeypatch.setattr(gpu_shaders, "available", lambda: (False, "simulated: no GPU context"))
+    monkeypatch.setattr(gpu_shaders, "_LOGGED", set())
+    with caplog.at_level(logging.WARNING, logger="gpu_shaders"):
+        s1, backend, msg = gpu_shaders.make_solver(bk, mat, None, options("fast"))
+        s2, _, msg2 = gpu_shaders.make_solver(bk, mat, None, options("fast"))
+    assert backend == "CPU" and type(s1) is diffusion.DiffusionSolver
+    assert "simulated: no GPU context" in msg and msg2 == msg
+    assert sum("simulated" in rec.getMessage() for rec in caplog.records) == 1  # logged once
+    r = s1.solve(q=q)
+    assert r.residual.max() <= TOLS["fast"] * 1.05
+    with pytest.raises(errors.GPUUnavailable, match="simulated"):
+        gpu_shaders.make_solver(bk, mat, None, options("fast"), prefer="GPU")
+    s3, backend, msg = gpu_shaders.make_solver(bk, mat, None, options("fast"), prefer="CPU")
+    assert backend == "CPU" and type(s3) is diffusion.DiffusionSolver
+
+
+def test_available_reports_background_mode(monkeypatch):
+    import gpu
+
+    def refuse():
+        raise SystemError("GPU functions for drawing are not available in background mode")
+
+    monkeypatch.setattr(gpu.platform, "renderer_get", refuse)
+    ok, reason = gpu_shaders.available()
+    assert not ok and "background mode" in reason
+
+
+@pytest.mark.gpu
+def test_make_solver_picks_gpu_and_direct_stays_on_cpu(scene):
+    bk, mat, _, _ = scene
+    s, backend, msg = gpu_shaders.make_solver(bk, mat, None, options("fast"))
+    assert backend == "GPU" and isinstance(s, GPUDiffusionSolver) and "GPU" in msg
+    s.free()
+    s, backend, msg = gpu_shaders.make_solver(bk, mat, None, diffusion.SolveOptions(solver="direct"))
+    assert backend == "CPU" and "direct" in msg
+
+
+def test_import_does_not_touch_gpu():
+    code = ("import sys; import gpu_shaders, gpu_shaders.solver, gpu_shaders.pack, gpu_shaders.device, "
+            "gpu_shaders.runtime; assert 'gpu' not in sys.modules, 'gpu imported'; "
+            "ok, why = gpu_shaders.available(); assert not ok and 'not available' in why, why; print('ok')")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and "ok" in out.stdout, out.stderr
+
+
+def test_extension_package_imports_its_own_engine(addon):
+    import importlib
+
+    mod = importlib.import_module(addon.__name__ + ".gpu_shaders.solver")
+    base = importlib.import_module(addon.__name__ + ".translucency_addon.diffusion")
+    assert issubclass(mod.GPUDiffusionSolver, base.DiffusionSolver)
+    assert not issubclass(mod.GPUDiffusionSolver, diffusion.DiffusionSolver)
+
+
+# ------------------------------------------------------------------ robustness
+@pytest.mark.gpu
+def test_gpu_state_left_clean(scene, monkeypatch):
+    import gpu
+
+    bk, mat, _, q = scene
+    calls = []
+    real_dispatch, real_unbind = gpu.compute.dispatch, gpu.shader.unbind
+
+    def dispatch(*a, **k):
+        calls.append("dispatch")
+        return real_dispatch(*a, **k)
+
+    def unbind():
+        calls.append("unbind")
+        return real_unbind()
+
+    state = (gpu.state.blend_get(), gpu.state.depth_test_get(), gpu.state.depth_mask_get())
+    monkeypatch.setattr(gpu.compute, "dispatch", dispatch)
+    monkeypatch.setattr(gpu.shader, "unbind", unbind)
+    s = GPUDiffusionSolver(bk, mat, options=options("fast"))
+    r = s.solve(q=q)
+    s.vertex_radiance(r)
+    s.free()
+    assert calls and calls[-1] == "unbind"
+    assert calls.count("dispatch") == calls.count("unbind")
+    assert all(b == "unbind" for a, b in zip(calls, calls[1:]) if a == "dispatch")
+    assert (gpu.state.blend_get(), gpu.state.depth_test_get(), gpu.state.depth_mask_get()) == state
+
+
+@pytest.mark.gpu
+def test_shader_unbound_even_when_a_dispatch_fails(monkeypatch):
+    import gpu
+
+    unbinds = []
+    real_unbind = gpu.shader.unbind
+    monkeypatch.setattr(gpu.shader, "unbind", lambda: (unbinds.append(1), real_unbind()))
+    with pytest.raises(Exception):
+        runtime.dispatch("scale", (1, 1, 1), images={"x_io": "not a texture"}, floats={"s": (1.0, 1.0, 1.0)})
+    assert unbinds == [1]
+
+
+@pytest.mark.gpu
+def test_free_twice_is_safe_and_solver_recovers(scene):
+    bk, mat, _, q = scene
+    s = GPUDiffusionSolver(bk, mat, options=options("fast"))
+    r1 = s.solve(q=q)
+    s.free()
+    s.free()
+    assert s.is_freed
+    L = s.vertex_radiance(r1)  # not resident any more: CPU formula on the read-back surface values
+    assert np.all(np.isfinite(L))
+    r2 = s.solve(q=q)  # uploads the graph again
+    assert s.uploads["graph"] == 2
+    assert rel_err(r2.phi_surface[-1], r1.phi_surface[-1]) < 1e-5
+    s2 = GPUDiffusionSolver(bk, mat, options=options("fast"))
+    assert gpu_shaders.free_all() >= 2
+    assert s.is_freed and s2.is_freed
+    assert gpu_shaders.free_all() == 0
+
+
+@pytest.mark.gpu
+def test_texture_limit_splits_levels_into_layers(scene, cpu_results):
+    bk, mat, _, q = scene
+    s = GPUDiffusionSolver(bk, mat, options=options("fast"), max_texture_size=64)
+    assert s.layouts[-1].layers > 1 and all(lay.width <= 64 and lay.height <= 64 for lay in s.layouts)
+    r = s.solve(q=q)
+    _, rc, Lc = cpu_results["fast"]
+    assert rel_err(r.phi_surface[-1], rc.phi[-1][bk.finest.n_inner:]) < SOLVE_TOL
+    assert rel_err(s.vertex_radiance(r), Lc) < SOLVE_TOL
+    s.free()
+
+
+@pytest.mark.gpu
+def test_texture_limit_refusal(scene):
+    bk, mat, _, _ = scene
+    with pytest.raises(errors.GraphTooLarge, match="allows textures of at most 64 x 64 with 2 layers"):
+        GPUDiffusionSolver(bk, mat, options=options("fast"), max_texture_size=64, max_layers=2)
+    s, backend, msg = gpu_shaders.make_solver(bk, mat, None, options("fast"), max_texture_size=64, max_layers=2)
+    assert backend == "CPU" and "64 x 64" in msg and "CPU" in msg
+    with pytest.raises(errors.GraphTooLarge):
+        gpu_shaders.make_solver(bk, mat, None, options("fast"), prefer="GPU", max_texture_size=64, max_layers=2)
+
+
+def test_texture_budget_numbers():
+    lay = pack.plan_layout(300_000, 200_000)
+    assert lay.width <= 16384 and lay.texels >= 500_000
+    assert pack.texture_bytes(lay, "fp16") < pack.texture_bytes(lay, "fp32")
