@@ -6,17 +6,60 @@ Each module has one ``CLASSES`` tuple.  ``register()`` registers the modules in
 and ``unregister()`` does the reverse.  To add a module, import it here and put
 it in ``MODULES``.
 
+A module may also define ``on_register()`` and ``on_unregister()``: they are
+called after all classes are registered (in ``MODULES`` order) and before any
+class is unregistered (in reverse order).  Use them for application handlers,
+timers and draw handlers (``handlers`` adds its ``bpy.app.handlers`` there);
+``on_unregister`` must remove everything ``on_register`` added.
+
+``overlay`` (viewport draw handler) and ``render_pass`` (the "Add to
+material" AOV operator) are optional here: they are in ``MODULES`` only when
+their files exist and import.
+
 Nothing here touches the ``gpu`` module or imports a bundled wheel (scipy,
 pytetwild, fast_simplification) at import or register time.
 """
 
 from __future__ import annotations
 
+import importlib
+import traceback
+
 import bpy
 
-from . import dependencies, panels, properties
+from . import (
+    backend,  # noqa: F401 - imported for ``ops.backend``; it registers nothing
+    dependencies,
+    handlers,
+    operators_bake,
+    operators_solve,
+    panels,
+    properties,
+    runtime,  # noqa: F401
+    scene_inputs,  # noqa: F401
+)
 
-MODULES = (properties, dependencies, panels)
+
+def _optional(name: str):
+    """Import ``ops.<name>`` if its file exists; a broken module is reported, not fatal."""
+    try:
+        return importlib.import_module(f"{__name__}.{name}")
+    except ModuleNotFoundError as ex:
+        if ex.name == f"{__name__}.{name}":
+            return None  # the file does not exist (yet)
+        traceback.print_exc()
+        return None
+    except Exception:  # noqa: BLE001 - another engineer's module must not break registration
+        traceback.print_exc()
+        return None
+
+
+overlay = _optional("overlay")
+render_pass = _optional("render_pass")
+
+MODULES = tuple(m for m in (
+    properties, dependencies, operators_bake, operators_solve, overlay, render_pass, handlers, panels,
+) if m is not None)
 
 # (bpy type, attribute name, PropertyGroup class)
 POINTERS = (
@@ -27,7 +70,7 @@ POINTERS = (
 
 def _classes():
     for module in MODULES:
-        yield from module.CLASSES
+        yield from getattr(module, "CLASSES", ())
 
 
 def register() -> None:
@@ -39,9 +82,20 @@ def register() -> None:
             name="Translucency",
             description="Translucency subsurface scattering settings",
         ))
+    for module in MODULES:
+        hook = getattr(module, "on_register", None)
+        if callable(hook):
+            hook()
 
 
 def unregister() -> None:
+    for module in reversed(MODULES):
+        hook = getattr(module, "on_unregister", None)
+        if callable(hook):
+            try:
+                hook()
+            except Exception:  # noqa: BLE001 - keep unregistering the rest
+                traceback.print_exc()
     for owner, attr, _group in reversed(POINTERS):
         if hasattr(owner, attr):
             delattr(owner, attr)

@@ -27,13 +27,22 @@ def _draw_missing_dependencies(layout, problems) -> None:
     box.operator("translucency.check_dependencies", icon='FILE_REFRESH')
 
 
-def _draw_object_settings(layout, obj) -> None:
+def _draw_multiline(layout, text: str, icon='NONE', width: int = 70) -> None:
+    first = True
+    for line in text.splitlines():
+        for start in range(0, max(len(line), 1), width):
+            layout.label(text=line[start:start + width], icon=icon if first else 'BLANK1')
+            first = False
+
+
+def _draw_object_settings(layout, obj, context=None) -> None:
     settings = obj.translucency
     layout.prop(settings, "enabled")
 
     col = layout.column()
     col.active = settings.enabled
 
+    # -- bake --------------------------------------------------------------------
     box = col.box()
     box.label(text="Bake", icon='MOD_REMESH')
     box.prop(settings, "quality")
@@ -43,7 +52,43 @@ def _draw_object_settings(layout, obj) -> None:
     sub = box.row()
     sub.active = settings.use_mm_per_unit_override
     sub.prop(settings, "mm_per_unit")
+    scene = getattr(context, "scene", None) if context is not None else None
+    if scene is not None and not settings.use_mm_per_unit_override:
+        try:
+            from .scene_inputs import mm_per_unit
 
+            mm, warning = mm_per_unit(obj, scene)
+            box.label(text=f"1 object unit = {mm:.4g} mm (scene unit scale x object scale)")
+            if warning:
+                _draw_multiline(box, warning, icon='ERROR')
+        except Exception:  # noqa: BLE001 - drawing must never fail
+            pass
+    if obj.type == 'MESH':
+        row = box.row(align=True)
+        row.operator("translucency.bake", icon='RENDER_STILL',
+                     text="Re-Bake" if settings.bake_key else "Bake")
+        row.operator("translucency.free_bake", icon='TRASH', text="Free Bake")
+    box.label(text=f"Status: {settings.bake_status}")
+    try:
+        from .runtime import CACHE_STATUS
+
+        problem = CACHE_STATUS.get(obj.name)
+    except Exception:  # noqa: BLE001
+        problem = None
+    if problem:
+        _draw_multiline(box, problem, icon='ERROR')
+    if len(settings.bake_levels):
+        grid = box.column(align=True)
+        grid.label(text="Level     N_s (surface)     N_i (inner)")
+        for i, lv in enumerate(settings.bake_levels):
+            grid.label(text=f"{i}            {lv.n_surface:,}            {lv.n_inner:,}")
+        box.label(text=f"Graph memory {settings.bake_memory:.1f} MiB, bake time {settings.bake_seconds:.1f} s")
+    elif settings.bake_stats:
+        box.label(text=settings.bake_stats)
+    if settings.bake_warnings:
+        _draw_multiline(box, settings.bake_warnings, icon='ERROR')
+
+    # -- material ------------------------------------------------------------------
     box = col.box()
     box.label(text="Material", icon='MATERIAL')
     box.prop(settings, "material_preset")
@@ -60,6 +105,7 @@ def _draw_object_settings(layout, obj) -> None:
     sub.prop(settings, "field_source")
     if settings.field_source == 'TEXTURE':
         sub.prop(settings, "field_texture")
+        sub.prop(settings, "field_scale")
     elif settings.field_source == 'ATTRIBUTE':
         if obj.type == 'MESH':
             sub.prop_search(settings, "field_attribute", obj.data, "attributes")
@@ -68,35 +114,64 @@ def _draw_object_settings(layout, obj) -> None:
     else:
         sub.prop_search(settings, "field_vertex_group", obj, "vertex_groups")
 
+    # -- solve ---------------------------------------------------------------------------
+    box = col.box()
+    box.label(text="Solve", icon='LIGHT')
+    if obj.type == 'MESH':
+        box.operator("translucency.solve", icon='PLAY')
+    if settings.solve_backend:
+        box.label(text=f"Last solve: {settings.solve_seconds * 1000:.1f} ms on the {settings.solve_backend}, "
+                       f"{settings.solve_iterations} iterations, residual {settings.solve_residual:.2e}")
+    if settings.solve_message:
+        _draw_multiline(box, settings.solve_message, icon='INFO')
+
     box = col.box()
     box.label(text="Cache", icon='FILE_CACHE')
     box.prop(settings, "cache_filepath")
-    box.label(text=f"Status: {settings.bake_status}")
-    if settings.bake_stats:
-        box.label(text=settings.bake_stats)
 
 
-def _draw_scene_settings(layout, scene) -> None:
+def _draw_scene_settings(layout, scene, overlay_drawn: bool = False) -> None:
     settings = scene.translucency
     box = layout.box()
     box.label(text="Scene", icon='SCENE_DATA')
     box.prop(settings, "cache_directory")
     box.prop(settings, "solver_backend")
     box.prop(settings, "tolerance")
-    box.prop(settings, "overlay_enabled")
-    sub = box.row()
-    sub.active = settings.overlay_enabled
-    sub.prop(settings, "overlay_mode")
-    if settings.last_solve_time > 0.0:
-        box.label(text=f"Last solve: {settings.last_solve_time:.3f} s, residual {settings.last_residual:.2e}")
+    box.prop(settings, "live_update")
+    if not overlay_drawn:
+        box.prop(settings, "overlay_enabled")
+        sub = box.row()
+        sub.active = settings.overlay_enabled
+        sub.prop(settings, "overlay_mode")
+    if settings.last_solve_time > 0.0 or settings.last_backend:
+        backend = f" on the {settings.last_backend}" if settings.last_backend else ""
+        box.label(text=f"Last solve{backend}: {settings.last_solve_time:.3f} s, "
+                       f"residual {settings.last_residual:.2e}")
 
 
-def _draw_actions(layout, context) -> None:
-    """=== Operator buttons go here (bake, solve, clear cache; later issues). ===
+# === Hooks for the viewport overlay and the render pass (ops/overlay.py, ops/render_pass.py) ===
+# Each module may define ``draw_settings(layout, context)``; it is imported lazily and a
+# missing module or function is ignored, so the panel never depends on them.
+HOOK_MODULES = ("overlay", "render_pass")
 
-    Add ``layout.operator("translucency.<name>")`` rows; this function is
-    called from :func:`draw_translucency` after the object settings.
-    """
+
+def _draw_hooks(layout, context) -> set:
+    """Call ``draw_settings`` of the optional modules; returns the names that drew."""
+    import importlib
+
+    drawn = set()
+    for name in HOOK_MODULES:
+        try:
+            module = importlib.import_module(f"{__package__}.{name}")
+            draw = module.draw_settings
+        except (ImportError, AttributeError):
+            continue
+        try:
+            draw(layout, context)
+            drawn.add(name)
+        except Exception as ex:  # noqa: BLE001 - another module's bug must not break the panel
+            layout.label(text=f"{name}: {type(ex).__name__}: {ex}", icon='ERROR')
+    return drawn
 
 
 def draw_translucency(layout, context) -> None:
@@ -112,10 +187,10 @@ def draw_translucency(layout, context) -> None:
     if obj is None:
         layout.label(text="No active object", icon='INFO')
     else:
-        _draw_object_settings(layout, obj)
-        _draw_actions(layout, context)
+        _draw_object_settings(layout, obj, context)
+    drawn = _draw_hooks(layout, context)
     if context.scene is not None:
-        _draw_scene_settings(layout, context.scene)
+        _draw_scene_settings(layout, context.scene, overlay_drawn="overlay" in drawn)
 
 
 class OBJECT_PT_translucency(bpy.types.Panel):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import (
     BoolProperty,
+    CollectionProperty,
     EnumProperty,
     FloatProperty,
     FloatVectorProperty,
@@ -36,6 +37,21 @@ _DISPLAY_NAMES = {
     "skin1": "Skin 1",
     "skin2": "Skin 2",
 }
+
+
+def _request_update(_self, _context) -> None:
+    """``update=`` callback of every setting that changes a solve's inputs.
+
+    Setting a Python-defined property does not send a depsgraph update, so the
+    live re-solve is scheduled here (throttled and coalesced by
+    ``ops.handlers.request_update``; a no-op while the add-on is not registered).
+    """
+    try:
+        from . import handlers
+
+        handlers.request_update()
+    except Exception:  # noqa: BLE001 - a property update must never fail
+        pass
 
 
 def _fmt3(values) -> str:
@@ -74,10 +90,28 @@ _DEFAULT_PRESET = "MARBLE" if any(item[0] == "MARBLE" for item in PRESET_ITEMS) 
 _DEFAULT_SECOND = "KETCHUP" if any(item[0] == "KETCHUP" for item in PRESET_ITEMS) else PRESET_ITEMS[-1][0]
 
 
+class TranslucencyLevelStats(bpy.types.PropertyGroup):
+    """Node counts of one QuadGraph level of the last bake (written by the bake operator)."""
+
+    n_surface: IntProperty(
+        name="Surface Nodes",
+        description="Number of surface nodes N_s of this QuadGraph level",
+        default=0,
+        min=0,
+    )
+    n_inner: IntProperty(
+        name="Inner Nodes",
+        description="Number of inner nodes N_i of this QuadGraph level",
+        default=0,
+        min=0,
+    )
+
+
 class TranslucencyObjectSettings(bpy.types.PropertyGroup):
     """Per-object Translucency settings (``object.translucency``)."""
 
     enabled: BoolProperty(
+        update=_request_update,
         name="Enabled",
         description="Simulate subsurface scattering in this object with Translucency",
         default=False,
@@ -85,6 +119,7 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
 
     # -- bake ---------------------------------------------------------------
     quality: EnumProperty(
+        update=_request_update,
         name="Quality",
         description="Resolution of the QuadGraph the bake builds: finer graphs are more accurate and slower to bake and solve",
         items=(
@@ -95,6 +130,7 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         default="PREVIEW",
     )
     levels: IntProperty(
+        update=_request_update,
         name="Levels",
         description="Number of QuadGraph levels (coarse to fine) used by the multigrid solve",
         default=3,
@@ -102,6 +138,7 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         max=5,
     )
     use_mm_per_unit_override: BoolProperty(
+        update=_request_update,
         name="Override Scale",
         description=(
             "Set the millimetres per object unit by hand instead of deriving it from the scene's "
@@ -110,6 +147,7 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         default=False,
     )
     mm_per_unit: FloatProperty(
+        update=_request_update,
         name="mm per Unit",
         description="Millimetres per object-space unit, used when Override Scale is on (1000 = one unit is a metre)",
         default=1000.0,
@@ -121,12 +159,14 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
 
     # -- material -----------------------------------------------------------
     material_preset: EnumProperty(
+        update=_request_update,
         name="Material",
         description="Measured material the object is made of, or Custom coefficients",
         items=MATERIAL_ITEMS,
         default=_DEFAULT_PRESET,
     )
     sigma_a: FloatVectorProperty(
+        update=_request_update,
         name="Absorption",
         description="Custom absorption coefficient sigma_a per millimetre (RGB), used when Material is Custom",
         size=3,
@@ -136,6 +176,7 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         precision=4,
     )
     sigma_s: FloatVectorProperty(
+        update=_request_update,
         name="Scattering",
         description="Custom reduced scattering coefficient sigma_s' per millimetre (RGB), used when Material is Custom",
         size=3,
@@ -145,6 +186,7 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         precision=4,
     )
     eta: FloatProperty(
+        update=_request_update,
         name="IOR",
         description="Relative index of refraction of the material against the surrounding air",
         default=1.3,
@@ -156,17 +198,20 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
 
     # -- heterogeneity -----------------------------------------------------
     use_heterogeneity: BoolProperty(
+        update=_request_update,
         name="Heterogeneous",
         description="Mix the material with a second medium, weighted by a field over the object",
         default=False,
     )
     second_preset: EnumProperty(
+        update=_request_update,
         name="Second Medium",
         description="Measured material mixed in where the field is 1 (the first material is used where it is 0)",
         items=PRESET_ITEMS,
         default=_DEFAULT_SECOND,
     )
     field_source: EnumProperty(
+        update=_request_update,
         name="Field Source",
         description="Where the mixing weight between the two media comes from",
         items=(
@@ -177,19 +222,35 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         default="TEXTURE",
     )
     field_texture: PointerProperty(
+        update=_request_update,
         name="Texture",
         description="Texture whose intensity gives the mixing weight (0: first material, 1: second medium)",
         type=bpy.types.Texture,
     )
     field_attribute: StringProperty(
+        update=_request_update,
         name="Attribute",
         description="Name of the mesh float attribute that gives the mixing weight (0 to 1)",
         default="",
     )
     field_vertex_group: StringProperty(
+        update=_request_update,
         name="Vertex Group",
         description="Name of the vertex group whose weights give the mixing weight (0 to 1)",
         default="",
+    )
+    field_scale: FloatProperty(
+        update=_request_update,
+        name="Texture Scale",
+        description=(
+            "The texture is evaluated at (object-space position x this factor): larger values "
+            "give a finer pattern"
+        ),
+        default=1.0,
+        min=1e-6,
+        soft_min=1e-3,
+        soft_max=1e3,
+        precision=3,
     )
 
     # -- cache and status -------------------------------------------------
@@ -211,6 +272,72 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
     bake_stats: StringProperty(
         name="Bake Statistics",
         description="Size and timing of the last bake: nodes per level, time taken (written by the bake operator)",
+        default="",
+    )
+    bake_key: StringProperty(
+        name="Bake Key",
+        description="Hash of the baked mesh and bake settings; a cache with another key is stale (written by the bake operator)",
+        default="",
+    )
+    bake_levels: CollectionProperty(
+        name="Bake Levels",
+        description="Node counts N_s and N_i of every QuadGraph level, coarse to fine (written by the bake operator)",
+        type=TranslucencyLevelStats,
+    )
+    bake_memory: FloatProperty(
+        name="Graph Memory (MiB)",
+        description="Memory the baked QuadGraph levels, transfer weights and vertex mapping take (written by the bake operator)",
+        default=0.0,
+        min=0.0,
+        precision=2,
+    )
+    bake_seconds: FloatProperty(
+        name="Bake Time (s)",
+        description="Wall-clock time of the last bake in seconds (written by the bake operator)",
+        default=0.0,
+        min=0.0,
+        precision=2,
+    )
+    bake_warnings: StringProperty(
+        name="Bake Warnings",
+        description="Warnings of the last bake, e.g. holes in the mesh or a non-uniform object scale (one per line)",
+        default="",
+    )
+    bake_vertices: IntProperty(
+        name="Baked Vertices",
+        description="Vertex count of the evaluated mesh that was baked (written by the bake operator)",
+        default=0,
+        min=0,
+    )
+    # -- solve status (written by the solver; shown in the panel) --------------
+    solve_seconds: FloatProperty(
+        name="Solve Time (s)",
+        description="Wall-clock time of this object's last solve in seconds (written by the solver)",
+        default=0.0,
+        min=0.0,
+        precision=4,
+    )
+    solve_residual: FloatProperty(
+        name="Residual",
+        description="Relative residual reached by this object's last solve (written by the solver)",
+        default=0.0,
+        min=0.0,
+        precision=8,
+    )
+    solve_iterations: IntProperty(
+        name="Iterations",
+        description="Solver iterations (sweeps) of this object's last solve (written by the solver)",
+        default=0,
+        min=0,
+    )
+    solve_backend: StringProperty(
+        name="Backend",
+        description="Where this object's last solve ran: GPU or CPU (written by the solver)",
+        default="",
+    )
+    solve_message: StringProperty(
+        name="Solver Message",
+        description="Why the solver fell back to the CPU, or the last solve error (written by the solver)",
         default="",
     )
 
@@ -240,6 +367,7 @@ class TranslucencySceneSettings(bpy.types.PropertyGroup):
         default="ADD",
     )
     solver_backend: EnumProperty(
+        update=_request_update,
         name="Solver",
         description="Where the diffusion solve runs",
         items=(
@@ -250,6 +378,7 @@ class TranslucencySceneSettings(bpy.types.PropertyGroup):
         default="AUTO",
     )
     tolerance: FloatProperty(
+        update=_request_update,
         name="Tolerance",
         description="Relative residual at which the iterative solve stops",
         default=1e-4,
@@ -273,6 +402,20 @@ class TranslucencySceneSettings(bpy.types.PropertyGroup):
         min=0.0,
         precision=8,
     )
+    live_update: BoolProperty(
+        update=_request_update,
+        name="Live Update",
+        description=(
+            "Re-solve baked objects when a light, the world, the material, its field or the object "
+            "changes, and on every frame change (renders always re-solve)"
+        ),
+        default=True,
+    )
+    last_backend: StringProperty(
+        name="Last Backend",
+        description="Where the last solve ran: GPU or CPU (written by the solver)",
+        default="",
+    )
 
 
-CLASSES = (TranslucencyObjectSettings, TranslucencySceneSettings)
+CLASSES = (TranslucencyLevelStats, TranslucencyObjectSettings, TranslucencySceneSettings)

@@ -1,0 +1,387 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""``translucency.bake`` and ``translucency.free_bake``.
+
+The bake runs on the active mesh object's **evaluated** mesh (modifiers
+applied, loop triangles, object space).  In the UI it is a modal operator:
+the engine bake runs in a background thread, a window-manager timer polls
+it, the progress bar and the status bar show the stage, and Esc cancels.
+The engine checks for cancellation between its stages; fTetWild's own
+tetrahedralization is one C++ call that cannot be interrupted, so an Esc
+pressed during it takes effect when it returns.
+
+In background mode (``blender -b``, bpy from PyPI, tests) a modal timer never
+fires, so :meth:`execute` runs the same :class:`BakeJob` synchronously.
+
+Nothing in the scene changes until the bake has succeeded: the cache is
+written to ``<name>.npz.partial`` (atomically, by the engine) and renamed to
+its final name by :meth:`BakeJob.commit` on the main thread, together with
+the settings, statistics and runtime state.  On cancel or failure the
+partial file (and a cache folder the bake created) is removed and no
+property, attribute or file is left behind.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import bpy
+from bpy.props import BoolProperty, IntProperty
+
+from . import runtime, scene_inputs
+
+# Test seam: callables ``(fraction, stage) -> bool | None``; returning False cancels the bake.
+PROGRESS_LISTENERS: list = []
+TETWILD_NOTE = ("fTetWild's tetrahedralization is one uninterruptible step: if it is running, the bake "
+                "stops as soon as it returns")
+
+_RUNNING: dict[str, "BakeJob"] = {}  # object name -> job (one bake per object at a time)
+
+
+def _format_count(n: int) -> str:
+    return f"{n:,}"
+
+
+class BakeJob:
+    """One bake: inputs gathered on the main thread, the engine bake in ``run``,
+    the scene changed only in ``commit`` (main thread)."""
+
+    def __init__(self, obj_name: str, V, F, settings, final_path: str, notes: list[str]):
+        self.obj_name = obj_name
+        self.V, self.F = V, F
+        self.settings = settings
+        self.final_path = final_path
+        self.tmp_path = final_path + ".partial"
+        self.notes = list(notes)
+        self.lock = threading.Lock()
+        self.cancel_requested = False
+        self.fraction = 0.0
+        self.stage = "starting"
+        self.done = False
+        self.error: BaseException | None = None
+        self.bake = None
+        self.thread: threading.Thread | None = None
+        self.t0 = time.perf_counter()
+        self.seconds = 0.0
+        directory = os.path.dirname(final_path)
+        self.created_dir = directory if not os.path.isdir(directory) else None
+
+    # -- worker -----------------------------------------------------------------
+    def progress(self, fraction: float, stage: str) -> bool:
+        self.fraction, self.stage = float(fraction), str(stage)
+        for listener in list(PROGRESS_LISTENERS):
+            if listener(fraction, stage) is False:
+                self.cancel_requested = True
+        return not self.cancel_requested
+
+    def run(self) -> None:
+        from ..translucency_addon import bake as bake_mod
+        from ..translucency_addon.cache import save_bake
+        from ..translucency_addon.errors import BakeCancelled
+
+        try:
+            bake = bake_mod.bake_mesh(self.V, self.F, self.settings, progress=self.progress)
+            if self.cancel_requested:
+                raise BakeCancelled("bake cancelled")
+            self.stage = "writing cache"
+            save_bake(self.tmp_path, bake)
+            with self.lock:
+                if self.cancel_requested:
+                    raise BakeCancelled("bake cancelled")
+                self.bake = bake
+        except BaseException as ex:  # noqa: BLE001 - reported on the main thread
+            self.error = ex
+            self.cleanup()
+        finally:
+            self.seconds = time.perf_counter() - self.t0
+            self.done = True
+
+    def start(self) -> None:
+        self.thread = threading.Thread(target=self.run, name=f"translucency-bake-{self.obj_name}", daemon=True)
+        self.thread.start()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if self.thread is not None:
+            self.thread.join(timeout)
+        return self.done
+
+    def request_cancel(self) -> None:
+        with self.lock:
+            self.cancel_requested = True
+            if self.done and self.bake is not None:
+                self.bake = None
+                self.cleanup()
+
+    def cleanup(self) -> None:
+        """Remove everything this job wrote (the partial cache, a folder it created)."""
+        for path in (self.tmp_path,):
+            try:
+                if os.path.exists(path):
+                    os.remove(path)
+            except OSError:
+                pass
+        if self.created_dir:
+            try:
+                os.rmdir(self.created_dir)  # only if empty
+            except OSError:
+                pass
+
+    @property
+    def cancelled(self) -> bool:
+        from ..translucency_addon.errors import BakeCancelled
+
+        return isinstance(self.error, BakeCancelled) or (self.done and self.cancel_requested and self.bake is None)
+
+    # -- main thread --------------------------------------------------------------
+    def commit(self, context) -> list[tuple[str, str]]:
+        """Apply a finished bake to the scene; returns ``[(level, message)]`` to report."""
+        from ..translucency_addon.bake import format_stats
+        from ..translucency_addon.errors import TranslucencyError
+
+        obj = bpy.data.objects.get(self.obj_name)
+        if obj is None or obj.type != 'MESH':
+            self.cleanup()
+            raise TranslucencyError(f"object '{self.obj_name}' was removed during the bake; nothing was saved")
+        bake = self.bake
+        os.replace(self.tmp_path, self.final_path)
+        s = obj.translucency
+        s.cache_filepath = runtime.stored_cache_path(self.final_path)
+        s.bake_key = bake.key
+        s.bake_levels.clear()
+        for lv in bake.levels:
+            item = s.bake_levels.add()
+            item.n_surface = int(lv.n_surface)
+            item.n_inner = int(lv.n_inner)
+        s.bake_memory = bake.graph_bytes() / 2**20
+        s.bake_seconds = float(self.seconds)
+        s.bake_vertices = int(len(bake.mesh_vertices))
+        mesh_stats = bake.stats.get("mesh", {})
+        warnings = list(mesh_stats.get("warnings", [])) + self.notes
+        s.bake_warnings = "\n".join(warnings)
+        s.bake_stats = (
+            "N_s " + " / ".join(_format_count(lv.n_surface) for lv in bake.levels)
+            + "; N_i " + " / ".join(_format_count(lv.n_inner) for lv in bake.levels)
+            + f"; {s.bake_memory:.1f} MiB; {self.seconds:.1f} s"
+        )
+        s.bake_status = "Baked"
+        s.solve_message = ""
+        s.enabled = True
+        runtime.install_state(obj, bake, self.final_path)
+        runtime.log(f"baked '{obj.name}' -> {self.final_path}\n{format_stats(bake)}")
+        messages = [('INFO', f"Baked '{obj.name}' in {self.seconds:.1f} s: {s.bake_stats}")]
+        messages += [('WARNING', f"'{obj.name}': {w}") for w in warnings]
+        try:
+            report = runtime.solve_object(obj, context.scene, context.evaluated_depsgraph_get(), force=True)
+        except TranslucencyError as ex:
+            messages.append(('WARNING', f"'{obj.name}' baked, but the first solve failed: {ex}"))
+        else:
+            if report is not None:
+                messages.append(('INFO', f"Solved '{obj.name}' on the {report.backend} in {report.seconds:.2f} s"))
+        return messages
+
+
+def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
+    """Gather the bake's inputs on the main thread (raises ``TranslucencyError``)."""
+    from ..translucency_addon import bake as bake_mod
+    from ..translucency_addon.errors import MeshError
+
+    if obj is None or obj.type != 'MESH':
+        raise MeshError("select a mesh object to bake")
+    if obj.mode == 'EDIT':
+        raise MeshError(f"'{obj.name}' is in Edit Mode: switch to Object Mode to bake it")
+    if obj.name in _RUNNING and not _RUNNING[obj.name].done:
+        raise MeshError(f"'{obj.name}' is already being baked")
+    scene = context.scene
+    s = obj.translucency
+    depsgraph = context.evaluated_depsgraph_get()
+    V, F = scene_inputs.evaluated_triangles(obj, depsgraph)
+    mm, scale_warning = scene_inputs.mm_per_unit(obj, scene)
+    settings = bake_mod.BakeSettings(quality=s.quality.lower(), levels=int(s.levels), mm_per_unit=mm,
+                                     base_triangles=int(base_triangles) or None)
+    settings.resolved()  # raises MeshError for impossible settings
+    key = bake_mod.mesh_key(V, F, settings)
+    directory, note = runtime.cache_directory(scene)
+    final = os.path.join(directory, runtime.cache_file_name(obj.name, key))
+    notes = [w for w in (scale_warning, note) if w]
+    return BakeJob(obj.name, V, F, settings, final, notes)
+
+
+def _error_text(obj_name: str, ex: BaseException) -> str:
+    from ..translucency_addon.errors import TranslucencyError
+
+    if isinstance(ex, TranslucencyError):
+        return f"Cannot bake '{obj_name}': {ex}"
+    return f"Bake of '{obj_name}' failed: {type(ex).__name__}: {ex}"
+
+
+class TRANSLUCENCY_OT_bake(bpy.types.Operator):
+    """Bake the QuadGraph of the active mesh object (after modifiers) for subsurface scattering. Esc cancels"""
+
+    bl_idname = "translucency.bake"
+    bl_label = "Bake"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    base_triangles: IntProperty(
+        name="Base Triangles",
+        description="Triangles of the coarsest level's resampled surface (0: the quality preset's)",
+        default=0,
+        min=0,
+        options={'SKIP_SAVE', 'HIDDEN'},
+    )
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        return obj is not None and obj.type == 'MESH'
+
+    # -- synchronous (background mode, scripts) ---------------------------------
+    def execute(self, context):
+        obj = context.active_object
+        name = obj.name if obj is not None else "?"
+        try:
+            job = prepare_job(context, obj, self.base_triangles)
+        except Exception as ex:  # noqa: BLE001 - reported to the user
+            self.report({'ERROR'}, _error_text(name, ex))
+            return {'CANCELLED'}
+        job.run()
+        return self._finish(context, job)
+
+    # -- modal (UI) ----------------------------------------------------------------
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        obj = context.active_object
+        try:
+            job = prepare_job(context, obj, self.base_triangles)
+        except Exception as ex:  # noqa: BLE001
+            self.report({'ERROR'}, _error_text(obj.name if obj else "?", ex))
+            return {'CANCELLED'}
+        self._job = job
+        _RUNNING[job.obj_name] = job
+        job.start()
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.progress_begin(0, 100)
+        wm.modal_handler_add(self)
+        self._set_text(context, f"Translucency: baking '{job.obj_name}': starting (Esc to cancel)")
+        return {'RUNNING_MODAL'}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == 'ESC' and event.value == 'PRESS':
+            if not job.cancel_requested:
+                job.request_cancel()
+                note = TETWILD_NOTE if job.stage == "tetrahedralize" else "stopping at the next stage"
+                self.report({'INFO'}, f"Cancelling the bake of '{job.obj_name}': {note}")
+            return {'RUNNING_MODAL'}
+        if event.type == 'TIMER':
+            context.window_manager.progress_update(int(100 * job.fraction))
+            state = "cancelling" if job.cancel_requested else f"{job.stage} {100 * job.fraction:.0f}%"
+            extra = f" ({TETWILD_NOTE})" if job.cancel_requested and job.stage == "tetrahedralize" else ""
+            self._set_text(context, f"Translucency: baking '{job.obj_name}': {state}{extra} - Esc to cancel")
+            if job.done:
+                self._end_ui(context)
+                return self._finish(context, job)
+        return {'PASS_THROUGH'}
+
+    def cancel(self, context):
+        # Blender cancels modal operators on file load / quit: stop and clean up.
+        job = getattr(self, "_job", None)
+        if job is not None:
+            job.request_cancel()
+        self._end_ui(context)
+
+    # -- shared ------------------------------------------------------------------------
+    def _finish(self, context, job: BakeJob):
+        _RUNNING.pop(job.obj_name, None)
+        if job.cancelled:
+            job.cleanup()
+            self.report({'WARNING'}, f"Bake of '{job.obj_name}' cancelled; nothing was changed")
+            return {'CANCELLED'}
+        if job.error is not None:
+            job.cleanup()
+            self.report({'ERROR'}, _error_text(job.obj_name, job.error))
+            return {'CANCELLED'}
+        try:
+            messages = job.commit(context)
+        except Exception as ex:  # noqa: BLE001
+            job.cleanup()
+            self.report({'ERROR'}, _error_text(job.obj_name, ex))
+            return {'CANCELLED'}
+        for level, message in messages:
+            self.report({level}, message)
+        return {'FINISHED'}
+
+    def _set_text(self, context, text) -> None:
+        workspace = getattr(context, "workspace", None)
+        if workspace is not None:
+            workspace.status_text_set(text)
+        if context.area is not None:
+            context.area.header_text_set(text)
+
+    def _end_ui(self, context) -> None:
+        wm = context.window_manager
+        timer = getattr(self, "_timer", None)
+        if timer is not None:
+            wm.event_timer_remove(timer)
+            self._timer = None
+        wm.progress_end()
+        workspace = getattr(context, "workspace", None)
+        if workspace is not None:
+            workspace.status_text_set(None)
+        if context.area is not None:
+            context.area.header_text_set(None)
+
+
+class TRANSLUCENCY_OT_free_bake(bpy.types.Operator):
+    """Remove the active object's bake: the cache reference, the solver (GPU memory) and the radiance attribute"""
+
+    bl_idname = "translucency.free_bake"
+    bl_label = "Free Bake"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    delete_cache_file: BoolProperty(
+        name="Delete Cache File",
+        description="Also delete the cache file from disk (undo cannot bring it back)",
+        default=False,
+    )
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        return obj is not None and obj.type == 'MESH'
+
+    def execute(self, context):
+        obj = context.active_object
+        s = obj.translucency
+        path = runtime.resolve_cache_path(obj)
+        runtime.drop_state(obj.name)
+        removed_attr = runtime.remove_attribute(obj)
+        had_bake = bool(s.cache_filepath or s.bake_key)
+        s.cache_filepath = ""
+        s.bake_key = ""
+        s.bake_levels.clear()
+        s.bake_memory = 0.0
+        s.bake_seconds = 0.0
+        s.bake_vertices = 0
+        s.bake_warnings = ""
+        s.bake_stats = ""
+        s.bake_status = "Not baked"
+        s.solve_seconds = 0.0
+        s.solve_residual = 0.0
+        s.solve_iterations = 0
+        s.solve_backend = ""
+        s.solve_message = ""
+        deleted = False
+        if self.delete_cache_file and path and os.path.isfile(path):
+            os.remove(path)
+            deleted = True
+        if not had_bake and not removed_attr:
+            self.report({'INFO'}, f"'{obj.name}' had no bake")
+        else:
+            self.report({'INFO'}, f"Freed the bake of '{obj.name}'" + (f" and deleted {path}" if deleted else ""))
+        return {'FINISHED'}
+
+
+CLASSES = (TRANSLUCENCY_OT_bake, TRANSLUCENCY_OT_free_bake)

@@ -1,0 +1,76 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""``translucency.solve``: solve the diffusion for the active (or every) baked object now.
+
+The result goes into the ``translucency_radiance`` attribute of the object's
+mesh (see :mod:`.runtime`).  Loading a cache that is missing, truncated or
+stale is retried here (the live handlers do not retry a failed load until the
+file changes) and reported as an error.
+"""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import BoolProperty
+
+from . import runtime
+
+
+class TRANSLUCENCY_OT_solve(bpy.types.Operator):
+    """Solve subsurface scattering for the active baked object and write its radiance attribute"""
+
+    bl_idname = "translucency.solve"
+    bl_label = "Solve"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    all_objects: BoolProperty(
+        name="All Objects",
+        description="Solve every enabled, baked object of the scene instead of only the active one",
+        default=False,
+    )
+    use_camera: BoolProperty(
+        name="Towards Camera",
+        description="Evaluate the radiance towards the scene camera instead of along the surface normal",
+        default=False,
+    )
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        return obj is not None and obj.type == 'MESH'
+
+    def execute(self, context):
+        from ..translucency_addon.errors import TranslucencyError
+
+        scene = context.scene
+        if self.all_objects:
+            objects = runtime.baked_objects(scene)
+        else:
+            objects = [context.active_object]
+        if not objects:
+            self.report({'WARNING'}, "No enabled, baked object to solve")
+            return {'CANCELLED'}
+        depsgraph = context.evaluated_depsgraph_get()
+        failed = 0
+        for obj in objects:
+            try:
+                report = runtime.solve_object(obj, scene, depsgraph, use_camera=self.use_camera, force=True,
+                                              retry_load=True)
+            except TranslucencyError as ex:
+                failed += 1
+                self.report({'ERROR'}, f"Cannot solve '{obj.name}': {ex}")
+                continue
+            if report is None:  # object in Edit Mode
+                self.report({'WARNING'}, f"'{obj.name}' is in Edit Mode: switch to Object Mode to solve it")
+                continue
+            st = runtime.get_state(obj)
+            self.report({'INFO'}, f"Solved '{obj.name}' on the {report.backend} in {report.seconds:.3f} s "
+                                  f"({report.iterations} iterations, residual {report.residual:.2e})")
+            if st is not None and st.backend_message and not getattr(st, "_message_reported", False):
+                self.report({'INFO'}, f"'{obj.name}': {st.backend_message}")
+                st._message_reported = True
+            for warning in (st.warnings if st is not None else ()):
+                self.report({'WARNING'}, f"'{obj.name}': {warning}")
+        return {'CANCELLED'} if failed == len(objects) else {'FINISHED'}
+
+
+CLASSES = (TRANSLUCENCY_OT_solve,)

@@ -1,0 +1,610 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Blender scene -> engine inputs, in the translucent object's local space.
+
+Everything the engine receives is in the **object's space** (the space of its
+QuadGraph) with ``mm_per_unit`` converting object units to millimetres
+(``docs/architecture.md``).  This module converts:
+
+* Blender lights -> :class:`translucency_addon.lights.Light`;
+* the world -> :class:`translucency_addon.lights.Environment`;
+* other visible meshes -> occluder triangles ``(V, F)`` in object space;
+* a texture / mesh attribute / vertex group -> the heterogeneity field at
+  every level's nodes;
+* the panel's material settings -> :class:`translucency_addon.materials.Material`.
+
+Radiometric conversion (Blender's conventions, measured against Cycles)
+-----------------------------------------------------------------------
+``tests/test_light_units.py`` renders a white Lambertian plane (albedo 1, so
+its radiance is ``E / pi``) with Cycles and compares every pixel with the
+irradiance the engine computes from the converted light.  The factors:
+
+===========  =====================================  ==========================
+Blender      Blender setting                        engine value
+===========  =====================================  ==========================
+Point        power P [W]                            intensity ``P / (4 pi)`` W/sr
+Spot         power P [W], spot size, blend          intensity ``P / (4 pi)`` W/sr
+             (the power of the *whole sphere*:      times Blender's cone mask
+             a spot is a masked point light)        ``smoothstep((cos - cos_half) /
+                                                    (blend (1 - cos_half)))``
+Area         power P [W]                            one-sided Lambertian emitter,
+                                                    ``P / pi`` W/sr along its normal
+                                                    (``x cos`` off the normal, far field)
+Area, Normalize off  power P per unit area          ``P A / pi`` (A = area in world units)
+Sun          strength S [W/m^2]                     irradiance ``S`` W/m^2
+World        Background colour C, strength S        uniform radiance ``C S`` W/(m^2 sr)
+===========  =====================================  ==========================
+
+Every light power is also multiplied by ``2 ** exposure`` (Blender 4.0+) and
+its colour by the blackbody colour when "Temperature" is on (Blender 4.5+).
+
+**Scene scale.**  Cycles and EEVEE ignore ``unit_settings.scale_length``: a
+1000 W point light 2 units away gives the same irradiance whatever the unit
+scale (measured), i.e. the renderers treat one world unit as one metre for
+light falloff.  The engine divides intensities by the distance in *metres*
+computed with ``mm_per_unit``.  So that the subsurface result matches what
+the renderer shows next to it, point, spot and area intensities are
+multiplied by ``(metres per world unit)^2`` (``scale_length^2`` unless the
+scale is overridden); sun irradiance and world radiance do not depend on
+distance and are passed unchanged.
+
+Spot lights whose object is scaled non-uniformly (an elliptical cone),
+area-light ``spread`` below 180 degrees, light node trees and light linking
+are not modelled; the near field of area lights is approximated by a point
+(exact far from the light).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass, field
+
+import bpy
+import numpy as np
+from mathutils import Vector
+
+# ------------------------------------------------------------------ object scale
+
+
+def matrix_to_numpy(m) -> np.ndarray:
+    return np.array([list(row) for row in m], dtype=np.float64)
+
+
+def object_scale(obj, matrix=None) -> tuple[float, str | None]:
+    """``(uniform scale, warning)`` of an object's world matrix.
+
+    A non-uniform scale gives the geometric mean (the volume-preserving
+    uniform scale) and a warning.
+    """
+    m = obj.matrix_world if matrix is None else matrix
+    sx, sy, sz = (abs(v) for v in m.to_scale())
+    mean = (max(sx, 1e-30) * max(sy, 1e-30) * max(sz, 1e-30)) ** (1.0 / 3.0)
+    if max(sx, sy, sz) - min(sx, sy, sz) > 1e-4 * max(sx, sy, sz):
+        return mean, (f"'{obj.name}' has a non-uniform scale ({sx:.4g}, {sy:.4g}, {sz:.4g}); the "
+                      f"optical scale uses their geometric mean {mean:.4g}: apply the scale "
+                      "(Ctrl+A) for exact units")
+    return mean, None
+
+
+def mm_per_unit(obj, scene, matrix=None) -> tuple[float, str | None]:
+    """Millimetres per object unit: ``scale_length * 1000 * uniform object scale``,
+    or the object's override.  Returns ``(mm_per_unit, warning or None)``."""
+    settings = obj.translucency
+    if settings.use_mm_per_unit_override:
+        return float(settings.mm_per_unit), None
+    scale, warning = object_scale(obj, matrix)
+    return float(scene.unit_settings.scale_length) * 1000.0 * scale, warning
+
+
+def metres_per_world_unit(obj, scene, mm: float, matrix=None) -> float:
+    """Metres per *world* unit implied by ``mm`` per object unit (for light falloff)."""
+    scale, _ = object_scale(obj, matrix)
+    return mm * 1e-3 / max(scale, 1e-30)
+
+
+# ------------------------------------------------------------------ mesh access
+
+
+def mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """``(V float64 (n, 3), F int64 (m, 3))`` of a mesh's loop triangles (mesh space)."""
+    n = len(mesh.vertices)
+    co = np.empty(n * 3, dtype=np.float32)
+    mesh.vertices.foreach_get("co", co)
+    tris = mesh.loop_triangles
+    if len(tris) == 0 and len(mesh.polygons) > 0:
+        mesh.calc_loop_triangles()
+        tris = mesh.loop_triangles
+    f = np.empty(len(tris) * 3, dtype=np.int32)
+    tris.foreach_get("vertices", f)
+    return co.reshape(-1, 3).astype(np.float64), f.reshape(-1, 3).astype(np.int64)
+
+
+def vertex_positions(mesh) -> np.ndarray:
+    co = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
+    mesh.vertices.foreach_get("co", co)
+    return co.reshape(-1, 3).astype(np.float64)
+
+
+def evaluated_triangles(obj, depsgraph) -> tuple[np.ndarray, np.ndarray]:
+    """The object's evaluated mesh (after modifiers), triangulated, in object space."""
+    obj_eval = obj.evaluated_get(depsgraph)
+    mesh = obj_eval.to_mesh()
+    try:
+        return mesh_arrays(mesh)
+    finally:
+        obj_eval.to_mesh_clear()
+
+
+def evaluated_positions(obj, depsgraph) -> np.ndarray:
+    obj_eval = obj.evaluated_get(depsgraph)
+    mesh = obj_eval.data if obj_eval.type == 'MESH' else None
+    if mesh is None:
+        return np.zeros((0, 3))
+    return vertex_positions(mesh)
+
+
+def array_digest(*arrays) -> str:
+    h = hashlib.blake2b(digest_size=16)
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def mesh_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals (unit; zero-area vertices get +Z)."""
+    n = np.zeros_like(V)
+    if len(F):
+        fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+        for k in range(3):
+            np.add.at(n, F[:, k], fn)
+    length = np.linalg.norm(n, axis=1)
+    bad = length <= 1e-30
+    n[bad] = (0.0, 0.0, 1.0)
+    length[bad] = 1.0
+    return n / length[:, None]
+
+
+# ------------------------------------------------------------------ lights
+
+
+def _light_color(data) -> tuple[float, float, float]:
+    c = np.array(tuple(data.color)[:3], dtype=np.float64)
+    if getattr(data, "use_temperature", False) and hasattr(data, "temperature_color"):
+        c = c * np.array(tuple(data.temperature_color)[:3], dtype=np.float64)
+    return tuple(float(x) for x in c)
+
+
+def area_light_area(data, matrix) -> float:
+    """Area of an area light in world units^2 (its object scale included)."""
+    sx, sy, _ = (abs(v) for v in matrix.to_scale())
+    a = data.size * sx
+    b = (data.size_y if data.shape in {'RECTANGLE', 'ELLIPSE'} else data.size) * sy
+    if data.shape in {'DISK', 'ELLIPSE'}:
+        return math.pi * 0.25 * a * b
+    return a * b
+
+
+def convert_light(data, light_matrix, to_object, metres_per_bu: float, name: str = ""):
+    """One Blender light (evaluated data + world matrix) -> engine ``Light`` in object space.
+
+    ``to_object``: the inverse world matrix of the translucent object.
+    Returns ``None`` for a light that emits nothing.  See the module docstring
+    for the factors.
+    """
+    from ..translucency_addon.lights import Light
+
+    power = float(data.energy) * 2.0 ** float(getattr(data, "exposure", 0.0))
+    color = _light_color(data)
+    if power <= 0.0 or max(color) <= 0.0:
+        return None
+    pos = to_object @ light_matrix.translation
+    world_dir = (light_matrix.to_3x3() @ Vector((0.0, 0.0, -1.0))).normalized()
+    obj_dir = to_object.to_3x3() @ world_dir
+    if obj_dir.length <= 0:
+        return None
+    obj_dir.normalize()
+    position = (float(pos.x), float(pos.y), float(pos.z))
+    direction = (float(obj_dir.x), float(obj_dir.y), float(obj_dir.z))
+    falloff = metres_per_bu * metres_per_bu
+    kind = data.type
+    if kind == 'SUN':
+        return Light("sun", color=color, irradiance=power, direction=direction, name=name)
+    if kind == 'POINT':
+        return Light("point", color=color, intensity=power / (4.0 * math.pi) * falloff,
+                     position=position, direction=direction, name=name)
+    if kind == 'SPOT':
+        return Light("spot", color=color, intensity=power / (4.0 * math.pi) * falloff,
+                     position=position, direction=direction, spot_size=float(data.spot_size),
+                     spot_blend=float(data.spot_blend), name=name)
+    if kind == 'AREA':
+        intensity = power / math.pi
+        if not getattr(data, "normalize", True):
+            intensity *= area_light_area(data, light_matrix)
+        return Light("area", color=color, intensity=intensity * falloff, position=position,
+                     direction=direction, name=name)
+    return None
+
+
+def collect_lights(depsgraph, obj_matrix, metres_per_bu: float) -> list:
+    """Every light visible in ``depsgraph`` (viewport or render), converted to object space.
+
+    Light instances (e.g. lights in an instanced collection) are included.
+    """
+    to_object = obj_matrix.inverted_safe()
+    lights = []
+    for inst in depsgraph.object_instances:
+        ob = inst.object
+        if ob.type != 'LIGHT':
+            continue
+        light = convert_light(ob.data, inst.matrix_world.copy(), to_object, metres_per_bu,
+                              name=ob.original.name if ob.original else ob.name)
+        if light is not None:
+            lights.append(light)
+    return lights
+
+
+# ------------------------------------------------------------------ world
+
+
+def _follow_reroutes(socket):
+    node = socket.links[0].from_node if socket.is_linked and socket.links else None
+    while node is not None and node.type == 'REROUTE':
+        inp = node.inputs[0]
+        node = inp.links[0].from_node if inp.is_linked and inp.links else None
+    return node
+
+
+def _active_world_output(tree):
+    outputs = [n for n in tree.nodes if n.type == 'OUTPUT_WORLD']
+    for n in outputs:
+        if getattr(n, "is_active_output", False):
+            return n
+    return outputs[0] if outputs else None
+
+
+def world_environment(world):
+    """``(Environment or None, warning or None)`` for the scene's world.
+
+    Supported exactly: a world without nodes (its colour) and a Background
+    node with unlinked Color and Strength.  Anything else (sky or image
+    textures, mixes) is approximated by the world's viewport colour times the
+    Background strength, with a warning.
+    """
+    from ..translucency_addon.lights import Environment
+
+    if world is None:
+        return None, None
+    tree = world.node_tree
+    use_nodes = bpy.app.version >= (5, 0, 0) or bool(getattr(world, "use_nodes", False))
+    if not use_nodes or tree is None:
+        rgb = tuple(float(c) for c in world.color[:3])
+        return (Environment(radiance=rgb) if max(rgb) > 0 else None), None
+    out = _active_world_output(tree)
+    if out is None or not out.inputs["Surface"].is_linked:
+        return None, None
+    node = _follow_reroutes(out.inputs["Surface"])
+    if node is not None and node.type == 'BACKGROUND':
+        color_in, strength_in = node.inputs["Color"], node.inputs["Strength"]
+        strength = 1.0 if strength_in.is_linked else float(strength_in.default_value)
+        if not color_in.is_linked and not strength_in.is_linked:
+            rgb = tuple(float(c) * strength for c in color_in.default_value[:3])
+            return (Environment(radiance=rgb) if max(rgb) > 0 and strength > 0 else None), None
+        rgb = tuple(float(c) * strength for c in world.color[:3])
+        warning = (f"world '{world.name}': only a uniform Background colour is supported; the linked "
+                   "Color/Strength input is approximated by the world's viewport colour (World > "
+                   "Viewport Display)")
+        return (Environment(radiance=rgb) if max(rgb) > 0 else None), warning
+    rgb = tuple(float(c) for c in world.color[:3])
+    warning = (f"world '{world.name}': only a uniform Background node is supported; the world is "
+               "approximated by its viewport colour (World > Viewport Display)")
+    return (Environment(radiance=rgb) if max(rgb) > 0 else None), warning
+
+
+# ------------------------------------------------------------------ occluders
+
+
+@dataclass
+class OccluderCache:
+    """Per-object cache of occluder triangles, so unchanged meshes are not re-read."""
+
+    meshes: dict = field(default_factory=dict)  # name -> (digest, F)
+    key: tuple | None = None
+    value: tuple | None = None
+
+
+def collect_occluders(depsgraph, obj, obj_matrix, cache: OccluderCache | None = None):
+    """Other visible mesh objects' evaluated triangles in ``obj``'s space.
+
+    Returns ``((V, F) or None, signature)``; the signature changes when an
+    occluder moves (relative to ``obj``), deforms, appears or disappears.
+    """
+    to_object = matrix_to_numpy(obj_matrix.inverted_safe())
+    own = obj.original if obj.original is not None else obj
+    parts = []
+    sig = []
+    for inst in depsgraph.object_instances:
+        ob = inst.object
+        if ob.type != 'MESH':
+            continue
+        orig = ob.original if ob.original is not None else ob
+        if orig == own:
+            continue
+        mesh = ob.data
+        if mesh is None or len(mesh.vertices) == 0:
+            continue
+        V = vertex_positions(mesh)
+        digest = array_digest(V)
+        key = orig.name
+        cached = cache.meshes.get(key) if cache is not None else None
+        if cached is not None and cached[0] == digest and cached[1] is not None:
+            F = cached[1]
+        else:
+            _, F = mesh_arrays(mesh)
+            if cache is not None:
+                cache.meshes[key] = (digest, F)
+        if len(F) == 0:
+            continue
+        rel = to_object @ matrix_to_numpy(inst.matrix_world)
+        sig.append((key, bool(inst.is_instance), tuple(np.round(rel, 9).ravel()), digest))
+        parts.append((V @ rel[:3, :3].T + rel[:3, 3], F))
+    signature = tuple(sig)
+    if cache is not None and cache.key == signature:
+        return cache.value, signature
+    if not parts:
+        value = None
+    else:
+        Vs, Fs, off = [], [], 0
+        for V, F in parts:
+            Vs.append(V)
+            Fs.append(F + off)
+            off += len(V)
+        value = (np.vstack(Vs), np.vstack(Fs))
+    if cache is not None:
+        cache.key, cache.value = signature, value
+    return value, signature
+
+
+# ------------------------------------------------------------------ material
+
+
+def build_material(settings):
+    """The engine ``Material`` of an object's settings (raises ``MaterialError``)."""
+    from ..translucency_addon.materials import Material, Medium, preset
+
+    if settings.material_preset == 'CUSTOM':
+        medium_a = Medium(tuple(float(x) for x in settings.sigma_a),
+                          tuple(float(x) for x in settings.sigma_s), "custom")
+    else:
+        medium_a = preset(settings.material_preset)
+    medium_b = preset(settings.second_preset) if settings.use_heterogeneity else None
+    return Material(medium_a, medium_b, eta=float(settings.eta), name=settings.material_preset.lower())
+
+
+# ------------------------------------------------------------------ heterogeneity field
+
+
+def rna_signature(struct, skip=("rna_type", "name", "name_full", "users", "session_uid", "tag",
+                                 "is_evaluated", "original", "preview", "is_editable")) -> tuple:
+    """A hashable snapshot of a struct's plain (non-pointer) properties."""
+    out = []
+    for prop in struct.bl_rna.properties:
+        ident = prop.identifier
+        if ident in skip or prop.type in {'POINTER', 'COLLECTION'}:
+            continue
+        try:
+            value = getattr(struct, ident)
+        except Exception:  # noqa: BLE001 - some properties refuse to be read in some states
+            continue
+        if isinstance(value, set):
+            value = tuple(sorted(value))
+        elif hasattr(value, "__len__") and not isinstance(value, str):
+            value = tuple(value)
+        out.append((ident, value))
+    return tuple(out)
+
+
+def texture_signature(tex) -> tuple:
+    """Everything that changes what ``tex.evaluate`` returns: its settings and colour ramp."""
+    sig = [tex.name, tex.type, rna_signature(tex)]
+    if getattr(tex, "use_color_ramp", False) and tex.color_ramp is not None:
+        ramp = tex.color_ramp
+        sig.append((ramp.interpolation, getattr(ramp, "color_mode", ""),
+                    tuple((round(e.position, 7), tuple(e.color)) for e in ramp.elements)))
+    image = getattr(tex, "image", None)
+    if image is not None:
+        sig.append((image.name, tuple(image.size), image.is_dirty))
+    return tuple(sig)
+
+
+def evaluate_texture(tex, points: np.ndarray) -> np.ndarray:
+    """The mixing weight from ``Texture.evaluate`` at object-space points, clipped to [0, 1].
+
+    ``Texture.evaluate(value)`` (Blender 4.2 to 5.0) takes a 3-vector and
+    returns a 4-vector ``(r, g, b, intensity)``: for greyscale procedural
+    textures r, g, b are 0 and the fourth component is the intensity.  With a
+    colour ramp r, g, b are the ramp's colour; we then use its luminance
+    (Rec. 709), otherwise the intensity.
+    """
+    ramp = bool(getattr(tex, "use_color_ramp", False))
+    evaluate = tex.evaluate
+    out = np.empty(len(points))
+    if ramp:
+        for i, p in enumerate(points.tolist()):
+            r, g, b, _a = evaluate(p)
+            out[i] = 0.2126 * r + 0.7152 * g + 0.0722 * b
+    else:
+        for i, p in enumerate(points.tolist()):
+            out[i] = evaluate(p)[3]
+    return np.clip(np.nan_to_num(out, nan=0.0), 0.0, 1.0)
+
+
+def _attribute_values(mesh, name: str):
+    """Per-vertex float values of a mesh attribute, or None if the mesh lacks it."""
+    attr = mesh.attributes.get(name)
+    if attr is None:
+        return None
+    n = len(attr.data)
+    if attr.data_type in {'FLOAT', 'INT', 'BOOLEAN', 'INT8'}:
+        raw = np.empty(n, dtype=np.float64 if attr.data_type == 'FLOAT' else np.int64)
+        if attr.data_type == 'BOOLEAN':
+            raw = np.empty(n, dtype=bool)
+        attr.data.foreach_get("value", raw)
+        values = raw.astype(np.float64)
+    elif attr.data_type in {'FLOAT_COLOR', 'BYTE_COLOR'}:
+        raw = np.empty(n * 4, dtype=np.float32)
+        attr.data.foreach_get("color", raw)
+        rgba = raw.reshape(-1, 4)
+        values = 0.2126 * rgba[:, 0] + 0.7152 * rgba[:, 1] + 0.0722 * rgba[:, 2]
+    else:
+        from ..translucency_addon.errors import MaterialError
+
+        raise MaterialError(f"attribute {name!r} has type {attr.data_type}; the field needs a float, "
+                            "integer, boolean or colour attribute")
+    if attr.domain == 'POINT':
+        return values
+    if attr.domain == 'CORNER':
+        corner_vert = np.empty(len(mesh.loops), dtype=np.int32)
+        mesh.loops.foreach_get("vertex_index", corner_vert)
+        total = np.bincount(corner_vert, weights=values, minlength=len(mesh.vertices))
+        count = np.bincount(corner_vert, minlength=len(mesh.vertices))
+        return total / np.maximum(count, 1)
+    from ..translucency_addon.errors import MaterialError
+
+    raise MaterialError(f"attribute {name!r} is on the {attr.domain.lower()} domain; use a point "
+                        "(vertex) or face-corner attribute for the field")
+
+
+def _vertex_group_values(obj, mesh, name: str):
+    from ..translucency_addon.errors import MaterialError
+
+    group = obj.vertex_groups.get(name)
+    if group is None:
+        raise MaterialError(f"'{obj.name}' has no vertex group {name!r} for the heterogeneity field")
+    gi = group.index
+    values = np.zeros(len(mesh.vertices))
+    for v in mesh.vertices:
+        for g in v.groups:
+            if g.group == gi:
+                values[v.index] = g.weight
+                break
+    return values
+
+
+def mesh_field(obj, settings, depsgraph) -> tuple[np.ndarray, np.ndarray]:
+    """``(positions (n, 3) object space, values (n,))`` of an attribute or vertex-group field.
+
+    Read from the evaluated mesh (modifiers carry attributes and groups), or
+    from the original mesh when the evaluated one lost the layer.
+    """
+    from ..translucency_addon.errors import MaterialError
+
+    source = settings.field_source
+    name = settings.field_attribute if source == 'ATTRIBUTE' else settings.field_vertex_group
+    if not name:
+        what = "attribute" if source == 'ATTRIBUTE' else "vertex group"
+        raise MaterialError(f"'{obj.name}': Heterogeneous is on but no {what} is chosen for the field")
+    candidates = []
+    if depsgraph is not None:
+        candidates.append((obj.evaluated_get(depsgraph).data, False))
+    candidates.append((obj.data, True))
+    for mesh, is_original in candidates:
+        if source == 'ATTRIBUTE':
+            values = _attribute_values(mesh, name)
+        else:
+            # An evaluated mesh whose modifiers dropped the weights has no groups at all.
+            values = _vertex_group_values(obj, mesh, name) if is_original or _has_groups(mesh) else None
+        if values is not None:
+            return vertex_positions(mesh), values
+    raise MaterialError(f"'{obj.name}' has no mesh attribute {name!r} for the heterogeneity field")
+
+
+def _has_groups(mesh) -> bool:
+    return any(len(v.groups) for v in mesh.vertices)
+
+
+def interpolate_to_nodes(positions: np.ndarray, values: np.ndarray, nodes: np.ndarray, k: int = 4):
+    """Shepard (inverse-square-distance) interpolation of vertex values onto nodes."""
+    from scipy.spatial import cKDTree
+
+    if len(positions) == 0:
+        return np.zeros(len(nodes))
+    k = min(k, len(positions))
+    dist, idx = cKDTree(positions).query(nodes, k=k)
+    if k == 1:
+        return np.clip(values[idx], 0.0, 1.0)
+    w = 1.0 / np.maximum(dist * dist, 1e-24)
+    exact = dist[:, 0] <= 1e-12
+    w[exact] = 0.0
+    w[exact, 0] = 1.0
+    out = (w * values[idx]).sum(axis=1) / w.sum(axis=1)
+    return np.clip(np.nan_to_num(out, nan=0.0), 0.0, 1.0)
+
+
+def field_signature(obj, settings, depsgraph, vertex_group_epoch: int = 0):
+    """A hashable key of the field's inputs (``None`` for a homogeneous material)."""
+    from ..translucency_addon.errors import MaterialError
+
+    if not settings.use_heterogeneity:
+        return None
+    source = settings.field_source
+    if source == 'TEXTURE':
+        tex = settings.field_texture
+        if tex is None:
+            raise MaterialError(f"'{obj.name}': Heterogeneous is on but no texture is chosen for the field")
+        return ('TEXTURE', texture_signature(tex), round(float(settings.field_scale), 9))
+    if source == 'ATTRIBUTE':
+        positions, values = mesh_field(obj, settings, depsgraph)
+        return ('ATTRIBUTE', settings.field_attribute, array_digest(positions, values))
+    return ('VERTEX_GROUP', settings.field_vertex_group, len(obj.data.vertices), vertex_group_epoch)
+
+
+def sample_field(obj, settings, node_positions, depsgraph) -> list[np.ndarray] | None:
+    """The mixing weight (0..1) at every level's nodes, or ``None`` when homogeneous.
+
+    ``node_positions``: one (N_l, 3) array per level, object space.
+    """
+    if not settings.use_heterogeneity:
+        return None
+    if settings.field_source == 'TEXTURE':
+        from ..translucency_addon.errors import MaterialError
+
+        tex = settings.field_texture
+        if tex is None:
+            raise MaterialError(f"'{obj.name}': Heterogeneous is on but no texture is chosen for the field")
+        scale = float(settings.field_scale)
+        return [evaluate_texture(tex, np.asarray(p) * scale) for p in node_positions]
+    positions, values = mesh_field(obj, settings, depsgraph)
+    return [interpolate_to_nodes(positions, values, np.asarray(p)) for p in node_positions]
+
+
+# ------------------------------------------------------------------ view
+
+
+def camera_view(scene, depsgraph, obj_matrix):
+    """``('PERSP', eye) or ('ORTHO', towards_camera)`` in object space, or None without a camera."""
+    cam = scene.camera
+    if cam is None:
+        return None
+    cam_eval = cam.evaluated_get(depsgraph) if depsgraph is not None else cam
+    m = cam_eval.matrix_world
+    to_object = obj_matrix.inverted_safe()
+    if getattr(cam_eval.data, "type", 'PERSP') == 'ORTHO':
+        d = to_object.to_3x3() @ (m.to_3x3() @ Vector((0.0, 0.0, 1.0)))
+        d.normalize()
+        return ('ORTHO', (float(d.x), float(d.y), float(d.z)))
+    eye = to_object @ m.translation
+    return ('PERSP', (float(eye.x), float(eye.y), float(eye.z)))
+
+
+def view_directions(view, positions: np.ndarray) -> np.ndarray | None:
+    """Unit vectors from each vertex towards the viewer (None: along the normal)."""
+    if view is None:
+        return None
+    kind, value = view
+    if kind == 'ORTHO':
+        return np.broadcast_to(np.asarray(value, dtype=np.float64), positions.shape).copy()
+    d = np.asarray(value, dtype=np.float64)[None, :] - positions
+    length = np.linalg.norm(d, axis=1, keepdims=True)
+    return d / np.maximum(length, 1e-30)
