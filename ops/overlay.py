@@ -39,10 +39,10 @@ arrays is compared each draw; reading them is a few milliseconds for a
 100k-vertex mesh).  No ``gpu`` call happens at import or register time: the
 shader is created on the first draw.
 
-Registration (called by ``ops/__init__.py``): :func:`register` after the
+Registration (called by ``ops/__init__.py``): :func:`on_register` after the
 module's ``CLASSES`` are registered (it adds the Scene pointer, the draw
-handler and the load_pre/load_post handlers), :func:`unregister` before they
-are unregistered.  The draw handler is removed on load_pre and added again
+handler and the load_pre/load_post handlers), :func:`on_unregister` before
+they are unregistered.  The draw handler is removed on load_pre and added again
 on load_post, and there is never more than one.
 """
 
@@ -467,7 +467,7 @@ def _remove_app_handlers() -> None:
                 handlers.remove(h)
 
 
-def register() -> None:
+def on_register() -> None:
     """After ``CLASSES`` are registered: Scene pointer, draw handler, load handlers."""
     bpy.types.Scene.translucency_display = PointerProperty(
         type=TranslucencyDisplaySettings,
@@ -480,8 +480,8 @@ def register() -> None:
     add_draw_handler()
 
 
-def unregister() -> None:
-    """Before ``CLASSES`` are unregistered: removes everything :func:`register` added."""
+def on_unregister() -> None:
+    """Before ``CLASSES`` are unregistered: removes everything :func:`on_register` added."""
     remove_draw_handler()
     _remove_app_handlers()
     clear_cache()

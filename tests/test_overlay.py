@@ -29,12 +29,12 @@ def overlay(blender, addon):
     if own:
         for cls in module.CLASSES:
             bpy.utils.register_class(cls)
-        module.register()
+        module.on_register()
     try:
         yield module
     finally:
         if own and module.TranslucencyDisplaySettings.is_registered:
-            module.unregister()
+            module.on_unregister()
             for cls in reversed(module.CLASSES):
                 bpy.utils.unregister_class(cls)
 
@@ -134,7 +134,7 @@ def test_register_adds_one_draw_handler_and_load_handlers(overlay):
     assert _count(bpy.app.handlers.load_pre, overlay._on_load_pre) == 1
     assert _count(bpy.app.handlers.load_post, overlay._on_load_post) == 1
     handle = overlay._handle
-    overlay.register()  # again: nothing is duplicated
+    overlay.on_register()  # again: nothing is duplicated
     overlay.add_draw_handler()
     assert overlay._handle is handle
     assert _count(bpy.app.handlers.load_pre, overlay._on_load_pre) == 1
@@ -144,7 +144,7 @@ def test_register_adds_one_draw_handler_and_load_handlers(overlay):
 
 def test_unregister_removes_every_handler(overlay):
     handle = overlay._handle
-    overlay.unregister()
+    overlay.on_unregister()
     try:
         assert not overlay.draw_handler_active()
         assert _count(bpy.app.handlers.load_pre, overlay._on_load_pre) == 0
@@ -154,12 +154,11 @@ def test_unregister_removes_every_handler(overlay):
         with pytest.raises(ValueError):
             bpy.types.SpaceView3D.draw_handler_remove(handle, 'WINDOW')
     finally:
-        overlay.register()  # the fixture unregisters it again
+        overlay.on_register()  # the fixture unregisters it again
 
 
 def test_addon_unregister_removes_the_overlay(overlay, addon):
-    if overlay not in addon.ops.MODULES:
-        pytest.skip("ops/__init__.py does not list ops.overlay yet")  # covered by the test above
+    assert overlay in addon.ops.MODULES, "ops/__init__.py must list ops.overlay"
     handle = overlay._handle
     addon.unregister()
     assert not overlay.draw_handler_active()
@@ -370,3 +369,37 @@ def test_draw_callback_follows_the_scene_toggle(overlay):
     scene.translucency.overlay_enabled = False
     off, _ = render(overlay._draw_callback)
     assert not off.any()
+
+
+# --- integration with the real bake and solve ----------------------------------------------------
+
+@pytest.mark.gpu
+def test_overlay_draws_a_real_solve(overlay):
+    """Bake and solve a sphere through the add-on's operators, light at +x: the overlay shows it."""
+    scene = bpy.context.scene
+    scene.unit_settings.scale_length = 0.05  # one unit = 50 mm: a 100 mm marble sphere
+    bpy.ops.mesh.primitive_uv_sphere_add(radius=1.0, segments=32, ring_count=16)
+    obj = bpy.context.object
+    obj.translucency.enabled = True
+    obj.translucency.quality = 'DRAFT'
+    light = bpy.data.objects.new("Light", bpy.data.lights.new("Light", 'POINT'))
+    light.data.energy = 1000.0
+    light.location = (3.0, 0.0, 1.0)
+    scene.collection.objects.link(light)
+    assert bpy.ops.translucency.bake() == {'FINISHED'}, obj.translucency.bake_status
+    assert bpy.ops.translucency.solve() == {'FINISHED'}
+    assert obj.data.attributes.get(ATTRIBUTE) is not None
+    scene.translucency_display.auto_exposure = True
+    pixels, drawn = render(draw_with(overlay, 'ONLY'))
+    assert drawn == 1
+    inside, outside = object_mask()
+    assert not pixels[outside].any()
+    right = inside & (np.arange(SIZE)[None, :] > SIZE // 2 + 2)
+    left = inside & (np.arange(SIZE)[None, :] < SIZE // 2 - 2)
+    assert pixels[right][:, 0].mean() > 2.0 * pixels[left][:, 0].mean() > 0.0
+    # Moving the light re-solves (solve operator), and the cached batch follows.
+    light.location = (-3.0, 0.0, 1.0)
+    bpy.context.view_layer.update()
+    assert bpy.ops.translucency.solve() == {'FINISHED'}
+    moved, _ = render(draw_with(overlay, 'ONLY'))
+    assert moved[left][:, 0].mean() > 2.0 * moved[right][:, 0].mean()

@@ -134,8 +134,8 @@ def surface_source(material):
 def test_operators_are_undoable(render_pass):
     for cls in render_pass.CLASSES:
         assert 'UNDO' in cls.bl_options and 'REGISTER' in cls.bl_options, cls
-    assert hasattr(bpy.ops.translucency, "add_to_material")
-    assert hasattr(bpy.ops.translucency, "remove_from_material")
+    assert bpy.ops.translucency.add_to_material.get_rna_type().identifier == "TRANSLUCENCY_OT_add_to_material"
+    assert bpy.ops.translucency.remove_from_material.get_rna_type()
 
 
 def test_add_to_material_wires_attribute_to_aov_and_is_idempotent(render_pass):
@@ -350,3 +350,77 @@ def test_exr_reader_rejects_what_it_cannot_read(render_pass, tmp_path):
     bad.write_bytes(b"not an exr")
     with pytest.raises(ValueError):
         render_pass.read_exr(bad)
+
+
+# --- integration with the real bake, solve and frame handlers ---------------------------------
+
+def baked_sphere_scene():
+    """The render scene above, with the sphere baked and solved through the add-on's operators.
+
+    One unit is 50 mm (unit scale 0.05), so the sphere is 100 mm of marble; a point
+    light keyed at +x on frame 1 and at -x on frame 10.
+    """
+    obj = sphere_scene()
+    scene = bpy.context.scene
+    scene.unit_settings.scale_length = 0.05
+    obj.data.attributes.remove(obj.data.attributes[ATTRIBUTE])  # the solve writes it
+    obj.translucency.enabled = True
+    obj.translucency.quality = 'DRAFT'
+    light = bpy.data.objects.new("Light", bpy.data.lights.new("Light", 'POINT'))
+    light.data.energy = 1000.0
+    scene.collection.objects.link(light)
+    for frame, x in ((1, 3.0), (10, -3.0)):
+        light.location = (x, 0.0, 1.0)
+        light.keyframe_insert("location", frame=frame)
+    scene.frame_set(1)
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.translucency.bake() == {'FINISHED'}, obj.translucency.bake_status
+    assert bpy.ops.translucency.solve() == {'FINISHED'}
+    return obj
+
+
+def radiance_of(obj):
+    attr = obj.data.attributes[ATTRIBUTE]
+    buf = np.empty(len(attr.data) * 4, np.float32)
+    attr.data.foreach_get("color", buf)
+    return buf.reshape(-1, 4)[:, :3]
+
+
+def lit_sides(translucency):
+    inside, outside = masks()
+    rgb = translucency[..., :3]
+    assert np.isfinite(rgb).all()
+    assert np.all(rgb[inside].max(axis=1) > 0.0), "the pass is black somewhere on the object"
+    assert np.all(rgb[outside] == 0.0), "the pass is not zero off the object"
+    right = inside.copy()
+    right[:, :SIZE // 2] = False
+    left = inside.copy()
+    left[:, SIZE // 2:] = False
+    return rgb[right].mean(), rgb[left].mean()
+
+
+def test_solve_then_cycles_pass_follows_the_animated_light(render_pass, tmp_path):
+    obj = baked_sphere_scene()
+    L = radiance_of(obj)
+    assert L.shape == (len(obj.data.vertices), 3) and np.isfinite(L).all() and L.max() > 0
+    bpy.ops.translucency.add_to_material()
+    scene = bpy.context.scene
+    passes = {}
+    for frame in (1, 10):
+        scene.frame_set(frame)  # the add-on's frame handlers re-solve for the moved light
+        path = render_exr(render_pass, tmp_path / f"frame_{frame}.exr", 'CYCLES')
+        passes[frame] = render_pass.exr_pass(path, "Translucency")
+    right, left = lit_sides(passes[1])
+    assert right > 2.0 * left, f"frame 1: light at +x, right {right} left {left}"
+    right, left = lit_sides(passes[10])
+    assert left > 2.0 * right, f"frame 10: light at -x, right {right} left {left}"
+    assert not np.allclose(passes[1], passes[10])
+
+
+@pytest.mark.gpu
+def test_solve_then_eevee_pass_is_brighter_on_the_lit_side(render_pass, tmp_path):
+    baked_sphere_scene()
+    bpy.ops.translucency.add_to_material()
+    path = render_exr(render_pass, tmp_path / "eevee.exr", render_pass.eevee_engine_id(), samples=1)
+    right, left = lit_sides(render_pass.exr_pass(path, "Translucency"))
+    assert right > 2.0 * left
