@@ -206,6 +206,8 @@ def build_scene(args):
     settings = bunny.translucency
     settings.enabled = True
     settings.quality = args.quality.upper()
+    if args.quick:
+        settings.levels = 2  # the coarse two of the three levels: a bake of seconds
     settings.material_preset = 'MARBLE'
     settings.use_heterogeneity = True
     settings.second_preset = 'KETCHUP'
