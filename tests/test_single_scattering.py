@@ -36,9 +36,9 @@ from translucency_addon.single_scattering.sampling import gaussian_matrix
 from translucency_addon.single_scattering.volume import trilinear
 
 # Relative RMS error over the visible vertices (all channels), RBF/SH vs reference.
-TOL_SPHERE = 0.12  # measured 0.095 .. 0.098
-TOL_LAYERS = 0.36  # measured 0.297 .. 0.309
-TOL_TORUS = 0.58  # measured 0.495 .. 0.500 (order-4 SH cannot hold the torus's sharp shadow)
+TOL_SPHERE = 0.12  # measured 0.096 .. 0.098 (seeds 0..2)
+TOL_LAYERS = 0.36  # measured 0.289 .. 0.303
+TOL_TORUS = 0.58  # measured 0.478 .. 0.483 (order-4 SH cannot hold the torus's sharp shadow)
 
 BASE = SingleScatteringSettings(quality=32, n_dirs=128, n_samples=6000, sh_order=4, seed=0)
 
@@ -269,20 +269,29 @@ def test_sphere_matches_reference(sphere):
     assert vis.sum() > 300
     assert np.all((L.sum(1) > 0) == vis)
     assert rel_rms(L, sphere.ref) < TOL_SPHERE
-    # measured total ratio 0.988 .. 1.028 per channel
+    # measured total ratio 0.973 .. 0.991 per channel
     np.testing.assert_allclose(L.sum(0) / sphere.ref.sum(0), 1.0, atol=0.06)
+
+
+def test_sphere_without_far_clip_matches_reference(sphere):
+    """The paper's renderer integrates to infinity (no far-side cast); the reference can do the same."""
+    L = sphere.render(sphere.data, far_clip=False)
+    ref = sphere.reference(sphere.data.volume, far_clip=False)
+    assert rel_rms(L, ref) < TOL_SPHERE
+    # on a convex body the far-side clip changes little (only the Gaussian tails beyond the surface)
+    assert rel_rms(L, sphere.render(sphere.data)) < 0.10  # measured 0.068
 
 
 def test_layered_cube_matches_reference(layered):
     L = layered.render(layered.data)
     assert rel_rms(L, layered.ref) < TOL_LAYERS
-    np.testing.assert_allclose(L.sum(0) / layered.ref.sum(0), 1.0, atol=0.08)  # measured 0.995 .. 1.03
+    np.testing.assert_allclose(L.sum(0) / layered.ref.sum(0), 1.0, atol=0.10)  # measured 0.933 .. 0.984
 
 
 def test_torus_cube_matches_reference(torus):
     L = torus.render(torus.data)
     assert rel_rms(L, torus.ref) < TOL_TORUS
-    ratio = L.sum(0) / torus.ref.sum(0)  # measured 1.14 / 1.21 / 1.30 (SH ringing lights the shadow)
+    ratio = L.sum(0) / torus.ref.sum(0)  # measured 1.13 / 1.20 / 1.28 (SH ringing lights the shadow)
     assert np.all(ratio > 0.95) and np.all(ratio < 1.45)
 
 
@@ -299,7 +308,7 @@ def test_environment_light_matches_reference(sphere):
     L = sphere.render(sphere.data, lights=[], env=env)
     ref = sphere.reference(sphere.data.volume, lights=[], env=env, vertices=pick, env_dirs=48)
     err = rel_rms(L[pick], ref[pick])
-    assert err < 0.12, err  # measured 0.080 .. 0.093
+    assert err < 0.12, err  # measured 0.080 .. 0.095
 
 
 def test_error_falls_with_directions_samples_and_order(layered):
@@ -312,7 +321,7 @@ def test_error_falls_with_directions_samples_and_order(layered):
     data = layered.data
     e_order = [rel_rms(layered.render(data.with_order(o)), ref) for o in (2, 3, 4)]
     print("dirs", e_dirs, "samples", e_samples, "order", e_order)
-    # measured: dirs 0.357 / 0.309 / 0.290, samples 0.378 / 0.333 / 0.283, order 0.474 / 0.392 / 0.309
+    # measured: dirs 0.357 / 0.303 / 0.280, samples 0.374 / 0.325 / 0.276, order 0.451 / 0.365 / 0.303
     assert e_dirs[0] > e_dirs[1] + 0.02 and e_dirs[2] < e_dirs[1]
     assert e_samples[0] > e_samples[1] + 0.02 and e_samples[1] > e_samples[2] + 0.02
     assert e_order[0] > e_order[1] + 0.04 and e_order[1] > e_order[2] + 0.04
@@ -337,9 +346,9 @@ def test_torus_shadow_is_visible(torus):
     dark = L[shadow].mean() / L0[shadow].mean()
     ref_dark = ref[shadow].mean() / ref0[shadow].mean()
     print("shadow ratio", dark, "reference", ref_dark, "lit", L[lit].mean() / L0[lit].mean())
-    assert ref_dark < 0.01  # the reference really has a full shadow there (measured 1e-74)
-    assert dark < 0.25  # measured 0.105 (SH ringing leaks a little light into the shadow)
-    assert 0.75 < L[lit].mean() / L0[lit].mean() < 1.3
+    assert ref_dark < 0.01  # the reference really has a full shadow there (measured 1e-15)
+    assert dark < 0.25  # measured 0.11 (SH ringing leaks a little light into the shadow)
+    assert 0.75 < L[lit].mean() / L0[lit].mean() < 1.3  # measured 0.98
 
 
 # ------------------------------------------------------------ robustness

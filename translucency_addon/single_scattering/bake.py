@@ -3,11 +3,11 @@
 Stages (names passed to ``progress(fraction, stage)`` and keys of ``stats["time"]``):
 
 ``voxelise``  sigma_t, sigma_s inside the mesh, blockers opaque
-``ddod``      direction-dependent optical depth for n directions, projected on SH per voxel
-``div``       first moment T (eq. 4) and rho = |div T|
+``ddod``      direction-dependent optical depth for n directions -> first moment T (eq. 4) per voxel
+``div``       rho = |div T|
 ``pds``       weighted Poisson-disk sampling (radii r/2 .. 2r)
 ``rbf``       Gaussian widths and partition-of-unity weights
-``sh``        psi_i SH coefficients and sigma_s at the samples
+``sh``        tau recomputed per direction at the samples -> psi_i SH coefficients; sigma_s
 ``grid``      uniform sample grid (CSR cell lists) for the view rays
 
 The progress callback may raise (e.g. :class:`~translucency_addon.errors.BakeCancelled`)
@@ -29,7 +29,7 @@ from .data import SampleGrid, SingleScatteringData
 from .sampling import SUPPORT_SIGMAS, fit_partition_of_unity, gaussian_matrix, poisson_disk
 from .volume import resolution_for, trilinear, voxelise
 
-STAGES = (("voxelise", 0.05), ("ddod", 0.60), ("div", 0.02), ("pds", 0.15), ("rbf", 0.10), ("sh", 0.05), ("grid", 0.03))
+STAGES = (("voxelise", 0.05), ("ddod", 0.40), ("div", 0.02), ("pds", 0.10), ("rbf", 0.08), ("sh", 0.33), ("grid", 0.02))
 
 
 @dataclass(frozen=True)
@@ -119,11 +119,10 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
     P.begin("ddod")
     dirs = shmod.fibonacci_directions(int(s.n_dirs))
     order = int(s.sh_order)
-    coef = od.directional_sh(volume, dirs, max(order, 1), progress=P)
+    T = od.first_moment(volume, dirs, progress=P)
     P.end()
 
     P.begin("div")
-    T = od.first_moment(coef)
     rho = od.divergence_density(T, volume.h)
     P.end()
 
@@ -143,9 +142,7 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
     P.end()
 
     P.begin("sh")
-    K = shmod.n_coefficients(order)
-    grid_coef = np.moveaxis(coef[:K], 0, 3)  # (nx, ny, nz, K, 3)
-    sh = trilinear(grid_coef, volume.origin, volume.h, centers).astype(np.float32)
+    sh = od.sample_sh(volume, dirs, centers, order, progress=P)
     sig_s = trilinear(volume.sigma_s, volume.origin, volume.h, centers)
     P.end()
 
@@ -161,6 +158,12 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
         "settings": {k: (v if not isinstance(v, np.generic) else v.item()) for k, v in asdict(s).items()},
         "voxels": list(volume.shape),
         "voxel_size": volume.h,
+        # Single scattering lives within a few mean free paths of the surface; when the shortest one is far
+        # below a voxel (marble at the scale of a bunny) the voxels and RBFs cannot resolve it and the result
+        # is too dark (see bench/single_scattering.py).  Callers can warn on mean_free_path_voxels < ~1.
+        "mean_free_path_mm": 1.0 / max(float(volume.sigma_t[volume.medium].max()), 1e-30),
+        "mean_free_path_voxels": 1.0 / max(float(volume.sigma_t[volume.medium].max()), 1e-30)
+        / (volume.h * volume.mm_per_unit),
         "medium_voxels": int(volume.medium.sum()),
         "n_samples": int(len(centers)),
         "poisson": pinfo,

@@ -25,12 +25,16 @@ to infinity on the lattice, and the same four-shift interpolation brings it
 back to the voxel centres.  The Python loop runs over slices (n0 per
 direction), never over rays.
 
-**Projection.**  psi(x, w) = exp(-tau(x, w)) is accumulated into real SH
-coefficients at every voxel (equal quadrature weights 4 pi / n), in batches
-of directions with one matrix product.  The first moment of eq. 4,
-``T(x) = integral psi(x, w) w dw``, is read off the order-1 coefficients
-(Y_1m are c1*(y, z, x), c1 = sqrt(3 / (4 pi))), averaged over RGB; its
-divergence ``rho = |div T|`` by central differences gives the sampling density.
+**Two passes, as in the paper's Table 2.**  ``first_moment`` (stage "ddod")
+accumulates the first moment of eq. 4, ``T(x) = integral psi(x, w) w dw``
+with psi = exp(-tau) averaged over RGB, at every voxel (quadrature weight
+4 pi / n); its divergence ``rho = |div T|`` by central differences gives the
+sampling density.  Once the samples are placed, ``sample_sh`` (stage "sh")
+recomputes tau per direction, interpolates it at the sample centres along
+the lattice rays and projects psi_i(w) = exp(-tau(b_i, w)) on real SH.
+Interpolating tau rather than psi matters in dense media, where tau grows by
+several units per voxel and a linear interpolation of exp(-tau) across a
+voxel would overestimate the light that reaches a sample by a large factor.
 """
 
 from __future__ import annotations
@@ -40,57 +44,105 @@ import numpy as np
 from .. import sh as shmod
 
 
-def _lattice_tau(S: np.ndarray, a: float, b: float, step: float) -> np.ndarray:
-    """tau to infinity along +axis-0 sheared by (a, b) per slice, at voxel centres.
+class Lattice:
+    """tau on the sheared ray lattice of one direction (see the module docstring)."""
 
-    ``S`` is (n0, n1, n2, C) sigma_t in the permuted frame; returns the same shape.
-    """
-    n0, n1, n2, C = S.shape
-    ka = a * np.arange(n0)
-    kb = b * np.arange(n0)
-    I = np.floor(ka).astype(np.int64)
-    J = np.floor(kb).astype(np.int64)
-    fa = ka - I
-    fb = kb - J
-    # Lattice index ranges (generous by one on each side).
-    p_lo = int(np.floor(min(0.0, -ka[-1]))) - 1
-    p_hi = int(np.ceil(n1 - 1 + max(0.0, -ka[-1]))) + 1
-    q_lo = int(np.floor(min(0.0, -kb[-1]))) - 1
-    q_hi = int(np.ceil(n2 - 1 + max(0.0, -kb[-1]))) + 1
-    P1, P2 = p_hi - p_lo + 1, q_hi - q_lo + 1
-    M = n0 + 4
-    Spad = np.zeros((n0, n1 + 2 * M, n2 + 2 * M, C), dtype=np.float32)
-    Spad[:, M : M + n1, M : M + n2] = S
-    L = np.empty((n0, P1, P2, C), dtype=np.float32)
-    for k in range(n0):
-        x0 = M + p_lo + I[k]
-        y0 = M + q_lo + J[k]
-        s = Spad[k]
-        f, g = np.float32(fa[k]), np.float32(fb[k])
-        L[k] = ((1 - f) * (1 - g)) * s[x0 : x0 + P1, y0 : y0 + P2]
-        if f:
-            L[k] += (f * (1 - g)) * s[x0 + 1 : x0 + 1 + P1, y0 : y0 + P2]
-        if g:
-            L[k] += ((1 - f) * g) * s[x0 : x0 + P1, y0 + 1 : y0 + 1 + P2]
-        if f and g:
-            L[k] += (f * g) * s[x0 + 1 : x0 + 1 + P1, y0 + 1 : y0 + 1 + P2]
-    # tau(k) = step * (sum_{k' >= k} L[k'] - L[k] / 2)   (trapezoid to infinity)
-    T = np.cumsum(L[::-1], axis=0)[::-1]
-    T -= 0.5 * L
-    T *= np.float32(step)
-    out = np.empty((n0, n1, n2, C), dtype=np.float32)
-    for k in range(n0):
-        # voxel x sits at lattice coordinate x - ka - p_lo = (x - p_lo - I - 1) + (1 - fa)
-        bx = -p_lo - I[k] - 1
-        by = -q_lo - J[k] - 1
-        f, g = np.float32(fa[k]), np.float32(fb[k])
-        t = T[k]
-        # weights: fa on the lower lattice point, (1 - fa) on the upper one
-        out[k] = (f * g) * t[bx : bx + n1, by : by + n2]
-        out[k] += ((1 - f) * g) * t[bx + 1 : bx + 1 + n1, by : by + n2]
-        out[k] += (f * (1 - g)) * t[bx : bx + n1, by + 1 : by + 1 + n2]
-        out[k] += ((1 - f) * (1 - g)) * t[bx + 1 : bx + 1 + n1, by + 1 : by + 1 + n2]
-    return out
+    def __init__(self, S: np.ndarray, w: np.ndarray, h_mm: float):
+        w = np.asarray(w, dtype=np.float64)
+        w = w / np.linalg.norm(w)
+        axis, sign, a, b, perm = _frames(w)
+        self.perm, self.sign, self.a, self.b = perm, sign, a, b
+        St = np.transpose(S, perm + [3])
+        if sign < 0:
+            St = St[::-1]
+        St = np.ascontiguousarray(St, dtype=np.float32)
+        self.shape = St.shape[:3]
+        n0, n1, n2, C = St.shape
+        ka = a * np.arange(n0)
+        kb = b * np.arange(n0)
+        self.I = np.floor(ka).astype(np.int64)
+        self.J = np.floor(kb).astype(np.int64)
+        self.fa = ka - self.I
+        self.fb = kb - self.J
+        # Lattice index ranges (generous by one on each side).
+        self.p_lo = int(np.floor(min(0.0, -ka[-1]))) - 1
+        p_hi = int(np.ceil(n1 - 1 + max(0.0, -ka[-1]))) + 1
+        self.q_lo = int(np.floor(min(0.0, -kb[-1]))) - 1
+        q_hi = int(np.ceil(n2 - 1 + max(0.0, -kb[-1]))) + 1
+        P1, P2 = p_hi - self.p_lo + 1, q_hi - self.q_lo + 1
+        M = n0 + 4
+        Spad = np.zeros((n0, n1 + 2 * M, n2 + 2 * M, C), dtype=np.float32)
+        Spad[:, M : M + n1, M : M + n2] = St
+        L = np.empty((n0, P1, P2, C), dtype=np.float32)
+        for k in range(n0):
+            x0 = M + self.p_lo + self.I[k]
+            y0 = M + self.q_lo + self.J[k]
+            sl = Spad[k]
+            f, g = np.float32(self.fa[k]), np.float32(self.fb[k])
+            L[k] = ((1 - f) * (1 - g)) * sl[x0 : x0 + P1, y0 : y0 + P2]
+            if f:
+                L[k] += (f * (1 - g)) * sl[x0 + 1 : x0 + 1 + P1, y0 : y0 + P2]
+            if g:
+                L[k] += ((1 - f) * g) * sl[x0 : x0 + P1, y0 + 1 : y0 + 1 + P2]
+            if f and g:
+                L[k] += (f * g) * sl[x0 + 1 : x0 + 1 + P1, y0 + 1 : y0 + 1 + P2]
+        # tau(k) = step * (sum_{k' >= k} L[k'] - L[k] / 2)   (trapezoid to infinity)
+        T = np.cumsum(L[::-1], axis=0)[::-1]
+        T -= 0.5 * L
+        T *= np.float32(h_mm / abs(w[axis]))
+        self.T = T
+
+    def at_voxels(self) -> np.ndarray:
+        """tau at every voxel centre, in the original (x, y, z) order, (nx, ny, nz, C)."""
+        n0, n1, n2 = self.shape
+        T = self.T
+        out = np.empty((n0, n1, n2, T.shape[3]), dtype=np.float32)
+        for k in range(n0):
+            # voxel x sits at lattice coordinate x - ka - p_lo = (x - p_lo - I - 1) + (1 - fa)
+            bx = -self.p_lo - self.I[k] - 1
+            by = -self.q_lo - self.J[k] - 1
+            f, g = np.float32(self.fa[k]), np.float32(self.fb[k])
+            t = T[k]
+            # weights: fa on the lower lattice point, (1 - fa) on the upper one
+            out[k] = (f * g) * t[bx : bx + n1, by : by + n2]
+            out[k] += ((1 - f) * g) * t[bx + 1 : bx + 1 + n1, by : by + n2]
+            out[k] += (f * (1 - g)) * t[bx : bx + n1, by + 1 : by + 1 + n2]
+            out[k] += ((1 - f) * (1 - g)) * t[bx + 1 : bx + 1 + n1, by + 1 : by + 1 + n2]
+        if self.sign < 0:
+            out = out[::-1]
+        return np.transpose(out, list(np.argsort(self.perm)) + [3])
+
+    def at_points(self, u: np.ndarray) -> np.ndarray:
+        """tau at points given in voxel-index coordinates (centre of voxel (0,0,0) = 0), (n, C).
+
+        Interpolated along the lattice rays: the ray through a point has the
+        same lattice coordinates in the slices before and after it, so tau is
+        bilinear across rays and linear along them (exactly the trapezoid
+        construction).
+        """
+        n0 = self.shape[0]
+        v = np.asarray(u, dtype=np.float64)[:, self.perm]
+        if self.sign < 0:
+            v[:, 0] = (n0 - 1) - v[:, 0]
+        u0 = np.clip(v[:, 0], 0.0, n0 - 1.0)
+        k0 = np.minimum(np.floor(u0).astype(np.int64), max(n0 - 2, 0))
+        t = u0 - k0
+        P = v[:, 1] - v[:, 0] * self.a - self.p_lo
+        Q = v[:, 2] - v[:, 0] * self.b - self.q_lo
+        P1, P2 = self.T.shape[1:3]
+        P = np.clip(P, 0.0, P1 - 1.000001)
+        Q = np.clip(Q, 0.0, P2 - 1.000001)
+        p0 = np.floor(P).astype(np.int64)
+        q0 = np.floor(Q).astype(np.int64)
+        fp = (P - p0)[:, None]
+        fq = (Q - q0)[:, None]
+        out = 0.0
+        for k, wk in ((k0, 1.0 - t), (np.minimum(k0 + 1, n0 - 1), t)):
+            Tk = self.T
+            val = ((1 - fp) * (1 - fq) * Tk[k, p0, q0] + fp * (1 - fq) * Tk[k, p0 + 1, q0]
+                   + (1 - fp) * fq * Tk[k, p0, q0 + 1] + fp * fq * Tk[k, p0 + 1, q0 + 1])
+            out = out + wk[:, None] * val
+        return out
 
 
 def _frames(w: np.ndarray):
@@ -105,17 +157,7 @@ def _frames(w: np.ndarray):
 
 def optical_depth(sigma_t: np.ndarray, h_mm: float, w) -> np.ndarray:
     """tau(x, w) to infinity at every voxel centre of ``sigma_t`` (nx, ny, nz, C) for unit ``w``."""
-    w = np.asarray(w, dtype=np.float64)
-    w = w / np.linalg.norm(w)
-    axis, sign, a, b, perm = _frames(w)
-    S = np.transpose(sigma_t, perm + [3])
-    if sign < 0:
-        S = S[::-1]
-    tau = _lattice_tau(np.ascontiguousarray(S, dtype=np.float32), a, b, h_mm / abs(w[axis]))
-    if sign < 0:
-        tau = tau[::-1]
-    inv = np.argsort(perm)
-    return np.transpose(tau, list(inv) + [3])
+    return Lattice(sigma_t, w, h_mm).at_voxels()
 
 
 def _channel_factor(sigma_t: np.ndarray, medium: np.ndarray):
@@ -135,44 +177,65 @@ def _channel_factor(sigma_t: np.ndarray, medium: np.ndarray):
     return scalar.astype(np.float32), rgb.astype(np.float32)
 
 
-def directional_sh(volume, directions: np.ndarray, order: int, *, batch: int = 16, progress=None):
-    """SH coefficients of psi = exp(-tau) at every voxel, ((order+1)^2, nx, ny, nz, 3) float32.
+def _field(volume):
+    fac = _channel_factor(volume.sigma_t, volume.medium)
+    return fac if fac is not None else (volume.sigma_t, None)
 
-    ``progress(fraction)`` is called after every batch of directions (it may raise).
+
+def first_moment(volume, directions: np.ndarray, *, progress=None) -> np.ndarray:
+    """T(x) = integral psi(x, w) w dw (eq. 4) at every voxel centre, RGB mean of psi, (nx, ny, nz, 3).
+
+    Quadrature over the ``directions`` (uniform, weight 4 pi / n).
+    ``progress(fraction)`` is called every few directions (it may raise).
+    """
+    dirs = np.asarray(directions, dtype=np.float64)
+    n = len(dirs)
+    field, rgb = _field(volume)
+    h_mm = volume.h * volume.mm_per_unit
+    T = np.zeros(tuple(volume.shape) + (3,), dtype=np.float64)
+    wq = 4.0 * np.pi / n
+    for j, w in enumerate(dirs):
+        tau = Lattice(field, w, h_mm).at_voxels()
+        if rgb is not None:
+            psi = np.exp(-tau * rgb).mean(axis=-1)
+        else:
+            psi = np.exp(-tau).mean(axis=-1)
+        for c in range(3):
+            T[..., c] += (wq * w[c]) * psi
+        if progress is not None and (j % 8 == 7 or j == n - 1):
+            progress((j + 1) / n)
+    return T
+
+
+def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *, batch: int = 32,
+              progress=None) -> np.ndarray:
+    """SH coefficients of psi_i(w) = exp(-tau(b_i, w)) at ``points`` (N, 3), ((N, K, 3) float32).
+
+    tau is recomputed per direction on the lattice and interpolated at the
+    points (in tau, not in exp(-tau): the exponential of an interpolated depth
+    stays right where tau grows by several units per voxel, as in dense media).
     """
     dirs = np.asarray(directions, dtype=np.float64)
     n = len(dirs)
     K = shmod.n_coefficients(order)
-    Y = shmod.sh_basis(dirs, order) * (4.0 * np.pi / n)  # (n, K)
-    shape = tuple(volume.shape)
-    nvox = int(np.prod(shape))
+    Y = (shmod.sh_basis(dirs, order) * (4.0 * np.pi / n)).astype(np.float64)  # (n, K)
+    field, rgb = _field(volume)
     h_mm = volume.h * volume.mm_per_unit
-    fac = _channel_factor(volume.sigma_t, volume.medium)
-    if fac is not None:
-        field, rgb = fac
-    else:
-        field, rgb = volume.sigma_t, None
-    coef = np.zeros((K, nvox * 3), dtype=np.float32)
-    # Group directions by (axis, sign) so permuted copies are made once per group.
+    u = (np.asarray(points, dtype=np.float64) - volume.origin) / volume.h - 0.5
+    N = len(u)
+    coef = np.zeros((K, N * 3), dtype=np.float64)
     for start in range(0, n, batch):
         idx = np.arange(start, min(n, start + batch))
-        psi = np.empty((len(idx), nvox * 3), dtype=np.float32)
+        psi = np.empty((len(idx), N * 3), dtype=np.float64)
         for j, di in enumerate(idx):
-            tau = optical_depth(field, h_mm, dirs[di])  # (nx, ny, nz, C)
+            tau = Lattice(field, dirs[di], h_mm).at_points(u)
             if rgb is not None:
-                tau = tau * rgb  # broadcast (.., 1) * (3,)
-            np.exp(-tau, out=psi[j].reshape(shape + (3,)))
-        coef += Y[idx].T.astype(np.float32) @ psi
+                tau = tau * rgb
+            psi[j] = np.exp(-tau).reshape(-1)
+        coef += Y[idx].T @ psi
         if progress is not None:
             progress(float(idx[-1] + 1) / n)
-    return coef.reshape((K,) + shape + (3,))
-
-
-def first_moment(coef: np.ndarray) -> np.ndarray:
-    """T(x) = integral psi(x, w) w dw (eq. 4) from the order-1 SH coefficients, RGB mean, (nx, ny, nz, 3)."""
-    c1 = np.sqrt(3.0 / (4.0 * np.pi))
-    m = coef[1:4].mean(axis=-1)  # (3, nx, ny, nz): coefficients of y, z, x
-    return np.stack([m[2], m[0], m[1]], axis=-1) / c1
+    return np.ascontiguousarray(coef.reshape(K, N, 3).transpose(1, 0, 2)).astype(np.float32)
 
 
 def divergence_density(T: np.ndarray, h: float) -> np.ndarray:

@@ -89,18 +89,20 @@ def march_optical_depth(volume, points, dirs, tmax=None, step=None, tau_cut: flo
 
 
 def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: float, *, step=None,
-                       shadow_step=None, env_dirs: int = 256, tau_cut: float = 30.0) -> np.ndarray:
+                       shadow_step=None, env_dirs: int = 256, tau_cut: float = 30.0,
+                       chunk: int = 400000) -> np.ndarray:
     """Brute-force in-medium single-scattering radiance at each ray origin, (n_rays, 3).
 
     The view ray is marched from the surface point (midpoint rule, ``step``);
     its optical depth towards the viewer is accumulated along the way, on top
-    of the depth from the surface point outwards to the grid border.  At every
-    step a shadow ray is marched to each light (and to ``env_dirs``
-    directions).  A view ray stops once its optical depth exceeds ``tau_cut``.
+    of the depth from the surface point outwards to the grid border, and the
+    ray stops once that depth exceeds ``tau_cut``.  Then a shadow ray is
+    marched from every step to each light (and to ``env_dirs`` directions),
+    all shadow rays at once (in chunks of ``chunk`` rays).
     """
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
-    t1 = np.asarray(t_exit, dtype=np.float64).reshape(-1)
+    t1 = np.minimum(np.asarray(t_exit, dtype=np.float64).reshape(-1), _grid_exit(volume, o, d))  # inf: to the border
     step = default_step(volume) if step is None else float(step)
     mm = volume.mm_per_unit
     n_steps = np.where(t1 > 0, np.maximum(np.ceil(t1 / step).astype(np.int64), 1), 0)
@@ -113,8 +115,9 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
         if environment.sh is not None:
             Lenv += shmod.sh_basis(W, 2) @ np.asarray(environment.sh, dtype=np.float64)
         Lenv = np.maximum(Lenv, 0.0)
-    out = np.zeros((len(o), 3))
+    # 1. march the view rays: positions, sigma_s and the optical depth to the viewer at every step
     tau = march_optical_depth(volume, o, -d, step=shadow_step, tau_cut=tau_cut)  # surface point -> outside
+    rec_r, rec_x, rec_w = [], [], []
     act = np.flatnonzero(n_steps > 0)
     j = 0
     while act.size:
@@ -123,7 +126,27 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
         ss = trilinear(volume.sigma_s, volume.origin, volume.h, x)
         dmm = (ds[act] * mm)[:, None]
         tv = tau[act] + 0.5 * st * dmm  # optical depth from the midpoint to the viewer
-        # every shadow ray of this step in one vectorised march: lights, then environment directions
+        rec_r.append(act)
+        rec_x.append(x)
+        rec_w.append(ss / (4.0 * np.pi) * f_in * np.exp(-tv) * dmm)  # everything but the incoming light
+        tau[act] += st * dmm
+        j += 1
+        act = act[(n_steps[act] > j) & (tau[act].min(axis=1) < tau_cut)]
+    out = np.zeros((len(o), 3))
+    if not rec_r:
+        return out
+    R = np.concatenate(rec_r)
+    X = np.concatenate(rec_x)
+    Wv = np.concatenate(rec_w)
+    keep = Wv.max(axis=1) > 0
+    R, X, Wv = R[keep], X[keep], Wv[keep]
+    # 2. shadow rays from every step: lights, then environment directions
+    n_per = len(lights or ()) + (env_dirs if has_env else 0)
+    if n_per == 0:
+        return out
+    per_chunk = max(1, chunk // n_per)
+    for c0 in range(0, len(X), per_chunk):
+        x = X[c0 : c0 + per_chunk]
         P = len(x)
         src, sdir, smax, weight = [], [], [], []
         for light in lights or ():
@@ -137,26 +160,25 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
             sdir.append(np.tile(W, (P, 1)))
             smax.append(np.full(P * env_dirs, np.inf))
             weight.append(np.tile(Lenv * (4.0 * np.pi / env_dirs), (P, 1)))
+        ts = march_optical_depth(volume, np.concatenate(src), np.concatenate(sdir), tmax=np.concatenate(smax),
+                                 step=shadow_step, tau_cut=tau_cut)
+        contrib = np.concatenate(weight) * np.exp(-ts)
         incoming = np.zeros((P, 3))
-        if src:
-            ts = march_optical_depth(volume, np.concatenate(src), np.concatenate(sdir), tmax=np.concatenate(smax),
-                                     step=shadow_step, tau_cut=tau_cut)
-            contrib = np.concatenate(weight) * np.exp(-ts)
-            k = 0
-            for light in lights or ():
-                incoming += contrib[k : k + P]
-                k += P
-            if has_env:
-                incoming += contrib[k:].reshape(P, env_dirs, 3).sum(axis=1)
-        out[act] += ss / (4.0 * np.pi) * f_in * incoming * np.exp(-tv) * dmm
-        tau[act] += st * dmm
-        j += 1
-        act = act[(n_steps[act] > j) & (tau[act].min(axis=1) < tau_cut)]
+        k = 0
+        for light in lights or ():
+            incoming += contrib[k : k + P]
+            k += P
+        if has_env:
+            incoming += contrib[k:].reshape(P, env_dirs, 3).sum(axis=1)
+        val = incoming * Wv[c0 : c0 + per_chunk]
+        r = R[c0 : c0 + per_chunk]
+        for ch in range(3):
+            out[:, ch] += np.bincount(r, weights=val[:, ch], minlength=len(o))
     return out
 
 
 def reference_vertices(volume, V, F, normals, lights, environment, eta: float, *, camera_position=None,
-                       view_dir=None, vertices=None, bvh=None, **kw) -> np.ndarray:
+                       view_dir=None, vertices=None, bvh=None, far_clip: bool = True, **kw) -> np.ndarray:
     """Outgoing radiance at vertices from the brute-force reference (same exit factor as ``render_vertices``)."""
     from ..raycast import TriangleBVH
     from .runtime import exit_factor
@@ -176,10 +198,13 @@ def reference_vertices(volume, V, F, normals, lights, environment, eta: float, *
     out = np.zeros((len(V), 3))
     if not vis.any():
         return out
-    bvh = bvh if bvh is not None else TriangleBVH(V, F)
-    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
-    t, tri, _, _ = bvh.intersect(P[vis], -wo[vis], tmin=1e-7 * diag)
-    t_exit = np.where(tri >= 0, t, 0.0)
+    if far_clip:
+        bvh = bvh if bvh is not None else TriangleBVH(V, F)
+        diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+        t, tri, _, _ = bvh.intersect(P[vis], -wo[vis], tmin=1e-7 * diag)
+        t_exit = np.where(tri >= 0, t, 0.0)
+    else:
+        t_exit = np.full(int(vis.sum()), np.inf)
     L = reference_radiance(volume, P[vis], -wo[vis], t_exit, lights, environment, eta, **kw)
     out[idx[vis]] = L * exit_factor(cos_o[vis], eta)[:, None]
     return out

@@ -219,29 +219,29 @@ def ray_sample_pairs(data, origins, dirs, t_exit):
         return e, e, np.zeros(0)
     cum = np.cumsum(cnt) - cnt
     cache = _cache(data)
-    s = cache["items"].take(np.arange(total) + np.repeat(start - cum, cnt))
-    # Ownership needs m = b . d - o . d for every candidate: float32, explicit
-    # products (so equal inputs give bit-equal m in every cell of a ray).
-    bs = cache["b32"].take(s, axis=0)
+    idx = np.arange(total) + np.repeat(start - cum, cnt)  # positions in the cell lists
+    # Ownership: b . d against the visit's interval shifted by o . d, in float32
+    # from cell-ordered copies of the centres (contiguous per cell).  Equal
+    # inputs give bit-equal values in every cell of a ray, and consecutive
+    # intervals share their end points exactly, so each pair has one owner.
     dv = d[vr].astype(np.float32)
-    m = bs[:, 0] * np.repeat(dv[:, 0], cnt)
-    m += bs[:, 1] * np.repeat(dv[:, 1], cnt)
-    m += bs[:, 2] * np.repeat(dv[:, 2], cnt)
-    m -= np.repeat(np.einsum("ij,ij->i", o[vr], d[vr]).astype(np.float32), cnt)
-    own = (m >= np.repeat(va, cnt)) & (m < np.repeat(vb, cnt))
-    s = s[own]
+    bd = cache["px"].take(idx) * np.repeat(dv[:, 0], cnt)
+    bd += cache["py"].take(idx) * np.repeat(dv[:, 1], cnt)
+    bd += cache["pz"].take(idx) * np.repeat(dv[:, 2], cnt)
+    od = np.einsum("ij,ij->i", o[vr], d[vr]).astype(np.float32)
+    own = bd >= np.repeat(va.astype(np.float32) + od, cnt)
+    own &= bd < np.repeat(vb.astype(np.float32) + od, cnt)
+    s = cache["items"].take(idx[own])
     r = np.repeat(vr, cnt)[own]
     # exact geometry in float64 for the owned pairs
     bo = data.centers.take(s, axis=0) - o.take(r, axis=0)
     m = np.einsum("ij,ij->i", bo, d.take(r, axis=0))
     dp2 = np.maximum(np.einsum("ij,ij->i", bo, bo) - m * m, 0.0)
     R2 = cache["support2"].take(s)
-    hit = dp2 < R2
-    r, s, m, dp2, R2 = r[hit], s[hit], m[hit], dp2[hit], R2[hit]
-    hc = np.sqrt(R2 - dp2)
+    hc = np.sqrt(np.maximum(R2 - dp2, 0.0))  # half chord of the truncation ball
     ta = np.maximum(0.0, m - hc)
     tb = np.minimum(t1.take(r), m + hc)
-    ok = tb > ta
+    ok = (dp2 < R2) & (tb > ta)
     r, s, m, dp2, ta, tb = r[ok], s[ok], m[ok], dp2[ok], ta[ok], tb[ok]
     a = cache["alpha"].take(s)
     sa = np.sqrt(a)
@@ -250,12 +250,15 @@ def ray_sample_pairs(data, origins, dirs, t_exit):
 
 
 def _cache(data):
-    """Per-data derived arrays for the ray loop (int64 cell items, float32 centres, ...)."""
+    """Per-data derived arrays for the ray loop (int64 cell items, cell-ordered float32 centres, ...)."""
     c = getattr(data, "_ray_cache", None)
     key = (id(data.centers), id(data.grid.cell_items), id(data.weight), id(data.sigma))
     if c is None or c["key"] != key:
-        c = {"key": key, "items": data.grid.cell_items.astype(np.int64), "b32": data.centers.astype(np.float32),
-             "support2": data.support**2, "alpha": data.alpha, "weight": np.asarray(data.weight, dtype=np.float64)}
+        items = data.grid.cell_items.astype(np.int64)
+        pos = data.centers[items].astype(np.float32)
+        c = {"key": key, "items": items, "px": np.ascontiguousarray(pos[:, 0]), "py": np.ascontiguousarray(pos[:, 1]),
+             "pz": np.ascontiguousarray(pos[:, 2]), "support2": data.support**2, "alpha": data.alpha,
+             "weight": np.asarray(data.weight, dtype=np.float64)}
         data._ray_cache = c
     return c
 
@@ -343,12 +346,17 @@ class ViewRays:
     pairs_key: int | None = None
 
 
-def view_rays(V, F, normals, *, camera_position=None, view_dir=None, view_dirs=None, vertices=None, bvh=None) -> ViewRays:
+def view_rays(V, F, normals, *, camera_position=None, view_dir=None, view_dirs=None, vertices=None, bvh=None,
+              far_clip: bool = True) -> ViewRays:
     """Rays from the front-facing vertices into the object, clipped at the far side by a BVH cast.
 
     Exactly one of ``camera_position`` (perspective), ``view_dir``
     (orthographic; from the object to the camera) or ``view_dirs`` (one
-    direction to the viewer per vertex, (n_vertices, 3)).
+    direction to the viewer per vertex, (n_vertices, 3)).  ``far_clip=False``
+    skips the BVH cast and integrates to infinity, as the paper's renderer
+    does (it clips only against the depth of the visible surface): Gaussians
+    lie inside the object, so this differs only by the tails beyond the far
+    side and by re-entries of concave shapes, and costs no ray cast.
     """
     from ..raycast import TriangleBVH
 
@@ -373,7 +381,9 @@ def view_rays(V, F, normals, *, camera_position=None, view_dir=None, view_dirs=N
     vis = cos_o > 0
     o = P[vis]
     d = -wo[vis]
-    if len(o):
+    if len(o) and not far_clip:
+        t_exit = np.full(len(o), np.inf)
+    elif len(o):
         bvh = bvh if bvh is not None else TriangleBVH(V, F)
         diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
         t, tri, _, _ = bvh.intersect(o, d, tmin=1e-7 * diag)
@@ -386,7 +396,8 @@ def view_rays(V, F, normals, *, camera_position=None, view_dir=None, view_dirs=N
 
 def render_vertices(data, V, F, normals, lights, environment, material, mm_per_unit: float | None = None, *,
                     camera_position=None, view_dir=None, view_dirs=None, vertices=None, bvh=None, rays=None,
-                    per_ray_psi: bool = False, cache_pairs: bool = False, chunk: int = 2048) -> np.ndarray:
+                    far_clip: bool = True, per_ray_psi: bool = False, cache_pairs: bool = False,
+                    chunk: int = 2048) -> np.ndarray:
     """Outgoing single-scattering radiance at mesh vertices, (n_vertices, 3), W/(m^2 sr).
 
     The viewer is given by exactly one of ``camera_position`` (perspective),
@@ -397,7 +408,7 @@ def render_vertices(data, V, F, normals, lights, environment, material, mm_per_u
     in which only the lights changed costs the light term and one weighted
     sum).  Vertices facing away from the viewer get 0.  ``vertices``
     restricts the evaluation to a subset of vertex indices (e.g. a decimated
-    set); the others get 0.  ``material`` is a
+    set); the others get 0.  ``far_clip``: see :func:`view_rays`.  ``material`` is a
     :class:`~translucency_addon.materials.Material` (for eta) or eta itself.
     The exit factor is ``F_t(n . w_o, eta) / eta^2``.  psi_i toward the viewer
     is evaluated per sample (toward the camera) unless ``per_ray_psi`` or
@@ -407,7 +418,7 @@ def render_vertices(data, V, F, normals, lights, environment, material, mm_per_u
     mm = data.mm_per_unit if mm_per_unit is None else float(mm_per_unit)
     if rays is None:
         rays = view_rays(V, F, normals, camera_position=camera_position, view_dir=view_dir, view_dirs=view_dirs,
-                         vertices=vertices, bvh=bvh)
+                         vertices=vertices, bvh=bvh, far_clip=far_clip)
     out = np.zeros((rays.n_vertices, 3))
     if len(rays.vertices) == 0:
         return out
