@@ -172,11 +172,9 @@ def test_file_load_replaces_the_draw_handler(overlay, tmp_path):
     bpy.ops.mesh.primitive_cube_add()
     path = str(tmp_path / "scene.blend")
     bpy.ops.wm.save_as_mainfile(filepath=path)
-    calls = []
     overlay._cache["stale"] = object()
     old = overlay._handle
     bpy.ops.wm.open_mainfile(filepath=path)
-    calls.append(overlay._handle)
     # load_pre removed the old handler and cleared the cache, load_post added a new one.
     assert overlay.draw_handler_active()
     assert overlay._handle is not old

@@ -59,7 +59,10 @@ def sphere_scene(material=True):
     obj = bpy.context.object
     bpy.ops.object.shade_smooth()
     if material:
-        obj.data.materials.append(bpy.data.materials.new("Sphere Material"))
+        mat = bpy.data.materials.new("Sphere Material")
+        if bpy.app.version < (5, 0, 0):
+            mat.use_nodes = True  # 5.0 materials always have a node tree
+        obj.data.materials.append(mat)
     write_radiance(obj, lit_from_plus_x)
     scene = bpy.context.scene
     camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
