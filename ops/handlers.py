@@ -145,8 +145,7 @@ def on_depsgraph_update_post(scene, depsgraph=None):
 def on_frame_change_pre(scene, depsgraph=None):
     # Animated values are not evaluated yet here (see the module docstring):
     # only forget cached geometry so vertex-group fields are re-read.
-    for name in list(runtime.GEOMETRY_EPOCH):
-        runtime.GEOMETRY_EPOCH[name] += 1
+    runtime.GEOMETRY_EPOCH[runtime.FRAME_EPOCH] = runtime.GEOMETRY_EPOCH.get(runtime.FRAME_EPOCH, 0) + 1
 
 
 @persistent

@@ -4,6 +4,13 @@
 Both panels share :func:`draw_translucency`.  If a bundled dependency does not
 import, the panel lists what is missing (with the import error) and draws
 nothing else, so a broken wheel never breaks the UI.
+
+Sections: bake settings, Bake / Free Bake, bake status and statistics (N_s
+and N_i per level, graph memory, bake time, warnings, cache problems found
+after a file load), material, heterogeneity field, Solve with the last solve
+time, iterations, residual, backend and fallback message, the cache file, then
+the hooks of the optional modules (``overlay.draw_settings`` and
+``render_pass.draw_settings``, see :func:`_draw_hooks`) and the scene settings.
 """
 
 from __future__ import annotations

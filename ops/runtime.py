@@ -83,6 +83,8 @@ class ObjectState:
     result_solver: object | None = None
     render_solver: object | None = None  # CPU twin for solves off the main thread
     render_result: object | None = None
+    render_solve_sig: tuple | None = None
+    gpu_failed_in_render: bool = False
     occluders: scene_inputs.OccluderCache = field(default_factory=scene_inputs.OccluderCache)
     geometry_digest: str = ""
     stale_message: str = ""
@@ -113,6 +115,7 @@ COUNTERS = {"solves": 0, "radiance_only": 0, "loads": 0, "field_samples": 0, "wr
 OWN_WRITES: set = set()
 # Bumped by the handlers when a mesh is edited (vertex-group weights are not hashed each time).
 GEOMETRY_EPOCH: dict[str, int] = {}
+FRAME_EPOCH = "\0frame"  # a GEOMETRY_EPOCH key no object can have: bumped on every frame change
 
 
 def log(message: str, once_key=None) -> None:
@@ -441,6 +444,14 @@ def radiance_for_mesh(obj, st: ObjectState, solver, result, view) -> np.ndarray:
     return outgoing_radiance(j_v, cos_o, solver.eta)
 
 
+def _cpu_twin(st: ObjectState, mm: float, material, scene):
+    """The CPU solver used where the GPU one cannot run (render thread, no GPU context)."""
+    if st.render_solver is None:
+        st.render_solver = backend.cpu_solver(st.bake.with_scale(mm), material, st.field_values, _options(scene))
+        st.render_result = st.render_solve_sig = None
+    return st.render_solver
+
+
 def _options(scene):
     from ..translucency_addon.diffusion import SolveOptions
 
@@ -493,7 +504,8 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     update_staleness(obj, st, depsgraph)
 
     material = scene_inputs.build_material(settings)
-    field_sig = scene_inputs.field_signature(obj, settings, depsgraph, GEOMETRY_EPOCH.get(obj.name, 0))
+    epoch = (GEOMETRY_EPOCH.get(obj.name, 0), GEOMETRY_EPOCH.get(FRAME_EPOCH, 0))
+    field_sig = scene_inputs.field_signature(obj, settings, depsgraph, epoch)
     field_changed = field_sig != st.field_sig or (field_sig is not None and st.field_values is None)
     if field_changed:
         if field_sig is None:
@@ -512,7 +524,7 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
             st.solver = None
         if st.render_solver is not None:
             backend.free_solver(st.render_solver)
-            st.render_solver = None
+            st.render_solver = st.render_result = st.render_solve_sig = None
         bake = st.bake.with_scale(mm)
         solver, name, message = backend.make_solver(bake, material, st.field_values, _options(scene),
                                                     prefer="CPU" if off_main else prefer)
@@ -530,12 +542,10 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
         log(f"'{obj.name}' solves on the {st.backend}" + (f" ({st.backend_message})" if st.backend_message else ""))
         st.announced = True
 
+    rendering = getattr(depsgraph, "mode", "VIEWPORT") == 'RENDER'
     solver = st.solver
-    if off_main and st.backend != "CPU":
-        if st.render_solver is None:
-            st.render_solver = backend.cpu_solver(st.bake.with_scale(mm), material, st.field_values,
-                                                  _options(scene))
-        solver = st.render_solver
+    if st.backend != "CPU" and (off_main or (rendering and st.gpu_failed_in_render)):
+        solver = _cpu_twin(st, mm, material, scene)
 
     lights = scene_inputs.collect_lights(depsgraph, matrix, metres_per_bu)
     environment, world_warning = scene_inputs.world_environment(scene.world)
@@ -548,28 +558,49 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     for w in warnings:
         log(f"'{obj.name}': {w}", once_key=("warn", obj.name, w))
 
-    previous = st.render_result if solver is st.render_solver else st.result
-    if not force and previous is not None and solve_sig == st.solve_sig:
-        if view_sig == st.view_sig and _attribute_ok(obj):
-            return None
-        result = previous
-        solved = False
-        seconds = 0.0
-    else:
-        t0 = time.perf_counter()
-        warm = previous if (previous is not None and (st.result_solver is solver or solver is st.render_solver)) else None
+    def previous_for(s):
+        """(last result, its signature) of solver ``s`` (the GPU/main one or the CPU twin)."""
+        if s is st.render_solver:
+            return st.render_result, st.render_solve_sig
+        return (st.result, st.solve_sig) if st.result_solver is s else (None, None)
+
+    solved = False
+    seconds = 0.0
+    for attempt in (0, 1):
+        previous, previous_sig = previous_for(solver)
         try:
-            result = solver.solve(lights, environment, warm_start=warm, shadows=True, occluders=occluders)
+            if not force and previous is not None and solve_sig == previous_sig:
+                if view_sig == st.view_sig and _attribute_ok(obj):
+                    return None
+                result = previous
+            else:
+                t0 = time.perf_counter()
+                result = solver.solve(lights, environment, warm_start=previous, shadows=True, occluders=occluders)
+                seconds = time.perf_counter() - t0
+                solved = True
+            rgb = radiance_for_mesh(obj, st, solver, result, view)
+            break
         except TranslucencyError:
             raise
-        seconds = time.perf_counter() - t0
-        solved = True
+        except Exception as ex:  # noqa: BLE001 - a GPU failure (e.g. no GPU context during a render)
+            if attempt or solver is not st.solver or st.backend == "CPU":
+                raise
+            message = f"the GPU solve failed ({type(ex).__name__}: {ex}); using the CPU solver"
+            log(f"'{obj.name}': {message}" + (" for renders" if rendering else ""))
+            if rendering:
+                st.gpu_failed_in_render = True
+            else:
+                backend.free_solver(st.solver)
+                st.solver = backend.cpu_solver(st.bake.with_scale(mm), material, st.field_values, _options(scene))
+                st.backend, st.backend_message = "CPU", message
+                st.result = st.result_solver = None
+            solver = _cpu_twin(st, mm, material, scene) if rendering else st.solver
+            solved = False
+    if solved:
         if solver is st.render_solver:
-            st.render_result = result
+            st.render_result, st.render_solve_sig = result, solve_sig
         else:
-            st.result, st.result_solver = result, solver
-        st.solve_sig = solve_sig
-    rgb = radiance_for_mesh(obj, st, solver, result, view)
+            st.result, st.result_solver, st.solve_sig = result, solver, solve_sig
     if not np.all(np.isfinite(rgb)):
         raise TranslucencyError(f"'{obj.name}': the solve produced NaN or Inf radiance; check the material")
     write_radiance(obj, rgb)
@@ -585,7 +616,7 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
         COUNTERS["radiance_only"] += 1
     if not off_main:
         _publish(obj, scene, st)
-    return SolveReport(name=obj.name, backend=st.backend if solver is st.solver else "CPU",
+    return SolveReport(name=obj.name, backend="CPU" if solver is st.render_solver else st.backend,
                        seconds=st.seconds, residual=st.residual, iterations=st.iterations, solved=solved,
                        view="CAMERA" if view is not None else "NORMAL", vertices=len(rgb))
 

@@ -542,8 +542,13 @@ def interpolate_to_nodes(positions: np.ndarray, values: np.ndarray, nodes: np.nd
     return np.clip(np.nan_to_num(out, nan=0.0), 0.0, 1.0)
 
 
-def field_signature(obj, settings, depsgraph, vertex_group_epoch: int = 0):
-    """A hashable key of the field's inputs (``None`` for a homogeneous material)."""
+def field_signature(obj, settings, depsgraph, vertex_group_epoch=0):
+    """A hashable key of the field's inputs (``None`` for a homogeneous material).
+
+    Vertex-group weights cannot be read in bulk (one Python loop over the
+    vertices), so they are not hashed on every check: ``vertex_group_epoch``
+    (bumped by the handlers on mesh edits and frame changes) stands for them.
+    """
     from ..translucency_addon.errors import MaterialError
 
     if not settings.use_heterogeneity:

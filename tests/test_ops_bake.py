@@ -432,3 +432,92 @@ def test_bake_refuses_non_mesh_and_edit_mode(blender, addon, cache_dir):
     activate(empty)
     assert not bpy.ops.translucency.bake.poll()
     assert math.isfinite(obj.translucency.mm_per_unit)
+
+
+# --------------------------------------------------------------------------- the modal path
+
+
+class _Recorder:
+    def __init__(self):
+        self.calls = []
+
+    def __getattr__(self, name):
+        def record(*args, **kwargs):
+            self.calls.append((name, args))
+        return record
+
+
+class _FakeOperator:
+    """Stands in for the operator instance (Blender creates those only through bpy.ops)."""
+
+    def __init__(self, job):
+        from translucency.ops.operators_bake import TRANSLUCENCY_OT_bake as op
+
+        self._job = job
+        self._timer = object()
+        self.reports = []
+        for name in ("modal", "cancel", "_finish", "_set_text", "_end_ui"):
+            setattr(self, name, getattr(op, name).__get__(self))
+
+    def report(self, level, message):
+        self.reports.append((next(iter(level)), message))
+
+
+def _fake_context():
+    from types import SimpleNamespace
+
+    return SimpleNamespace(window_manager=_Recorder(), workspace=_Recorder(), area=None,
+                           scene=bpy.context.scene, evaluated_depsgraph_get=bpy.context.evaluated_depsgraph_get)
+
+
+def _event(kind, value='NOTHING'):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(type=kind, value=value)
+
+
+def _drive(op, context, job, esc_at_stage=None, timeout=120.0):
+    import time
+
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        if esc_at_stage is not None and job.stage == esc_at_stage and not job.cancel_requested:
+            assert op.modal(context, _event('ESC', 'PRESS')) == {'RUNNING_MODAL'}
+        result = op.modal(context, _event('TIMER'))
+        if result != {'PASS_THROUGH'}:
+            return result
+        assert op.modal(context, _event('MOUSEMOVE')) == {'PASS_THROUGH'}  # Blender stays usable
+        time.sleep(0.02)
+    raise AssertionError("the modal bake did not finish")
+
+
+def test_modal_bake_progress_and_finish(blender, addon, cache_dir, memo_bakes):
+    from translucency.ops import operators_bake
+
+    obj = sphere()
+    job = operators_bake.prepare_job(bpy.context, obj, BASE_TRIANGLES)
+    op, context = _FakeOperator(job), _fake_context()
+    job.start()
+    assert _drive(op, context, job) == {'FINISHED'}
+    wm = [name for name, _ in context.window_manager.calls]
+    assert "progress_update" in wm and "progress_end" in wm and "event_timer_remove" in wm
+    texts = [args[0] for name, args in context.workspace.calls if name == "status_text_set"]
+    assert any(t and "Esc to cancel" in t for t in texts) and texts[-1] is None  # cleared at the end
+    assert op.reports[0][0] == 'INFO' and "Baked 'Blob'" in op.reports[0][1]
+    assert obj.translucency.bake_key and len(files_in(cache_dir)) == 1
+
+
+def test_modal_bake_escape_cancels(blender, addon, cache_dir, real_bakes):
+    from translucency.ops import operators_bake
+
+    obj = sphere()
+    before = settings_snapshot(obj)
+    job = operators_bake.prepare_job(bpy.context, obj, BASE_TRIANGLES)
+    op, context = _FakeOperator(job), _fake_context()
+    job.start()
+    assert _drive(op, context, job, esc_at_stage="tetrahedralize") == {'CANCELLED'}
+    levels = [level for level, _ in op.reports]
+    assert levels[-1] == 'WARNING' and "cancelled" in op.reports[-1][1]
+    assert any("uninterruptible" in message for _, message in op.reports)  # Esc during fTetWild says so
+    assert files_in(cache_dir) == [] and settings_snapshot(obj) == before
+    assert obj.data.attributes.get("translucency_radiance") is None
