@@ -81,7 +81,7 @@ class Light:
 @dataclass(frozen=True)
 class Environment:
     radiance: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    sh: np.ndarray | None = field(default=None, compare=False)  # (9, 3) real SH, order 2
+    sh: np.ndarray | None = field(default=None, compare=False)  # (k, 3) real SH radiance, order <= 4
 
     def __post_init__(self):
         r = _vec3(self.radiance, "environment radiance")
@@ -89,8 +89,8 @@ class Environment:
             raise LightError(f"environment radiance is negative: {r.tolist()}")
         if self.sh is not None:
             sh = np.asarray(self.sh, dtype=np.float64)
-            if sh.shape != (9, 3) or not np.all(np.isfinite(sh)):
-                raise LightError("environment SH must be a finite (9, 3) array")
+            if sh.ndim != 2 or sh.shape[1] != 3 or sh.shape[0] not in (1, 4, 9, 16, 25) or not np.all(np.isfinite(sh)):
+                raise LightError("environment SH must be a finite (k, 3) array, k in 1, 4, 9, 16, 25")
 
     @property
     def is_black(self) -> bool:
@@ -168,16 +168,17 @@ def incident_flux(
 def environment_flux(env: Environment, normals: np.ndarray, eta: float) -> np.ndarray:
     """q from a uniform (plus optional SH) environment, unoccluded.
 
-    Uniform part: ``L * pi * (1 - F_dr,ext)``.  SH part: the standard
-    irradiance convolution (Ramamoorthi & Hanrahan 2001) with the clamped
-    cosine, scaled by the mean transmittance ``1 - F_dr,ext``.
+    Uniform part: ``L * pi * (1 - F_dr,ext)``.  SH part: the Funk-Hecke
+    convolution of the radiance with the zonal kernel ``cos(theta) F_t(theta)``
+    (``sh.transmitted_flux_from_sh``), which is exact for band-limited
+    radiance -- the Fresnel factor is integrated, not averaged.
     """
     t_mean = 1.0 - diffuse_reflectance_external(eta)
     q = np.broadcast_to(np.asarray(env.radiance) * np.pi * t_mean, (len(normals), 3)).copy()
     if env.sh is not None:
-        from .sh import irradiance_from_sh9
+        from .sh import transmitted_flux_from_sh
 
-        q += t_mean * irradiance_from_sh9(np.asarray(env.sh), normals)
+        q += transmitted_flux_from_sh(np.asarray(env.sh), normals, eta)
     return q
 
 

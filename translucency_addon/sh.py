@@ -118,3 +118,27 @@ def irradiance_from_sh9(sh: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Irradiance E(n) = sum_lm A_l L_lm Y_lm(n) from order-2 radiance coefficients (9, 3)."""
     Y = sh_basis(normals, 2)
     return np.maximum(Y @ (_A[:, None] * np.asarray(sh)), 0.0)
+
+
+def transmission_kernel(eta: float, order: int = 2) -> np.ndarray:
+    """Zonal kernel of q (eq. 3) for SH radiance: A_l = 2 pi int_0^1 mu F_t(mu) P_l(mu) dmu.
+
+    By the Funk-Hecke theorem, for a radiance L(w) = sum L_lm Y_lm(w) the
+    transmitted diffuse flux of eq. 3 is exactly q(n) = sum_lm A_l L_lm Y_lm(n).
+    With F_t = 1 this gives Ramamoorthi & Hanrahan's pi, 2 pi/3, pi/4.
+    """
+    from .fresnel import fresnel_transmittance
+
+    x, w = np.polynomial.legendre.leggauss(128)
+    mu = 0.5 * (x + 1.0)
+    wt = 0.5 * w * mu * fresnel_transmittance(mu, eta)
+    A = np.array([2.0 * np.pi * np.sum(wt * np.polynomial.legendre.Legendre.basis(l)(mu)) for l in range(order + 1)])
+    return np.repeat(A, [2 * l + 1 for l in range(order + 1)])
+
+
+def transmitted_flux_from_sh(sh: np.ndarray, normals: np.ndarray, eta: float) -> np.ndarray:
+    """q(n) of eq. 3 for SH radiance coefficients (k, 3), exact for band-limited radiance."""
+    sh = np.asarray(sh)
+    order = int(round(np.sqrt(sh.shape[0]))) - 1
+    Y = sh_basis(normals, order)
+    return np.maximum(Y @ (transmission_kernel(eta, order)[:, None] * sh), 0.0)

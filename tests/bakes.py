@@ -1,0 +1,37 @@
+"""Shared, memoised bakes for engine tests (a bake costs seconds; tests reuse them)."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from translucency_addon import meshio, primitives
+from translucency_addon.bake import BakeSettings, bake_mesh, resample_surface
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+if not SHARED.exists():  # CI clones next to ../shared; a worktree may sit elsewhere
+    SHARED = Path("/work/shared/meshes")
+
+
+@lru_cache(maxsize=None)
+def mesh(name: str):
+    """A test mesh by name: files in ../shared/meshes, or 'bunny-decimated', or primitives."""
+    if name == "bunny-decimated":
+        V, F = meshio.load_obj(SHARED / "stanford-bunny.obj")
+        return resample_surface(V, F, 6000)
+    if name == "sphere":
+        return primitives.icosphere(1.0, 3)
+    if name == "cube":
+        return primitives.box((1.0, 1.0, 1.0), subdivisions=2)
+    return meshio.load_obj(SHARED / f"{name}.obj")
+
+
+@lru_cache(maxsize=None)
+def baked(name: str, quality: str = "draft", levels: int | None = None, mm_per_unit: float = 1.0,
+          base_triangles: int | None = None, optimize: bool = True):
+    V, F = mesh(name)
+    s = BakeSettings(quality=quality, levels=levels, mm_per_unit=mm_per_unit,
+                     base_triangles=base_triangles, optimize=optimize)
+    return bake_mesh(np.asarray(V), np.asarray(F), s)

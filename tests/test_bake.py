@@ -1,0 +1,263 @@
+"""The QuadGraph bake (issue 3): graph invariants, Shepard weights, vertex mapping, cache, errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from bakes import baked, mesh
+from translucency_addon import cache, meshio, tetra
+from translucency_addon.bake import BakeSettings, bake_mesh, mesh_key, shepard_weights
+from translucency_addon.errors import BakeCancelled, CacheError, MeshError
+from translucency_addon.quadgraph import check_invariants
+from translucency_addon.raycast import TriangleBVH
+
+MESHES = ["spot", "fandisk", "rocker-arm", "bunny-decimated"]
+
+
+@pytest.mark.parametrize("name", MESHES)
+def test_graph_invariants(name):
+    bake = baked(name)
+    V, F = mesh(name)
+    assert len(bake.levels) == 2
+    bvh = TriangleBVH(V, F)
+    diag = float(np.linalg.norm(np.ptp(V, axis=0)))
+    for i, lv in enumerate(bake.levels):
+        # every inner node has exactly 4 links, every surface node exactly 1, links symmetric,
+        # no inner node with 2+ surface links (no unsplit C2/C3 tet), positive lengths/volumes/areas
+        assert check_invariants(lv) == [], (name, i)
+        assert lv.n_surface > 0 and lv.n_inner > 0
+        # every surface node lies on the original surface (within a small fraction of the size)
+        _, _, dist = bvh.closest_point(lv.surface_position)
+        assert np.percentile(dist, 99) < 1e-6 * diag + 1e-9, (name, i, np.percentile(dist, 99) / diag)
+        assert dist.max() < 0.02 * diag, (name, i, dist.max() / diag)
+        # unit outward normals: mostly pointing away from the linked inner node (not always:
+        # in thin parts a coarse tet's centroid can lie outside the original surface)
+        np.testing.assert_allclose(np.linalg.norm(lv.normal, axis=1), 1.0, atol=1e-6)
+        to_node = lv.surface_position - lv.position[lv.surface_inner]
+        assert np.mean(np.einsum("ij,ij->i", to_node, lv.normal) > 0) > 0.9
+    # Shepard weights sum to 1 and point to nodes of the same kind on the coarser level
+    for k, (idx, w) in enumerate(bake.shepard):
+        coarse, fine = bake.levels[k], bake.levels[k + 1]
+        assert idx.shape[0] == fine.n_nodes
+        np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-5)
+        assert np.all(w >= 0)
+        used = idx >= 0
+        assert np.all(w[~used] == 0)
+        assert np.all(idx[: fine.n_inner][used[: fine.n_inner]] < coarse.n_inner)
+        assert np.all(idx[fine.n_inner:][used[fine.n_inner:]] >= coarse.n_inner)
+        assert used[: fine.n_inner].sum(axis=1).min() == 8  # b = 8 for inner nodes
+        assert used[fine.n_inner:].sum(axis=1).max() == 4  # b = 4 for surface nodes
+    # every mesh vertex has mapping weights
+    vidx, vw = bake.vertex_map
+    assert vidx.shape[0] == len(V)
+    np.testing.assert_allclose(vw.sum(axis=1), 1.0, atol=1e-5)
+    assert np.all(vidx < bake.finest.n_surface)
+
+
+def test_split_removes_multi_boundary_tets():
+    """Fig. 4: C2 and C3 tets become C0/C1 tets; a lone tet (C4) too."""
+    TV = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    TT = tetra.orient(TV, np.array([[0, 1, 2, 3]]))
+    topo = tetra.topology(TT, 4)
+    assert topo.boundary_count.tolist() == [4]
+    TV2, TT2, n = tetra.split_multi_boundary(TV, TT, topo)
+    topo2 = tetra.topology(TT2, len(TV2))
+    assert n == 1 and len(TT2) == 4
+    assert topo2.boundary_count.max() == 1
+    np.testing.assert_allclose(tetra.signed_volumes(TV2, TT2).sum(), 1 / 6)
+    assert np.all(tetra.signed_volumes(TV2, TT2) > 0)
+
+
+def test_refinement_preserves_volume_and_boundary_classes():
+    # (fTetWild is not deterministic, even single-threaded, so levels are compared
+    # within one bake, never across bakes.)
+    bake = baked("spot")
+    # a refined level has 8x the tets and 4x the boundary faces of its parent
+    assert bake.levels[1].n_inner == 8 * bake.levels[0].n_inner
+    assert bake.levels[1].n_surface == 4 * bake.levels[0].n_surface
+    vol = [lv.volume.sum() for lv in bake.levels]
+    assert abs(vol[1] - vol[0]) / vol[0] < 0.03  # snapping moves the boundary a little
+
+
+def test_independent_levels_mode():
+    """The paper's way: every level tetrahedralised from its own resampled surface."""
+    V, F = mesh("sphere")
+    b = bake_mesh(V, F, BakeSettings(quality="draft", levels=2, level_mode="independent", base_triangles=200))
+    assert [check_invariants(lv) for lv in b.levels] == [[], []]
+    assert b.levels[1].n_surface > 2 * b.levels[0].n_surface
+
+
+def test_sliver_bake_without_optimisation():
+    b = baked("spot", optimize=False, levels=1)
+    lv = b.levels[0]
+    assert check_invariants(lv) == []
+    assert lv.stats["tet_quality_median"] < 0.1  # fTetWild unoptimised: slivers
+
+
+def test_shepard_weights_are_inverse_square_distance():
+    coarse = np.array([[0.0, 0, 0], [1, 0, 0], [0, 2, 0]])
+    fine = np.array([[0.5, 0, 0], [0, 0, 0]])
+    idx, w = shepard_weights(fine, coarse, 3)
+    d2 = ((fine[0] - coarse[idx[0]]) ** 2).sum(axis=1)
+    np.testing.assert_allclose(w[0], (1 / d2) / (1 / d2).sum())
+    assert w[1, 0] == 1.0 and idx[1, 0] == 0  # coincident node takes that value
+
+
+def test_cache_round_trip_is_exact(tmp_path):
+    bake = baked("spot")
+    path = cache.save_bake(tmp_path / "spot.npz", bake)
+    back = cache.load_bake(path, expected_key=bake.key)
+    assert back.key == bake.key and back.mm_per_unit == bake.mm_per_unit
+    assert len(back.levels) == len(bake.levels)
+    for a, b in zip(bake.levels, back.levels):
+        for name in a.ARRAYS:
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        assert (a.n_inner, a.n_surface) == (b.n_inner, b.n_surface)
+    for (i1, w1), (i2, w2) in zip(bake.shepard, back.shepard):
+        np.testing.assert_array_equal(i1, i2)
+        np.testing.assert_array_equal(w1, w2)
+    np.testing.assert_array_equal(bake.vertex_map[0], back.vertex_map[0])
+    np.testing.assert_array_equal(bake.mesh_vertices, back.mesh_vertices)
+    assert back.settings == bake.settings
+
+
+def test_cache_errors(tmp_path):
+    bake = baked("spot")
+    path = cache.save_bake(tmp_path / "spot.npz", bake)
+    data = path and open(path, "rb").read()
+    trunc = tmp_path / "truncated.npz"
+    trunc.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CacheError, match="corrupt or truncated"):
+        cache.load_bake(trunc)
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"not a zip at all" * 100)
+    with pytest.raises(CacheError, match="corrupt or truncated"):
+        cache.load_bake(garbage)
+    with pytest.raises(CacheError, match="does not exist"):
+        cache.load_bake(tmp_path / "missing.npz")
+    with pytest.raises(CacheError, match="stale"):
+        cache.load_bake(path, expected_key="0" * 64)
+    # wrong version
+    arrays = cache.bake_to_arrays(bake)
+    meta = json.loads(arrays["meta"].tobytes())
+    meta["format"] = 999
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    wrong = tmp_path / "wrong.npz"
+    np.savez(wrong, **arrays)
+    with pytest.raises(CacheError, match="format version 999"):
+        cache.load_bake(wrong)
+    # a pickled object array is refused, never executed
+    arrays = cache.bake_to_arrays(bake)
+    arrays["L0/position"] = np.array([object()], dtype=object)
+    evil = tmp_path / "evil.npz"
+    np.savez(evil, **arrays)
+    with pytest.raises(CacheError):
+        cache.load_bake(evil)
+
+
+def test_mesh_key_detects_changes():
+    V, F = mesh("sphere")
+    s = BakeSettings(quality="draft")
+    k = mesh_key(V, F, s)
+    V2 = V.copy()
+    V2[0, 0] += 1e-6
+    assert mesh_key(V2, F, s) != k
+    assert mesh_key(V, F, BakeSettings(quality="preview")) != k
+    assert mesh_key(V, F, BakeSettings(quality="draft", mm_per_unit=10)) == k  # scale is not baked in
+
+
+@pytest.mark.parametrize("case,match", [
+    ("nan", "NaN or Inf"),
+    ("flat", "flat"),
+    ("few", "at least 4"),
+    ("nofaces", "no triangles"),
+    ("budget", "too large"),
+])
+def test_bad_meshes_are_rejected(case, match):
+    V, F = mesh("sphere")
+    V = V.copy()
+    kw = {}
+    if case == "nan":
+        V[3, 1] = np.nan
+    elif case == "flat":
+        V[:, 2] = 0.0
+    elif case == "few":
+        V, F = V[:3], np.array([[0, 1, 2]])
+    elif case == "nofaces":
+        F = np.zeros((0, 3), dtype=np.int64)
+    elif case == "budget":
+        kw["memory_budget"] = 1000
+    with pytest.raises(MeshError, match=match):
+        bake_mesh(V, F, BakeSettings(quality="draft", **kw))
+
+
+def test_closed_zero_volume_mesh_rejected():
+    """A closed mesh that encloses nothing: a box squashed to zero height."""
+    from translucency_addon.primitives import box
+
+    V, F = box((1.0, 1.0, 1e-9))
+    with pytest.raises(MeshError, match="flat|zero volume"):
+        meshio.validate_mesh(V, F)
+
+
+def test_open_mesh_bakes_with_a_warning():
+    V, F = mesh("sphere")
+    Fo = F[np.einsum("ij,j->i", V[F].mean(axis=1), np.array([0, 0, 1.0])) < 0.8]  # cut a cap off
+    b = bake_mesh(V, Fo, BakeSettings(quality="draft", levels=1, base_triangles=300))
+    assert b.stats["mesh"]["holes"] == 1
+    assert any("open" in w for w in b.stats["mesh"]["warnings"])
+    assert check_invariants(b.levels[0]) == []
+
+
+def test_progress_reports_stages_and_cancel_leaves_nothing(tmp_path):
+    V, F = mesh("sphere")
+    seen = []
+
+    def progress(frac, stage):
+        seen.append((frac, stage))
+
+    bake_mesh(V, F, BakeSettings(quality="draft", levels=1, base_triangles=200), progress=progress)
+    stages = [s for _, s in seen]
+    for name in ("validate", "resample", "tetrahedralize", "levels", "quadgraph", "transfer", "done"):
+        assert name in stages
+    fracs = [f for f, _ in seen]
+    assert fracs == sorted(fracs) and fracs[-1] == 1.0
+
+    def cancel(frac, stage):
+        return stage != "levels"
+
+    with pytest.raises(BakeCancelled):
+        bake_mesh(V, F, BakeSettings(quality="draft", levels=1, base_triangles=200), progress=cancel)
+
+
+def test_bake_does_not_litter_the_working_directory(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    V, F = mesh("sphere")
+    bake_mesh(V, F, BakeSettings(quality="draft", levels=1, base_triangles=200))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_bake_prints_statistics(tmp_path):
+    V, F = mesh("sphere")
+    obj = tmp_path / "sphere.obj"
+    meshio.save_obj(obj, V, F)
+    out = tmp_path / "sphere.npz"
+    r = subprocess.run([sys.executable, "-m", "translucency_addon", "bake", str(obj), "-o", str(out),
+                        "--quality", "draft", "--levels", "2", "--mm-per-unit", "10"],
+                       capture_output=True, text=True, cwd=str(tmp_path),
+                       env={**__import__("os").environ, "PYTHONPATH": str(__import__("pathlib").Path(__file__).parents[1])})
+    assert r.returncode == 0, r.stderr
+    assert "level 1: N_s=" in r.stdout and "N_i=" in r.stdout and "seconds:" in r.stdout
+    assert cache.load_bake(out).mm_per_unit == 10.0
+    bad = tmp_path / "flat.obj"
+    meshio.save_obj(bad, np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.0]]), np.array([[0, 1, 2], [1, 3, 2]]))
+    r = subprocess.run([sys.executable, "-m", "translucency_addon", "bake", str(bad), "-o", str(tmp_path / "x.npz")],
+                       capture_output=True, text=True, cwd=str(tmp_path),
+                       env={**__import__("os").environ, "PYTHONPATH": str(__import__("pathlib").Path(__file__).parents[1])})
+    assert r.returncode == 2 and "flat" in r.stderr
+    assert not (tmp_path / "x.npz").exists()
