@@ -86,6 +86,8 @@ def main(argv=None):
     ap.add_argument("--mesh", default=BUNNY)
     ap.add_argument("--mm-per-unit", type=float, default=1000.0)
     ap.add_argument("--quality", default="final")
+    ap.add_argument("--sections", default="bake,frame,error",
+                    help="comma-separated subset of bake, frame, error (frame and error bake what they need)")
     args = ap.parse_args(argv)
 
     V, F = meshio.load_obj(args.mesh)
@@ -118,10 +120,13 @@ def main(argv=None):
     print(line)
     out.append(line)
 
+    sections = set(args.sections.split(","))
     # ---------------------------------------------------------------- 1. bake
     stage_names = [n for n, _ in STAGES]
     rows = []
     bakes = {}
+    if "bake" not in sections:  # the other sections still need the main bake
+        dirs_list = (base.n_dirs,)
     for nd in dirs_list:
         s = replace(base, n_dirs=nd)
         t, c = time.perf_counter(), time.process_time()
@@ -133,11 +138,14 @@ def main(argv=None):
         print(f"bake n_dirs={nd}: {total:.1f} s", flush=True)
     sec = "\n## Bake time per stage (s, wall), N_s = %d\n\n" % main_samples + table(
         ["n_dirs", "samples"] + stage_names + ["total", "CPU"], rows)
-    print(sec)
-    out.append(sec)
+    if "bake" in sections:
+        print(sec)
+        out.append(sec)
 
     # ----------------------------------------------------------- 2. frame time
     datas = {}
+    if "frame" not in sections:
+        samples_list = (main_samples,)
     for ns in samples_list:
         if ns == main_samples and ("dirs", base.n_dirs) in bakes:
             datas[ns] = bakes[("dirs", base.n_dirs)]
@@ -153,7 +161,7 @@ def main(argv=None):
         rays_free[name] = view_rays(V, F, N, camera_position=camera, vertices=sub, far_clip=False)
     rows = []
     light_counts = (1, 2) if args.quick else (1, 2, 4, 8)
-    for ns, data in datas.items():
+    for ns, data in (datas.items() if "frame" in sections else ()):
         for nl in light_counts:
             lights = lights_around(center, 1.5 * size, nl)
             for name, rays in rays_by.items():
@@ -181,10 +189,13 @@ def main(argv=None):
            "no BVH); lights-only = camera unchanged (ray-sample pairs cached)\n\n") + table(
         ["samples", "lights", "vertices", "rays", "pairs", "light term", "view term", "per-ray", "BVH t_exit",
          "frame", "frame, no far clip", "lights-only"], rows)
-    print(sec)
-    out.append(sec)
+    if "frame" in sections:
+        print(sec)
+        out.append(sec)
 
     # ------------------------------------------------------------ 3. error
+    if "error" not in sections:
+        return finish(args, out)
     rng = np.random.default_rng(0)
     rays_all = rays_by["all"]
     pick = np.sort(rng.choice(rays_all.vertices, 40 if args.quick else 200, replace=False))
@@ -226,6 +237,10 @@ def main(argv=None):
         ["medium", "bake", "clip", "rel. RMS error", "ratio R / G / B", "reference time (s)"], rows)
     print(sec)
     out.append(sec)
+    return finish(args, out)
+
+
+def finish(args, out):
     tail = f"\nload average at the end {os.getloadavg()[0]:.1f}" if hasattr(os, "getloadavg") else ""
     print(tail)
     out.append(tail)
