@@ -296,11 +296,12 @@ def test_torus_cube_matches_reference(torus):
 
 
 def test_environment_light_matches_reference(sphere):
-    """Uniform + order-2 SH world: the SH dot product against marching 48 directions per step.
+    """Uniform + order-3 SH world: the SH dot product against marching 48 directions per step.
 
     (The reference with 48 directions is within 0.25 % of one with 300.)"""
-    sh = np.zeros((9, 3))
+    sh = np.zeros((16, 3))
     sh[2] = (0.4, 0.3, 0.2)  # brighter towards +z
+    sh[15] = (0.1, 0.05, 0.0)  # a band-3 lobe
     env = Environment(radiance=(0.5, 0.5, 0.5), sh=sh)
     rng = np.random.default_rng(2)
     rays = view_rays(sphere.V, sphere.F, sphere.N, view_dir=sphere.view)

@@ -113,7 +113,8 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
         W = shmod.fibonacci_directions(env_dirs)
         Lenv = np.broadcast_to(np.asarray(environment.radiance, dtype=np.float64), (env_dirs, 3)).copy()
         if environment.sh is not None:
-            Lenv += shmod.sh_basis(W, 2) @ np.asarray(environment.sh, dtype=np.float64)
+            esh = np.asarray(environment.sh, dtype=np.float64)
+            Lenv += shmod.sh_basis(W, int(round(np.sqrt(len(esh)))) - 1) @ esh
         Lenv = np.maximum(Lenv, 0.0)
     # 1. march the view rays: positions, sigma_s and the optical depth to the viewer at every step
     tau = march_optical_depth(volume, o, -d, step=shadow_step, tau_cut=tau_cut)  # surface point -> outside

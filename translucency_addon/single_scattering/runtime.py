@@ -11,8 +11,8 @@ with k = 1 / (4 pi) (isotropic phase function).  Three passes:
    ``E_l`` is the irradiance on a plane facing the light at b_i
    (``lights.light_irradiance``, W/m^2, spot cones and area cosines
    included); the environment integral is the SH dot product (uniform
-   radiance L is the constant ``L sqrt(4 pi) Y_00``; an order-2 SH world adds
-   its 9 coefficients).  A light costs one SH evaluation per sample, which is
+   radiance L is the constant ``L sqrt(4 pi) Y_00``; an SH world adds its
+   coefficients up to the order the samples hold).  A light costs one SH evaluation per sample, which is
    why the cost grows sub-linearly with the number of lights.
 2. ``view_term`` (optional, one value per sample): psi_i toward the camera.
    Exact for an orthographic view (one direction); for a perspective camera
@@ -97,9 +97,10 @@ def light_term(data, lights, environment, eta: float, mm_per_unit: float | None 
         env = np.zeros((len(b), 3))
         L = np.asarray(environment.radiance, dtype=np.float64)
         env += L[None, :] * np.sqrt(4.0 * np.pi) * data.sh[:, 0, :]
-        if environment.sh is not None:
-            k = min(9, data.sh.shape[1])
-            env += np.einsum("nkc,kc->nc", data.sh[:, :k, :], np.asarray(environment.sh, dtype=np.float64)[:k])
+        if environment.sh is not None:  # (k, 3) radiance coefficients, k = 1, 4, 9, 16 or 25
+            esh = np.asarray(environment.sh, dtype=np.float64)
+            k = min(len(esh), data.sh.shape[1])  # psi is stored up to its order only
+            env += np.einsum("nkc,kc->nc", data.sh[:, :k, :], esh[:k])
         acc += np.maximum(env, 0.0)
     return data.sigma_s / (4.0 * np.pi) * entry_transmittance(eta) * acc
 
