@@ -505,6 +505,8 @@ def mesh_field(obj, settings, depsgraph) -> tuple[np.ndarray, np.ndarray]:
     if not name:
         what = "attribute" if source == 'ATTRIBUTE' else "vertex group"
         raise MaterialError(f"'{obj.name}': Heterogeneous is on but no {what} is chosen for the field")
+    if source == 'ATTRIBUTE' and name.startswith("translucency_radiance"):
+        raise MaterialError(f"'{obj.name}': the solver's own output {name!r} cannot be the heterogeneity field")
     candidates = []
     if depsgraph is not None:
         candidates.append((obj.evaluated_get(depsgraph).data, False))

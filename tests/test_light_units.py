@@ -11,9 +11,12 @@ the transform into object space and ``mm_per_unit`` are exercised too).
 
 Nothing here is fitted: the prediction uses the conversion factors of
 ``ops/scene_inputs.py`` (point/spot P/(4 pi) W/sr, area P/pi W/sr along the
-normal, sun S W/m^2, world colour x strength W/(m^2 sr)).  The measured
-agreement is about 0.1-0.3 % in the mean; the tolerances below leave room
-for Cycles' sampling noise only.
+normal, sun S W/m^2, world colour x strength W/(m^2 sr)).  Measured with
+Blender 5.0.1 (and 4.5): Cycles / engine = 1.0000 (point, both unit scales),
+1.0001 (spot, cone and blend included), 0.9997 (area, Normalize on and off),
+1.0000 (sun), 1.0000 (world), with a 95th-percentile per-pixel error below
+0.2 %.  The tolerances below are wider only to leave room for Cycles'
+sampling noise.
 """
 
 from __future__ import annotations
