@@ -23,7 +23,8 @@ MESHES = ["spot", "fandisk", "rocker-arm", "bunny-decimated"]
 def test_graph_invariants(name):
     bake = baked(name)
     V, F = mesh(name)
-    assert len(bake.levels) == 2
+    assert len(bake.levels) == 3
+    assert [lv.stats["built_by"] for lv in bake.levels] == ["tetrahedralization"] * 2 + ["refinement"]
     bvh = TriangleBVH(V, F)
     diag = float(np.linalg.norm(np.ptp(V, axis=0)))
     for i, lv in enumerate(bake.levels):
@@ -33,7 +34,9 @@ def test_graph_invariants(name):
         assert lv.n_surface > 0 and lv.n_inner > 0
         # every surface node lies on the original surface (within a small fraction of the size)
         _, _, dist = bvh.closest_point(lv.surface_position)
-        assert np.percentile(dist, 99) < 1e-6 * diag + 1e-9, (name, i, np.percentile(dist, 99) / diag)
+        # (ray hits and closest-point fallbacks are exact; nodes whose boundary face is far from the
+        # surface -- coarse levels, caps over holes -- keep the face centroid)
+        assert np.percentile(dist, 95) < 1e-6 * diag + 1e-9, (name, i, np.percentile(dist, 95) / diag)
         assert dist.max() < 0.02 * diag, (name, i, dist.max() / diag)
         # unit outward normals: mostly pointing away from the linked inner node (not always:
         # in thin parts a coarse tet's centroid can lie outside the original surface)
@@ -78,10 +81,15 @@ def test_refinement_preserves_volume_and_boundary_classes():
     # within one bake, never across bakes.)
     bake = baked("spot")
     # a refined level has 8x the tets and 4x the boundary faces of its parent
-    assert bake.levels[1].n_inner == 8 * bake.levels[0].n_inner
-    assert bake.levels[1].n_surface == 4 * bake.levels[0].n_surface
-    vol = [lv.volume.sum() for lv in bake.levels]
-    assert abs(vol[1] - vol[0]) / vol[0] < 0.03  # snapping moves the boundary a little
+    assert bake.levels[2].n_inner == 8 * bake.levels[1].n_inner
+    assert bake.levels[2].n_surface == 4 * bake.levels[1].n_surface
+    # independent levels: ~4x fewer surface triangles each step down
+    assert 2 < bake.levels[1].n_surface / bake.levels[0].n_surface < 6
+    # snapping the refined boundary onto the original surface brings the volume closer to the truth
+    V, F = mesh("spot")
+    true = abs(meshio.signed_volume(V, F))
+    err = [abs(lv.volume.sum() - true) / true for lv in bake.levels]
+    assert err[2] < err[1] and err[2] < 0.02, err
 
 
 def test_independent_levels_mode():

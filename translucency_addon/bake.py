@@ -6,9 +6,11 @@ Stages, each reported to the ``progress`` callback:
 2. resample the surface to the triangle count the quality needs
    (fast_simplification, a quadric decimator) -- the original surface is kept
    for placing surface nodes;
-3. tetrahedralise with fTetWild (``tetra.tetrahedralize``);
-4. build the finer levels: nested 1-to-8 refinement (default) or independent
-   tetrahedralisations of 4x denser surfaces (the paper's way);
+3. tetrahedralise with fTetWild (``tetra.tetrahedralize``) the coarser levels,
+   each from a surface with 4x fewer triangles than the next;
+4. build the finest levels by nested 1-to-8 refinement (default), or
+   tetrahedralise every level independently (``level_mode="independent"``,
+   the paper's way);
    snap boundary vertices to the original surface; split C2/C3 tets;
 5. build every level's QuadGraph and its GPU block order;
 6. Shepard weights between consecutive levels (eq. 10) and the mapping of
@@ -34,15 +36,20 @@ from .raycast import TriangleBVH
 
 BAKE_FORMAT = 1
 
-# Quality presets.  ``base_triangles``: triangles of the resampled surface
-# that the coarsest level is tetrahedralised from; ``K``: interior coarsening,
-# fTetWild's target edge length is (1 + K) times the surface triangle size
-# (the role of the paper's K: how much larger inner tets are than surface
-# ones); each finer level has ~4x the surface nodes of the previous one.
+# Quality presets.  Levels are built coarse to fine; each has ~4x the surface
+# nodes of the one below (as in the paper).  The lowest ``levels -
+# refinements`` levels are tetrahedralised independently (fTetWild) from
+# surfaces resampled to ``base_triangles / 4^k`` triangles; the top
+# ``refinements`` levels are nested 1-to-8 refinements of the finest of them.
+# ``K`` is interior coarsening: fTetWild's target edge length is (1 + K) times
+# the surface triangle size (the role of the paper's K, how much larger
+# inner tets are than surface ones).  Refinement multiplies inner nodes by 8
+# but surface nodes by 4, so Draft and Preview refine once (a finest graph an
+# interactive CPU solve can afford) and Final twice.
 QUALITY_PRESETS = {
-    "draft": dict(base_triangles=600, K=1.0, levels=2),
-    "preview": dict(base_triangles=1000, K=1.0, levels=3),
-    "final": dict(base_triangles=1800, K=0.5, levels=3),
+    "draft": dict(base_triangles=600, K=1.0, levels=3, refinements=1),
+    "preview": dict(base_triangles=2000, K=2.0, levels=3, refinements=1),
+    "final": dict(base_triangles=1800, K=0.5, levels=3, refinements=2),
 }
 
 
@@ -50,6 +57,7 @@ QUALITY_PRESETS = {
 class BakeSettings:
     quality: str = "preview"
     levels: int | None = None  # None: the preset's
+    refinements: int | None = None  # finer levels made by refinement (level_mode "refine")
     base_triangles: int | None = None
     K: float | None = None
     level_mode: str = "refine"  # "refine" (nested) or "independent" (paper)
@@ -74,11 +82,16 @@ class BakeSettings:
             self,
             quality=q,
             levels=int(self.levels if self.levels is not None else p["levels"]),
+            refinements=int(self.refinements if self.refinements is not None else p["refinements"]),
             base_triangles=int(self.base_triangles if self.base_triangles is not None else p["base_triangles"]),
             K=float(self.K if self.K is not None else p["K"]),
         )
         if not 1 <= r.levels <= 6:
             raise MeshError(f"levels must be between 1 and 6, got {r.levels}")
+        if r.level_mode == "independent":
+            r = replace(r, refinements=0)
+        else:
+            r = replace(r, refinements=min(max(r.refinements, 0), r.levels - 1))
         if r.level_mode not in ("refine", "independent"):
             raise MeshError(f"level_mode must be 'refine' or 'independent', got {r.level_mode!r}")
         if not (np.isfinite(r.mm_per_unit) and r.mm_per_unit > 0):
@@ -90,8 +103,9 @@ class BakeSettings:
     def expected_nodes(self) -> int:
         """Rough node count of the finest level (for the memory estimate)."""
         r = self.resolved()
-        surf = 1.3 * r.base_triangles * 4 ** (r.levels - 1)
-        inner = 4.0 * r.base_triangles / (1 + r.K) ** 2 * 8 ** (r.levels - 1)
+        base = r.base_triangles * (4 ** (r.levels - 1) if r.level_mode == "independent" else 1)
+        surf = 1.3 * base * 4**r.refinements
+        inner = 8.0 * base / (1 + r.K) ** 2 * 8**r.refinements
         return int(surf + inner)
 
     def key_dict(self) -> dict:
@@ -147,10 +161,15 @@ def mesh_key(V, F, settings: BakeSettings) -> str:
 def resample_surface(V, F, n_triangles: int):
     """Decimate to about ``n_triangles`` with quadric edge collapse (fast_simplification).
 
-    Meshes already at or below the target are returned cleaned but unchanged.
+    Meshes below the target are returned cleaned, and split 1-to-4 (midpoint
+    subdivision, same shape) until they have at least a quarter of the
+    target: fTetWild's run time is erratic on very coarse inputs (a 12-
+    triangle cube took 6-9 s, the same cube subdivided 1-2 s).
     """
     Vc, Fc, _ = meshio.clean_mesh(V, F)
     if len(Fc) <= n_triangles:
+        while 4 * len(Fc) < n_triangles:
+            Vc, Fc = subdivide_midpoint(Vc, Fc)
         return Vc, Fc
     try:
         import fast_simplification
@@ -163,6 +182,19 @@ def resample_surface(V, F, n_triangles: int):
     V2, F2, _ = meshio.clean_mesh(V2, F2)
     if len(F2) < 4:
         raise MeshError("surface resampling collapsed the mesh; lower the reduction")
+    return V2, F2
+
+
+def subdivide_midpoint(V, F):
+    """Split every triangle into 4 at its edge midpoints (the surface is unchanged)."""
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    uniq, inv = np.unique(e, axis=0, return_inverse=True)
+    m = len(V) + inv.reshape(3, -1).T
+    V2 = np.vstack([V, 0.5 * (V[uniq[:, 0]] + V[uniq[:, 1]])])
+    a, b, c = F.T
+    mab, mbc, mca = m.T
+    F2 = np.concatenate([np.stack([a, mab, mca], 1), np.stack([b, mbc, mab], 1),
+                         np.stack([c, mca, mbc], 1), np.stack([mab, mbc, mca], 1)])
     return V2, F2
 
 
@@ -302,19 +334,19 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
     bvh = TriangleBVH(V, Fo)
 
     pr.stage("resample")
-    target = s.base_triangles
-    surfaces = []
+    # Independently tetrahedralised levels, coarse to fine: base / 4^k triangles.
+    n_indep = s.levels - s.refinements
     if s.level_mode == "independent":
-        for lvl in range(s.levels):
-            surfaces.append(resample_surface(V, Fo, target * 4**lvl))
+        targets = [s.base_triangles * 4**k for k in range(n_indep)]
     else:
-        surfaces.append(resample_surface(V, Fo, target))
-    Vb, Fb = surfaces[0]
+        targets = [max(20, s.base_triangles // 4 ** (n_indep - 1 - k)) for k in range(n_indep)]
+    surfaces = [resample_surface(V, Fo, t) for t in targets]
+    Vb, Fb = surfaces[-1]
 
     pr.stage("tetrahedralize")
     tets = []
     for lvl, (Vs, Fs) in enumerate(surfaces):
-        h = triangle_size(Vs, Fs, len(Fs))
+        h = triangle_size(Vs, Fs, targets[lvl])
         TV, TT = tetra.tetrahedralize(Vs, Fs, edge_length=(1.0 + s.K) * h, optimize=s.optimize,
                                       opt_iterations=s.opt_iterations, stop_energy=s.stop_energy)
         tets.append((TV, TT, h))
@@ -326,12 +358,14 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
     prev = None
     for lvl in range(s.levels):
         st = {}
-        if s.level_mode == "independent" or lvl == 0:
-            TV, TT, h = tets[lvl if s.level_mode == "independent" else 0]
-            st["surface_triangles"] = int(len(surfaces[lvl if s.level_mode == "independent" else 0][1]))
+        if lvl < n_indep:
+            TV, TT, h = tets[lvl]
+            st["surface_triangles"] = int(len(surfaces[lvl][1]))
+            st["built_by"] = "tetrahedralization"
         else:
             TV, TT, _ = tetra.refine(*prev[:2])
             h = prev[2] * 0.5
+            st["built_by"] = "refinement"
         topo = tetra.topology(TT, len(TV))
         if s.snap_to_surface:
             TV, moved = tetra.snap_boundary(TV, TT, topo, bvh, max_move=0.5 * h)

@@ -60,8 +60,13 @@ def chebyshev_step(nbr, off, diag, x, r, d, coef_d, coef_r):
     host.)  Every output of node i needs only its own x, r, d and the d of its
     4 neighbours, so one dispatch does the whole step.
     """
+    return chebyshev_update(x, r, d, apply_matrix(nbr, off, diag, d), diag, coef_d, coef_r)
+
+
+def chebyshev_update(x, r, d, Ad, diag, coef_d, coef_r):
+    """The vector part of :func:`chebyshev_step` given ``Ad = A d`` (shared by CPU and twin)."""
     x2 = x + d
-    r2 = r - apply_matrix(nbr, off, diag, d)
+    r2 = r - Ad
     d2 = coef_d * d + coef_r * r2 / diag
     return x2, r2, d2
 
