@@ -126,8 +126,9 @@ def test_warm_start(scene, solver):
     r2 = s.solve(q=q2, warm_start=r1)  # resident: no upload of the start
     assert sum(g.uploads["x"] for g in s.gpu_levels) == x_uploads
     assert len(r2.level_solves) == 1  # finest level only, like the CPU
-    cold = s.solve(q=q2)
-    assert r2.iterations < cold.iterations
+    assert abs(r2.iterations - r_cpu.iterations) <= 16  # same start, same rule as the CPU warm start
+    if solver == "fast":  # (Jacobi is slowest on exactly the smooth change a 5 % brightening is)
+        assert r2.iterations < s.solve(q=q2).iterations
     assert rel_err(r2.phi_surface[-1], r_cpu.phi[-1][bk.finest.n_inner:]) < 20 * TOLS[solver]
     # A CPU result (or any result not resident any more) is uploaded as the start.
     r3 = s.solve(q=q2, warm_start=r_cpu)
@@ -306,16 +307,77 @@ def test_texture_limit_splits_levels_into_layers(scene, cpu_results):
 
 @pytest.mark.gpu
 def test_texture_limit_refusal(scene):
+    """32 x 32 textures with 2 layers hold at most 2 blocks (2048 nodes); the finest level has more."""
     bk, mat, _, _ = scene
-    with pytest.raises(errors.GraphTooLarge, match="allows textures of at most 64 x 64 with 2 layers"):
-        GPUDiffusionSolver(bk, mat, options=options("fast"), max_texture_size=64, max_layers=2)
-    s, backend, msg = gpu_shaders.make_solver(bk, mat, None, options("fast"), max_texture_size=64, max_layers=2)
-    assert backend == "CPU" and "64 x 64" in msg and "CPU" in msg
+    assert bk.finest.n_nodes > 2048
+    with pytest.raises(errors.GraphTooLarge, match="allows textures of at most 32 x 32 with 2 layers"):
+        GPUDiffusionSolver(bk, mat, options=options("fast"), max_texture_size=32, max_layers=2)
+    s, backend, msg = gpu_shaders.make_solver(bk, mat, None, options("fast"), max_texture_size=32, max_layers=2)
+    assert backend == "CPU" and type(s) is diffusion.DiffusionSolver and "32 x 32" in msg and "CPU" in msg
     with pytest.raises(errors.GraphTooLarge):
-        gpu_shaders.make_solver(bk, mat, None, options("fast"), prefer="GPU", max_texture_size=64, max_layers=2)
+        gpu_shaders.make_solver(bk, mat, None, options("fast"), prefer="GPU", max_texture_size=32, max_layers=2)
 
 
 def test_texture_budget_numbers():
     lay = pack.plan_layout(300_000, 200_000)
     assert lay.width <= 16384 and lay.texels >= 500_000
     assert pack.texture_bytes(lay, "fp16") < pack.texture_bytes(lay, "fp32")
+
+
+# ------------------------------------------------------------------ heterogeneous media
+@pytest.fixture(scope="module")
+def layered_cube():
+    """marble/skin1 layers in a 20 mm cube: kappa jumps (as in test_diffusion)."""
+    from translucency_addon.fields import FieldSpec, evaluate_field
+
+    V, F = primitives.box((1.0, 1.0, 1.0), subdivisions=4)
+    bk = bake_mod.bake_mesh(V, F, bake_mod.BakeSettings(quality="draft", levels=1, base_triangles=300,
+                                                        mm_per_unit=20.0))
+    mat = materials.Material(materials.preset("marble"), materials.preset("skin1"), 1.3)
+    field = [evaluate_field(FieldSpec("layers", scale=0.25, axis=0), lv.position) for lv in bk.levels]
+    env = lights.Environment(radiance=(1.0, 1.0, 1.0))
+    return bk, mat, field, env
+
+
+@pytest.mark.gpu
+def test_heterogeneous_fast_solve_matches_cpu(layered_cube):
+    bk, mat, field, env = layered_cube
+    opts = diffusion.SolveOptions(solver="fast", tol=1e-5)
+    cpu = diffusion.DiffusionSolver(bk, mat, field, opts)
+    rc = cpu.solve([], env)
+    s = GPUDiffusionSolver(bk, mat, field, opts)
+    r = s.solve([], env, q=rc.q)
+    assert r.residual.max() <= 1.05e-5 and r.iterations == rc.iterations
+    assert rel_err(s.vertex_radiance(r), cpu.vertex_radiance(rc)) < SOLVE_TOL
+    s.free()
+
+
+@pytest.mark.gpu
+def test_tolerance_below_the_fp32_floor_terminates_honestly(layered_cube):
+    """fp32 cannot bring the true relative residual of this graph below ~1e-6: the
+    recursive residual can, so the solver restarts from the true one (residual
+    replacement) a few times, then stops and reports the true residual."""
+    bk, mat, field, env = layered_cube
+    opts = diffusion.SolveOptions(solver="fast", tol=1e-7)
+    cpu = diffusion.DiffusionSolver(bk, mat, field, opts)
+    rc = cpu.solve([], env)
+    s = GPUDiffusionSolver(bk, mat, field, opts, readback="phi")
+    r = s.solve([], env, q=rc.q)
+    assert r.iterations < 4 * rc.iterations
+    assert 1e-7 < r.residual.max() < 1e-5  # honest: the true residual, above the unreachable tol
+    assert rel_err(r.phi[-1], rc.phi[-1]) < 1e-5
+    s.free()
+
+
+@pytest.mark.gpu
+def test_paper_jacobi_divergence_is_reported_like_the_cpu(layered_cube):
+    """The paper's eqs. 8-9 diverge under these kappa jumps; both backends stop and report it."""
+    bk, mat, field, env = layered_cube
+    opts = diffusion.SolveOptions(solver="paper", tol=1e-6, levels="finest", max_iterations=4000)
+    cpu = diffusion.DiffusionSolver(bk, mat, field, opts)
+    rc = cpu.solve([], env)
+    s = GPUDiffusionSolver(bk, mat, field, opts)
+    r = s.solve([], env, q=rc.q)
+    assert rc.level_solves[-1].diverged and r.level_solves[-1].diverged
+    assert r.iterations < opts.max_iterations and abs(r.iterations - rc.iterations) <= 16
+    s.free()
