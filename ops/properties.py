@@ -122,11 +122,8 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         update=_request_update,
         name="Quality",
         description="Resolution of the QuadGraph the bake builds: finer graphs are more accurate and slower to bake and solve",
-        items=(
-            ("DRAFT", "Draft", "Coarse graph for quick previews while modelling"),
-            ("PREVIEW", "Preview", "Medium graph: a balance of speed and accuracy"),
-            ("FINAL", "Final", "Fine graph for final renders"),
-        ),
+        # names and tooltips carry the measured cost (translucency_addon/data/quality_costs.json)
+        items=__import__(__package__ + ".quality_costs", fromlist=["quality_items"]).quality_items(),
         default="PREVIEW",
     )
     levels: IntProperty(
