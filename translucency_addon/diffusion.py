@@ -68,6 +68,28 @@ an upper eigenvalue bound from Gershgorin converges -- whatever the contrast
 in kappa.  Summing the rows gives the discrete energy balance
 ``sum_s a_s (q_s - (1 - F_dr) J+_s) = sum_i mu_i V_i phi_i`` exactly.
 
+*Boundary layer.*  Near a lit surface phi falls off like exp(-sigma_tr z).
+When a surface link is longer than the diffusion length (sigma_tr d_sk >~ 1:
+skin in blue, ketchup, any coarse graph of a dense absorber), the linear
+two-point flux ``kappa (phi_s - phi_k)/d`` under-estimates the flux into the
+object and the surface node returns light the medium would have absorbed
+(measured: +136 % in skin1's blue on a 12 mm sphere, ketchup's green and blue
+bright where the exact answer is zero).  The surface end of each surface link
+therefore uses the exponentially fitted flux of the 1D equation
+``kappa phi'' = mu phi`` over the link (x = sigma_tr d_sk)::
+
+    T_sk = kappa a x / (d sinh x)   (coupling),   C_sk = kappa a x coth(x) / d   (surface diagonal)
+
+which tends to the plain two-point flux as x -> 0 and, as x -> infinity,
+to the half-space value ``phi_s = 4q/(1 - F_dr) / (1 + 2 A kappa sigma_tr)``.
+Its absorption ``C - T`` overlaps the inner cell's mu V, so the cell gives up
+the leading-order overlap ``mu a d / 2`` (at most half its absorption).  The
+matrix stays a symmetric M-matrix.  On the sphere the error of the mean goes
+from (+0.1, +0.4, +0.9) % to (+0.03, +0.1, +0.3) % for marble on the coarsest
+graph, skin1 converges (3.8 % -> 0.6 % worst channel over three levels) where
+the plain flux was +136 %, and ketchup's green and blue are ~0.006 where the
+exact answer is 0.
+
 Solvers: ``paper`` (Jacobi, eq. 8-9, on the paper's scheme), ``fast``
 (Chebyshev semi-iteration on ours) and ``direct`` (scipy sparse LU on ours),
 each with the multi-resolution warm start of eq. 10 and a relative-residual
@@ -108,6 +130,7 @@ class LevelSystem:
     b_scale: np.ndarray  # (n_surface, 3)
     sigma_a: np.ndarray  # (N, 3) per mm (for power accounting)
     mm_per_unit: float
+    boundary_diag: np.ndarray | None = None  # (n_surface, 3) a_s/(2A), the boundary exchange term
     lam_max: np.ndarray | None = None  # (3,) upper bound of eig(D^-1 A)
     lam_min: np.ndarray | None = None  # (3,) estimate of the smallest eigenvalue
 
@@ -135,6 +158,18 @@ class LevelSystem:
         for c in range(3):
             out[:, c] -= csr[c] @ x[:, c]
         return out
+
+    def absorption_weights(self) -> np.ndarray:
+        """Per-node weights w with absorbed power = sum w phi (mm^2; FV scheme only).
+
+        For the symmetric FV matrix, 1^T A phi = (A 1)^T phi; removing the
+        boundary exchange term a_s/(2A) leaves what the operator absorbs.
+        """
+        if self.scheme != "fv":
+            raise TranslucencyError("power accounting is defined for the conservative scheme only")
+        w = self.apply(np.ones((self.n, 3)))
+        w[self.level.n_inner:] -= self.boundary_diag
+        return w
 
     def rhs(self, q: np.ndarray) -> np.ndarray:
         b = np.zeros((self.n, 3))
@@ -178,8 +213,27 @@ def assemble(level: GraphLevel, sigma_a: np.ndarray, sigma_s: np.ndarray, eta: f
         off = kf * G[..., None]
         diag = off.sum(axis=1)
         diag[:nI] += mu[:nI] * (level.volume * s**3)[:, None]
+        # Surface links: exponentially fitted flux at the surface end (module docstring).
+        si = np.arange(nI, level.n_nodes)
+        k_in = nbr[nI:, 0]
+        slot = np.argmax(nbr[k_in] == si[:, None], axis=1)  # which of the inner node's links points back
+        kf_s = kf[nI:, 0]  # face kappa of the link
+        mu_s = 0.5 * (mu[nI:] + mu[k_in])
+        x = np.sqrt(mu_s / kf_s) * d[nI:, 0][:, None]  # sigma_tr d
+        T0 = G[nI:, 0][:, None] * kf_s
+        T, C = _fitted_link(T0, x)
+        off[nI:, 0] = T
+        off[k_in, slot] = T
+        diag[nI:] += C - T0  # surface row: C phi_s - T phi_k
+        diag[k_in] += T - T0  # inner row: plain coupling T
+        # The link's absorption (C - T) overlaps the cell's: remove its leading
+        # order (mu a d / 2) from the cell, never more than half the cell's.
+        lead = 0.5 * mu_s * (level.face_area[nI:, 0] * s * s * d[nI:, 0])[:, None]
+        cell = mu[k_in] * (level.volume[k_in] * s**3)[:, None]
+        np.subtract.at(diag, k_in, np.minimum(np.minimum(C - T, lead), 0.5 * cell))
         a_s = (level.area * s * s)[:, None]
-        diag[nI:] += a_s / (2.0 * A)
+        boundary_diag = np.broadcast_to(a_s / (2.0 * A), (level.n_surface, 3)).copy()
+        diag[nI:] += boundary_diag
         b_scale = np.broadcast_to(2.0 * a_s / (1.0 + fdr), (level.n_surface, 3)).copy()
     else:
         inv_d2 = np.where(has, 1.0 / np.where(has, d, 1.0) ** 2, 0.0)
@@ -193,8 +247,28 @@ def assemble(level: GraphLevel, sigma_a: np.ndarray, sigma_s: np.ndarray, eta: f
         off[nI:, 0] = 2.0 * A * ks  # eq. 6 / 9: 2 A kappa(n_s) phi(n_k)
         diag[nI:] = 2.0 * A * ks + dsk
         b_scale = 4.0 * dsk / (1.0 - fdr) * np.ones((1, 3))  # d_sk 4 q / (1 - F_dr), corrected
+        boundary_diag = None
     return LevelSystem(scheme=scheme, level=level, nbr=level.neighbors.astype(np.int32), off=off, diag=diag,
-                       b_scale=b_scale, sigma_a=sigma_a, mm_per_unit=s)
+                       b_scale=b_scale, sigma_a=sigma_a, mm_per_unit=s, boundary_diag=boundary_diag)
+
+
+def _fitted_link(T0: np.ndarray, x: np.ndarray):
+    """Exponentially fitted link coefficients for a link of optical length x = sigma_tr d.
+
+    Solving kappa phi'' = mu phi exactly between the two nodes gives the
+    fluxes ``T0 x / sinh(x) (phi_a cosh(x) - phi_b)`` at either end, i.e. an
+    off-diagonal ``T = T0 x / sinh x`` and a diagonal ``C = T0 x coth x`` per
+    end; ``C - T`` is the absorption inside the link.  ``T0 = kappa A / d``
+    is the plain two-point coefficient, recovered as x -> 0.
+    """
+    x = np.maximum(x, 1e-8)
+    small = x < 1e-3
+    xs = np.where(small, 1.0, x)
+    with np.errstate(over="ignore"):
+        T = np.where(small, T0 * (1.0 - x * x / 6.0), T0 * xs / np.sinh(np.minimum(xs, 700.0)))
+        C = np.where(small, T0 * (1.0 + x * x / 3.0), T0 * xs / np.tanh(xs))
+    T = np.where(x > 700.0, 0.0, T)
+    return T, C
 
 
 # ---------------------------------------------------------------- eigenvalues
@@ -561,21 +635,24 @@ class DiffusionSolver:
     def power_balance(self, result: SolveResult, level: int = -1, clamp: bool = True) -> dict:
         """Incoming, absorbed and outgoing power (W, per channel) on one level.
 
-        ``out = sum_s a_s (1 - F_dr) J+_s``; unclamped, ``in = out + absorbed``
-        holds to the solver tolerance (see the module docstring).
+        ``out = sum_s a_s (1 - F_dr) J+_s``.  ``absorbed`` is what the
+        discrete operator removes: ``(A 1 - a_s/(2A) at surface nodes) . phi``
+        (cell absorption mu V plus the absorption inside fitted surface links);
+        unclamped, ``in = out + absorbed`` holds to the solver tolerance.
         """
         lv = self.bake.levels[level]
+        system = self.systems[level]
         s = self.bake.mm_per_unit * 1e-3  # metres per unit, so powers are in W
         a = lv.area * s * s
         q = result.q[level]
-        phi_s = result.phi[level][lv.n_inner:]
+        phi = result.phi[level]
+        phi_s = phi[lv.n_inner:]
         jp = (phi_s - 2.0 * q) / (2.0 * (1.0 + self.fdr))
         if clamp:
             jp = np.maximum(jp, 0.0)
-        sigma_a = self.systems[level].sigma_a[: lv.n_inner] * 1e3  # per metre
         p_in = a @ q
         p_out = a @ ((1.0 - self.fdr) * jp)
-        p_abs = (lv.volume * s**3) @ (sigma_a * result.phi[level][: lv.n_inner])
+        p_abs = np.einsum("nc,nc->c", system.absorption_weights(), phi) * 1e-6  # mm^2 -> m^2
         return {"in": p_in, "out": p_out, "absorbed": p_abs}
 
 
