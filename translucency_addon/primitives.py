@@ -32,9 +32,34 @@ def icosphere(radius: float = 1.0, subdivisions: int = 3, center=(0.0, 0.0, 0.0)
     return V * radius + np.asarray(center, dtype=np.float64), F
 
 
-def box(size=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0), subdivisions: int = 0):
-    """Axis-aligned box, optionally with each face split into (2^s)^2 quads."""
-    n = 2**subdivisions
+def uv_sphere(radius: float = 1.0, n_lat: int = 24, n_lon: int = 48, center=(0.0, 0.0, 0.0)):
+    """Latitude/longitude sphere with poles (closed, outward)."""
+    th = np.linspace(0, np.pi, n_lat + 1)[1:-1]
+    ph = np.linspace(0, 2 * np.pi, n_lon, endpoint=False)
+    T, Pp = np.meshgrid(th, ph, indexing="ij")
+    V = np.stack([np.sin(T) * np.cos(Pp), np.sin(T) * np.sin(Pp), np.cos(T)], -1).reshape(-1, 3)
+    V = np.vstack([[0, 0, 1.0], V, [0, 0, -1.0]])
+    F = []
+    idx = lambda i, j: 1 + i * n_lon + (j % n_lon)  # noqa: E731
+    for j in range(n_lon):
+        F.append([0, idx(0, j), idx(0, j + 1)])
+        F.append([len(V) - 1, idx(n_lat - 2, j + 1), idx(n_lat - 2, j)])
+    for i in range(n_lat - 2):
+        for j in range(n_lon):
+            a, b, c, d = idx(i, j), idx(i + 1, j), idx(i + 1, j + 1), idx(i, j + 1)
+            F.append([a, b, c])
+            F.append([a, c, d])
+    return V * radius + np.asarray(center, dtype=np.float64), np.asarray(F, dtype=np.int64)
+
+
+def box(size=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0), subdivisions: int = 0, n: int | None = None):
+    """Axis-aligned box, each face split into n x n quads (n = 2^subdivisions unless given).
+
+    Shared vertices are merged; vertices are sorted lexicographically (np.unique).
+    """
+    n = 2**subdivisions if n is None else int(n)
+    if n < 1:
+        raise ValueError(f"a box face needs at least 1 division, got {n}")
     g = np.linspace(-0.5, 0.5, n + 1)
     Vs, Fs = [], []
     off = 0
@@ -56,12 +81,13 @@ def box(size=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0), subdivisions: int = 0):
             Vs.append(P.reshape(-1, 3))
             Fs.append(tris)
             off += (n + 1) ** 2
-    V = np.concatenate(Vs) * np.asarray(size) + np.asarray(center)
+    V = np.concatenate(Vs)
     F = np.concatenate(Fs)
-    # Merge the duplicated edge vertices.
-    key = np.round(V * 1e9).astype(np.int64)
+    # Merge the duplicated edge vertices (keyed on the unit-box lattice: exact for any n).
+    key = np.round(V * 2 * n).astype(np.int64)
     _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    return V[first], inv.reshape(-1)[F]
+    V = V[first] * np.asarray(size, dtype=np.float64) + np.asarray(center, dtype=np.float64)
+    return V, inv.reshape(-1)[F]
 
 
 def torus(major: float = 1.0, minor: float = 0.3, n_major: int = 48, n_minor: int = 16,

@@ -363,11 +363,25 @@ def view_rays(V, F, normals, *, camera_position=None, view_dir=None, view_dirs=N
     from ..raycast import TriangleBVH
 
     V = np.asarray(V, dtype=np.float64)
-    N = np.asarray(normals, dtype=np.float64)
+    if far_clip and bvh is None:
+        bvh = TriangleBVH(V, F)
+    return rays_from_points(V, normals, camera_position=camera_position, view_dir=view_dir, view_dirs=view_dirs,
+                            points=vertices, bvh=bvh if far_clip else None)
+
+
+def rays_from_points(P, normals, *, camera_position=None, view_dir=None, view_dirs=None, points=None,
+                     bvh=None) -> ViewRays:
+    """View rays from arbitrary surface points ``P`` with ``normals`` (e.g. the vertices of a
+    mesh other than the baked one): like :func:`view_rays`, clipped by ``bvh`` (a
+    :class:`~translucency_addon.raycast.TriangleBVH` of the baked surface) or, when it is
+    None, integrated to infinity.  ``points`` restricts the rays to a subset of indices.
+    """
+    P_all = np.asarray(P, dtype=np.float64).reshape(-1, 3)
+    N = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     if sum(x is not None for x in (camera_position, view_dir, view_dirs)) != 1:
         raise ValueError("give exactly one of camera_position, view_dir and view_dirs")
-    idx = np.arange(len(V)) if vertices is None else np.asarray(vertices, dtype=np.int64).reshape(-1)
-    P = V[idx]
+    idx = np.arange(len(P_all)) if points is None else np.asarray(points, dtype=np.int64).reshape(-1)
+    P = P_all[idx]
     cam = vd = None
     if camera_position is not None:
         cam = np.asarray(camera_position, dtype=np.float64).reshape(3)
@@ -377,23 +391,71 @@ def view_rays(V, F, normals, *, camera_position=None, view_dir=None, view_dirs=N
         vd = vd / np.linalg.norm(vd)
         wo = np.broadcast_to(vd, P.shape).copy()
     else:
-        wo = np.asarray(view_dirs, dtype=np.float64).reshape(len(V), 3)[idx]
+        wo = np.asarray(view_dirs, dtype=np.float64).reshape(len(P_all), 3)[idx]
     wo = wo / np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-300)
     cos_o = np.einsum("ij,ij->i", N[idx], wo)
     vis = cos_o > 0
     o = P[vis]
     d = -wo[vis]
-    if len(o) and not far_clip:
+    if len(o) and bvh is None:
         t_exit = np.full(len(o), np.inf)
     elif len(o):
-        bvh = bvh if bvh is not None else TriangleBVH(V, F)
-        diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
-        t, tri, _, _ = bvh.intersect(o, d, tmin=1e-7 * diag)
+        lo, hi = P_all.min(axis=0), P_all.max(axis=0)
+        diag = float(np.linalg.norm(hi - lo))
+        t, tri, _, _ = bvh.intersect(o, d, tmin=1e-7 * max(diag, 1e-30))
         t_exit = np.where(tri >= 0, t, 0.0)
     else:
         t_exit = np.zeros(0)
-    return ViewRays(n_vertices=len(V), vertices=idx[vis], origins=o, dirs=d, t_exit=t_exit, cos_o=cos_o[vis],
+    return ViewRays(n_vertices=len(P_all), vertices=idx[vis], origins=o, dirs=d, t_exit=t_exit, cos_o=cos_o[vis],
                     camera_position=cam, view_dir=vd)
+
+
+class CPUIntegrator:
+    """The per-ray pass in numpy, with the interface of the GPU kernel's dispatcher
+    (``gpu_shaders.single_scattering.GPUSingleScattering``).
+
+    ``cache_pairs``: keep the ray-sample pairs of the last ``rays`` (in
+    ``rays.pairs``), so that a frame in which only the lights changed costs one
+    weighted sum; pairs of rays with more than ``max_cached_pairs`` entries are
+    not kept (memory: 24 bytes per pair).
+    """
+
+    backend = "CPU"
+    last_backend = "CPU"
+    message = ""
+
+    def __init__(self, data, cache_pairs: bool = True, max_cached_pairs: int = 8_000_000, chunk: int = 2048):
+        self.data = data
+        self.cache_pairs = bool(cache_pairs)
+        self.max_cached_pairs = int(max_cached_pairs)
+        self.chunk = int(chunk)
+
+    def integrate(self, light_term, rays, *, view_term=None, eta: float, mm_per_unit: float | None = None,
+                  use_gpu: bool = True) -> np.ndarray:
+        """Outgoing radiance per ray of ``rays`` (:class:`ViewRays`), (n_rays, 3), W/(m^2 sr).
+
+        ``light_term`` from :func:`light_term`; ``view_term`` from
+        :func:`view_term` or None (psi at each ray's own direction).
+        ``use_gpu`` is ignored (interface of the GPU dispatcher).
+        """
+        mm = self.data.mm_per_unit if mm_per_unit is None else float(mm_per_unit)
+        if len(rays.origins) == 0:
+            return np.zeros((0, 3))
+        pairs = None
+        if self.cache_pairs:
+            key = id(self.data)
+            if rays.pairs is None or rays.pairs_key != key:
+                pairs = all_ray_sample_pairs(self.data, rays.origins, rays.dirs, rays.t_exit, self.chunk)
+                if len(pairs[0]) <= self.max_cached_pairs:
+                    rays.pairs, rays.pairs_key = pairs, key
+            else:
+                pairs = rays.pairs
+        Lin = integrate_view_rays(self.data, light_term, rays.origins, rays.dirs, rays.t_exit, mm,
+                                  view_term=view_term, chunk=self.chunk, pairs=pairs)
+        return Lin * exit_factor(rays.cos_o, eta)[:, None]
+
+    def free(self) -> None:
+        pass
 
 
 def render_vertices(data, V, F, normals, lights, environment, material, mm_per_unit: float | None = None, *,

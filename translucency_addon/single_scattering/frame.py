@@ -1,0 +1,116 @@
+"""Per-frame single scattering at surface points for a view (used by the CLI and the Blender side).
+
+:class:`FrameEvaluator` owns one baked data set, the surface it was baked
+for (a BVH for the far-side clip) and the points where radiance is wanted
+(the mesh vertices, or any points on that surface with their normals).  Per
+frame it computes the light term (numpy, per sample), the view term when the
+view is a camera, and runs the per-ray pass through an *integrator*: the
+numpy :class:`~.runtime.CPUIntegrator` or the GPU kernel's dispatcher
+(``gpu_shaders.single_scattering``), which share one interface.  View rays
+are cached per view (a BVH cast each), so a frame in which only the lights
+changed costs the light term and the ray pass (on the CPU: one weighted sum
+over the cached ray-sample pairs).
+
+Views (object space, as ``ops.scene_inputs.camera_view`` returns them):
+
+* ``None``: every point is seen along its normal (per-ray psi from the SH);
+* ``("PERSP", eye)``: a perspective camera at ``eye``;
+* ``("ORTHO", towards_camera)``: an orthographic camera.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .runtime import CPUIntegrator, light_term, rays_from_points, view_term
+
+
+def _view_key(view):
+    if view is None:
+        return None
+    kind, value = view
+    return (str(kind), tuple(round(float(x), 9) for x in value))
+
+
+class FrameEvaluator:
+    """Single scattering at ``points`` (default: the vertices ``V``) of the baked surface ``(V, F)``."""
+
+    def __init__(self, data, V, F, normals=None, *, points=None, point_normals=None, integrator=None,
+                 far_clip: bool = True):
+        from ..meshio import vertex_normals
+        from ..raycast import TriangleBVH
+
+        self.data = data
+        self.V = np.asarray(V, dtype=np.float64)
+        self.F = np.asarray(F, dtype=np.int64)
+        self.far_clip = bool(far_clip)
+        self._bvh = None
+        if points is None:
+            self.points = self.V
+            self.normals = np.asarray(normals if normals is not None else vertex_normals(self.V, self.F),
+                                      dtype=np.float64)
+        else:
+            # Points off the baked surface (another mesh's vertices) start from the closest surface point.
+            self._bvh = TriangleBVH(self.V, self.F)
+            self.points = self._bvh.closest_point(np.asarray(points, dtype=np.float64))[0]
+            self.normals = np.asarray(point_normals, dtype=np.float64).reshape(-1, 3)
+        self.integrator = integrator if integrator is not None else CPUIntegrator(data)
+        self._rays = None
+        self._rays_key = object()
+        self.seconds = {}
+
+    @property
+    def bvh(self):
+        if self._bvh is None:
+            from ..raycast import TriangleBVH
+
+            self._bvh = TriangleBVH(self.V, self.F)
+        return self._bvh
+
+    def rays(self, view):
+        key = _view_key(view)
+        if self._rays is None or self._rays_key != key:
+            bvh = self.bvh if self.far_clip else None
+            if view is None:
+                r = rays_from_points(self.points, self.normals, view_dirs=self.normals, bvh=bvh)
+            elif view[0] == "ORTHO":
+                r = rays_from_points(self.points, self.normals, view_dir=view[1], bvh=bvh)
+            else:
+                r = rays_from_points(self.points, self.normals, camera_position=view[1], bvh=bvh)
+            self._rays, self._rays_key = r, key
+        return self._rays
+
+    def radiance(self, lights, environment, eta: float, mm_per_unit: float | None = None, view=None, *,
+                 use_gpu: bool = True) -> np.ndarray:
+        """Outgoing single-scattering radiance at the points, (n_points, 3), W/(m^2 sr)."""
+        mm = self.data.mm_per_unit if mm_per_unit is None else float(mm_per_unit)
+        t0 = time.perf_counter()
+        rays = self.rays(view)
+        t1 = time.perf_counter()
+        out = np.zeros((len(self.points), 3))
+        if len(rays.vertices):
+            LT = light_term(self.data, lights, environment, eta, mm)
+            VT = None
+            if view is not None and view[0] == "ORTHO":
+                VT = view_term(self.data, view_dir=view[1])
+            elif view is not None:
+                VT = view_term(self.data, camera_position=view[1])
+            t2 = time.perf_counter()
+            out[rays.vertices] = self.integrator.integrate(LT, rays, view_term=VT, eta=eta, mm_per_unit=mm,
+                                                           use_gpu=use_gpu)
+        else:
+            t2 = t1
+        t3 = time.perf_counter()
+        self.seconds = {"rays": t1 - t0, "light_view_terms": t2 - t1, "ray_pass": t3 - t2, "total": t3 - t0}
+        return out
+
+    @property
+    def backend(self) -> str:
+        return getattr(self.integrator, "last_backend", getattr(self.integrator, "backend", "CPU"))
+
+    def free(self) -> None:
+        free = getattr(self.integrator, "free", None)
+        if callable(free):
+            free()
