@@ -2,10 +2,20 @@
 
     python -m translucency_addon bake MESH.obj -o CACHE.npz [--quality draft|preview|final]
                                       [--levels N] [--mm-per-unit X]
+                                      [--single-scattering [--material marble] [--ss-quality preview]
+                                       [--ss-dirs 128] [--ss-samples 20000] [--ss-order 4]]
     python -m translucency_addon solve CACHE.npz -o OUT.npy
                                       [--material marble | --sigma-a R,G,B --sigma-s R,G,B --eta X]
                                       [--env R,G,B] [--sun DX,DY,DZ:E] [--point X,Y,Z:W]
+                                      [--camera X,Y,Z] [--no-single-scattering] [--ss-output SS.npy]
                                       [--solver paper|fast|direct] [--tol 1e-4] [--stats STATS.json]
+
+Single scattering: ``bake --single-scattering`` also bakes the RBF
+optical-depth samples (Bernabei et al.) for the material given to ``bake``
+(the optical depth depends on sigma_t, so the material is baked in);
+``solve`` adds that term to the diffusion radiance whenever the cache holds
+it, and warns when the material, field or scale given to ``solve`` differ
+from the ones it was baked with (re-bake with ``--single-scattering`` then).
 
 Run ``python -m translucency_addon <command> --help`` for every option.
 """
@@ -71,17 +81,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="finer levels by nested refinement (fast) or independent tetrahedralisation (paper)")
     b.add_argument("--no-optimize", action="store_true", help="skip fTetWild's optimisation (fast, slivers)")
     b.add_argument("--single-scattering", action="store_true", help="also bake RBF optical-depth samples")
+    _material_args(b, "single scattering: ")
+    b.add_argument("--ss-quality", default="preview", choices=["draft", "preview", "final"],
+                   help="single scattering: voxel resolution (32/48/64 on the longest side)")
+    b.add_argument("--ss-dirs", type=int, default=128, help="single scattering: optical-depth directions (32, 128, 512)")
+    b.add_argument("--ss-samples", type=int, default=20000, help="single scattering: target number of RBF samples")
+    b.add_argument("--ss-order", type=int, default=4, choices=[1, 2, 3, 4], help="single scattering: SH order")
     b.add_argument("--json", action="store_true", help="print the statistics as JSON")
 
     s = sub.add_parser("solve", help="solve the diffusion (and single scattering) for a baked mesh")
     s.add_argument("cache", help="bake cache (.npz) from 'bake'")
     s.add_argument("-o", "--output", required=True, help="RGB radiance per vertex of the baked mesh (.npy)")
-    s.add_argument("--material", default=None, help="preset name (marble, skimmilk, skin1, ketchup, ...)")
-    s.add_argument("--mix-with", default=None, help="second preset mixed in by --field")
-    s.add_argument("--field", type=_field, default=None, help="mixing field KIND[:SCALE], e.g. marble:0.05")
-    s.add_argument("--sigma-a", type=_rgb, default=None, help="absorption R,G,B per mm (custom material)")
-    s.add_argument("--sigma-s", type=_rgb, default=None, help="reduced scattering R,G,B per mm (custom material)")
-    s.add_argument("--eta", type=float, default=1.3, help="relative refractive index (default 1.3)")
+    _material_args(s, "")
     s.add_argument("--env", type=_rgb, default=None, help="uniform environment radiance R,G,B (unoccluded)")
     s.add_argument("--sun", type=_sun, action="append", default=[],
                    help="sun light DX,DY,DZ:E -- direction the light travels (object space) and irradiance in W/m^2")
@@ -92,6 +103,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-shadows", action="store_true", help="ignore occlusion of point and sun lights")
     s.add_argument("--mm-per-unit", type=float, default=None, help="override the baked scene scale")
     s.add_argument("--stats", default=None, help="write node counts, sweeps, residual and timings (.json)")
+    s.add_argument("--camera", type=_rgb, default=None,
+                   help="perspective camera position X,Y,Z (object units): view-dependent radiance toward it "
+                        "(default: each vertex seen along its normal)")
+    s.add_argument("--no-single-scattering", action="store_true",
+                   help="leave out the single-scattering term even when the cache holds it")
+    s.add_argument("--ss-output", default=None, help="also write the single-scattering term alone (.npy)")
 
     p = sub.add_parser("plan", help="print which passes the planner would run for a baked mesh")
     p.add_argument("cache")
@@ -101,6 +118,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--point", type=_point, action="append", default=[])
     p.add_argument("--mm-per-unit", type=float, default=None)
     return ap
+
+
+def _material_args(parser, prefix: str) -> None:
+    parser.add_argument("--material", default=None, help=prefix + "preset name (marble, skimmilk, skin1, ketchup, ...)")
+    parser.add_argument("--mix-with", default=None, help=prefix + "second preset mixed in by --field")
+    parser.add_argument("--field", type=_field, default=None,
+                        help=prefix + "mixing field KIND[:SCALE], e.g. marble:0.05 (default marble, a quarter of the size)")
+    parser.add_argument("--sigma-a", type=_rgb, default=None, help=prefix + "absorption R,G,B per mm (custom material)")
+    parser.add_argument("--sigma-s", type=_rgb, default=None,
+                        help=prefix + "reduced scattering R,G,B per mm (custom material)")
+    parser.add_argument("--eta", type=float, default=1.3, help=prefix + "relative refractive index (default 1.3)")
+
+
+def field_spec_from_args(a, V):
+    """The mixing field of a heterogeneous material: --field, or marble at a quarter of the mesh size."""
+    from .fields import FieldSpec
+
+    kind, scale = a.field or ("marble", 0.25 * float(np.max(np.ptp(np.asarray(V), axis=0))))
+    return FieldSpec(kind=kind, scale=scale)
 
 
 def material_from_args(a):
@@ -138,16 +174,38 @@ def cmd_bake(a) -> int:
     def progress(frac, stage):
         print(f"\r[{frac * 100:5.1f}%] {stage:<16}", end="", file=sys.stderr, flush=True)
 
+    ss = ss_settings = material = None
+    if a.single_scattering:  # check the single-scattering inputs before the long QuadGraph bake
+        from .single_scattering import SingleScatteringSettings, attach, bake_single_scattering_for
+
+        material = material_from_args(a)
+        ss_settings = SingleScatteringSettings(quality=a.ss_quality, n_dirs=a.ss_dirs, n_samples=a.ss_samples,
+                                               sh_order=a.ss_order)
+        try:
+            ss_settings.validated()
+        except ValueError as exc:
+            raise TranslucencyError(f"single scattering: {exc}") from None
     bake = bake_mesh(V, F, settings, progress=progress)
     print(file=sys.stderr)
     if a.single_scattering:
-        from .single_scattering import bake_single_scattering_for
-        bake.single_scattering = bake_single_scattering_for(bake)
+        field = field_spec_from_args(a, bake.mesh_vertices) if material.heterogeneous else None
+        ss = bake_single_scattering_for(bake, material, field, ss_settings,
+                                        progress=lambda f, st: progress(f, "ss: " + st))
+        print(file=sys.stderr)
+        bake = attach(bake, ss)
     save_bake(a.output, bake)
     if a.json:
-        print(json.dumps(bake.stats, indent=2, default=str))
+        out = dict(bake.stats)
+        if ss is not None:
+            out["single_scattering"] = {k: v for k, v in ss.stats.items()}
+        print(json.dumps(out, indent=2, default=str))
     else:
         print(format_stats(bake))
+        if ss is not None:
+            t = ss.stats["time"]
+            print(f"single scattering: {ss.n_samples} samples, {ss.n_dirs} directions, SH order {ss.order}, "
+                  f"voxels {'x'.join(str(v) for v in ss.stats['voxels'])}, {sum(t.values()):.2f} s ("
+                  + ", ".join(f"{k} {v:.2f}" for k, v in t.items()) + ")")
         print(f"wrote {a.output} in {time.perf_counter() - t0:.2f} s")
     return 0
 
@@ -155,7 +213,7 @@ def cmd_bake(a) -> int:
 def cmd_solve(a) -> int:
     from .cache import load_bake
     from .diffusion import DiffusionSolver, SolveOptions
-    from .fields import FieldSpec, evaluate_field
+    from .fields import evaluate_field
 
     t0 = time.perf_counter()
     bake = load_bake(a.cache)
@@ -164,15 +222,23 @@ def cmd_solve(a) -> int:
     t_load = time.perf_counter() - t0
     material = material_from_args(a)
     field_values = None
+    spec = None
     if material.heterogeneous:
-        kind, scale = a.field or ("marble", 0.25 * float(np.max(np.ptp(bake.mesh_vertices, axis=0))))
-        spec = FieldSpec(kind=kind, scale=scale)
+        spec = field_spec_from_args(a, bake.mesh_vertices)
         field_values = [evaluate_field(spec, lv.position) for lv in bake.levels]
     lights, env = lights_from_args(a)
     solver = DiffusionSolver(bake, material, field_values, SolveOptions(solver=a.solver, tol=a.tol))
     t1 = time.perf_counter()
     result = solver.solve(lights, env, shadows=not a.no_shadows)
-    L = solver.vertex_radiance(result)
+    view_dirs = None
+    if a.camera is not None:
+        d = np.asarray(a.camera, dtype=np.float64)[None, :] - np.asarray(bake.mesh_vertices)
+        view_dirs = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
+    L = solver.vertex_radiance(result, view_dirs)
+    t_diff = time.perf_counter()
+    ss_stats = _solve_single_scattering(a, bake, material, spec, lights, env)
+    if ss_stats is not None:
+        L = L + ss_stats.pop("radiance")
     np.save(a.output, L.astype(np.float32))
     t2 = time.perf_counter()
     stats = {
@@ -181,16 +247,53 @@ def cmd_solve(a) -> int:
         "scheme": result.scheme,
         "sweeps": [ls.iterations for ls in result.level_solves],
         "final_relative_residual": result.residual.tolist(),
-        "seconds": {"load": t_load, "setup": t1 - t0 - t_load, **result.seconds, "total": t2 - t0},
+        "seconds": {"load": t_load, "setup": t1 - t0 - t_load, **result.seconds, "diffusion": t_diff - t1,
+                    "single_scattering": 0.0 if ss_stats is None else ss_stats["seconds"]["total"],
+                    "total": t2 - t0},
+        "single_scattering": ss_stats if ss_stats is not None else {
+            "enabled": False,
+            "reason": "turned off (--no-single-scattering)" if a.no_single_scattering
+            else "the cache holds no single-scattering data (bake with --single-scattering)"},
         "radiance_mean": L.mean(axis=0).tolist(),
         "n_vertices": int(len(L)),
     }
     if a.stats:
         with open(a.stats, "w", encoding="utf-8") as fh:
             json.dump(stats, fh, indent=2)
+    ss_note = ""
+    if ss_stats is not None:
+        ss_note = f" + single scattering ({ss_stats['n_samples']} samples, {ss_stats['seconds']['total']:.2f} s)"
     print(f"solved {sum(stats['sweeps'])} sweeps ({a.solver}), residual {max(stats['final_relative_residual']):.2e}, "
-          f"{stats['seconds']['total']:.2f} s; wrote {a.output} ({len(L)} vertices)")
+          f"{stats['seconds']['total']:.2f} s{ss_note}; wrote {a.output} ({len(L)} vertices)")
     return 0
+
+
+def _solve_single_scattering(a, bake, material, spec, lights, env):
+    """The single-scattering term at the bake's vertices and its statistics, or None (absent / turned off)."""
+    data = bake.single_scattering
+    if data is None or a.no_single_scattering:
+        if data is None and a.ss_output:
+            raise TranslucencyError("--ss-output: the cache holds no single-scattering data "
+                                    "(bake with --single-scattering)")
+        return None
+    from .single_scattering import FrameEvaluator, fingerprint_field, stale_message, staleness
+
+    reasons = staleness(data, material=material, field_fp=fingerprint_field(spec, material),
+                        mm_per_unit=bake.mm_per_unit)
+    if reasons:
+        print(f"warning: {stale_message(reasons)} (bake again with --single-scattering)", file=sys.stderr)
+    t0 = time.perf_counter()
+    ev = FrameEvaluator(data, bake.mesh_vertices, bake.mesh_faces, bake.mesh_normals)
+    view = ("PERSP", tuple(a.camera)) if a.camera is not None else None
+    L = ev.radiance(lights, env, material.eta, bake.mm_per_unit, view)
+    seconds = dict(ev.seconds)
+    seconds["setup"] = time.perf_counter() - t0 - seconds["total"]
+    seconds["total"] = time.perf_counter() - t0
+    if a.ss_output:
+        np.save(a.ss_output, L.astype(np.float32))
+    return {"enabled": True, "backend": "CPU (numpy)", "n_samples": data.n_samples, "n_dirs": data.n_dirs,
+            "sh_order": data.order, "view": "camera" if view is not None else "normal", "stale": reasons,
+            "seconds": seconds, "radiance_mean": L.mean(axis=0).tolist(), "radiance": L}
 
 
 def cmd_plan(a) -> int:
