@@ -325,18 +325,28 @@ def test_texture_budget_numbers():
 
 
 # ------------------------------------------------------------------ heterogeneous media
-@pytest.fixture(scope="module")
-def layered_cube():
-    """marble/skin1 layers in a 20 mm cube: kappa jumps (as in test_diffusion)."""
+def _layers(scale):
+    """marble/skin1 layers across a 20 mm cube: kappa jumps (as in test_diffusion)."""
     from translucency_addon.fields import FieldSpec, evaluate_field
 
     V, F = primitives.box((1.0, 1.0, 1.0), subdivisions=4)
     bk = bake_mod.bake_mesh(V, F, bake_mod.BakeSettings(quality="draft", levels=1, base_triangles=300,
                                                         mm_per_unit=20.0))
     mat = materials.Material(materials.preset("marble"), materials.preset("skin1"), 1.3)
-    field = [evaluate_field(FieldSpec("layers", scale=0.25, axis=0), lv.position) for lv in bk.levels]
+    field = [evaluate_field(FieldSpec("layers", scale=scale, axis=0), lv.position) for lv in bk.levels]
     env = lights.Environment(radiance=(1.0, 1.0, 1.0))
     return bk, mat, field, env
+
+
+@pytest.fixture(scope="module")
+def layered_cube():
+    return _layers(0.25)
+
+
+@pytest.fixture(scope="module")
+def thin_layers():
+    """Layers 0.1 units (2 mm) thick: the paper's Jacobi diverged on every bake tried (4 of 4)."""
+    return _layers(0.1)
 
 
 @pytest.mark.gpu
@@ -363,16 +373,20 @@ def test_tolerance_below_the_fp32_floor_terminates_honestly(layered_cube):
     rc = cpu.solve([], env)
     s = GPUDiffusionSolver(bk, mat, field, opts, readback="phi")
     r = s.solve([], env, q=rc.q)
-    assert r.iterations < 4 * rc.iterations
-    assert 1e-7 < r.residual.max() < 1e-5  # honest: the true residual, above the unreachable tol
+    assert r.iterations < 4 * rc.iterations  # terminates (does not run to max_iterations)
+    assert r.residual.max() < 1e-5
+    # Honest: the reported residual is the true one of the returned phi (recomputed in fp64).
+    system = s.systems[-1]
+    true = diffusion.relative_residual(system, system.rhs(rc.q[-1]), r.phi[-1])
+    assert np.all(np.abs(true - r.residual) <= 0.5 * r.residual + 1e-7)
     assert rel_err(r.phi[-1], rc.phi[-1]) < 1e-5
     s.free()
 
 
 @pytest.mark.gpu
-def test_paper_jacobi_divergence_is_reported_like_the_cpu(layered_cube):
+def test_paper_jacobi_divergence_is_reported_like_the_cpu(thin_layers):
     """The paper's eqs. 8-9 diverge under these kappa jumps; both backends stop and report it."""
-    bk, mat, field, env = layered_cube
+    bk, mat, field, env = thin_layers
     opts = diffusion.SolveOptions(solver="paper", tol=1e-6, levels="finest", max_iterations=4000)
     cpu = diffusion.DiffusionSolver(bk, mat, field, opts)
     rc = cpu.solve([], env)
