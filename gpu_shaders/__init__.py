@@ -12,7 +12,7 @@ registration must not touch it).  The API the Blender side uses::
     L = solver.vertex_radiance(result)             # (n_vertices, 3)
     solver.set_material(material, field_values)    # after a material edit (re-uploads coefficients only)
     solver.free()                                  # object/bake removed (GPU solver; safe twice)
-    free_all()                                     # add-on unregister: every GPU solver + compiled kernels
+    free_all()                                     # add-on unregister: all GPU textures + compiled kernels
 
 Files: ``*.glsl`` (the kernels, one per numpy twin in
 ``translucency_addon.kernels``), ``runtime.py`` (compile, cache, dispatch,
@@ -112,13 +112,20 @@ def make_solver(bake, material, field_values=None, options=None, prefer: str = "
 
 
 def free_all() -> int:
-    """Free the textures of every GPU solver and the compiled kernels (call on add-on unregister)."""
+    """Free every GPU resource of this package (call on add-on unregister): the textures of
+    every diffusion solver and single-scattering integrator, and the compiled kernels.
+    Returns how many solvers/integrators were freed; safe to call again."""
     import sys
 
-    mod = sys.modules.get(__name__ + ".solver")
-    if mod is None:  # nothing was ever created
-        return 0
-    return mod.free_all()
+    n = 0
+    for sub in ("solver", "single_scattering"):  # only modules that were imported can own textures
+        mod = sys.modules.get(f"{__name__}.{sub}")
+        if mod is not None and hasattr(mod, "free_all"):
+            n += mod.free_all()
+    runtime = sys.modules.get(f"{__name__}.runtime")
+    if runtime is not None:
+        runtime.free_shaders()
+    return n
 
 
 __all__ = ["available", "make_solver", "free_all", "PREFERENCES"]
