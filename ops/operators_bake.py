@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""``translucency.bake`` and ``translucency.free_bake``.
+"""``translucency.bake``, ``translucency.bake_single_scattering`` and ``translucency.free_bake``.
 
 The bake runs on the active mesh object's **evaluated** mesh (modifiers
 applied, loop triangles, object space).  In the UI it is a modal operator:
@@ -11,6 +11,19 @@ pressed during it takes effect when it returns.
 
 In background mode (``blender -b``, bpy from PyPI, tests) a modal timer never
 fires, so :meth:`execute` runs the same :class:`BakeJob` synchronously.
+
+Single scattering (Bernabei et al.) is baked by ``translucency.bake`` too
+when the object's "Single Scattering" setting is on: after the QuadGraph, in
+the same job, with its own stage names ("single scattering: optical depth",
+...).  ``translucency.bake_single_scattering`` re-bakes only the
+single-scattering samples onto the existing QuadGraph (same job, modal
+progress, cancel and undo rules): the optical depth depends on sigma_t, so a
+material, field or scale change needs a single-scattering re-bake, but the
+QuadGraph (fTetWild, the slow part) does not depend on the material.  The
+heterogeneity field is sampled on the main thread at the voxel centres
+before the job starts (Blender textures are not evaluated off the main
+thread).  The cache file name carries the combined key (QuadGraph and
+single-scattering inputs), so undo returns to a file that still exists.
 
 Nothing in the scene changes until the bake has succeeded: the cache is
 written to ``<name>.npz.partial`` (atomically, by the engine) and renamed to
@@ -43,12 +56,36 @@ def _format_count(n: int) -> str:
     return f"{n:,}"
 
 
+SS_STAGE_NAMES = {"voxelise": "voxelise", "ddod": "optical depth", "div": "divergence", "pds": "Poisson-disk samples",
+                  "rbf": "RBF fit", "sh": "spherical harmonics", "grid": "sample grid"}
+SS_SHARE = 0.4  # share of the progress bar the single-scattering stages take in a full bake
+
+
+class SSJobInputs:
+    """What the single-scattering part of a bake needs, gathered on the main thread."""
+
+    def __init__(self, settings, material, field, field_fp, key: str):
+        self.settings = settings
+        self.material = material
+        self.field = field  # a GridField (sampled on the main thread) or None
+        self.field_fp = field_fp
+        self.key = key  # the final key of the bake (QuadGraph + single scattering)
+
+
 class BakeJob:
     """One bake: inputs gathered on the main thread, the engine bake in ``run``,
-    the scene changed only in ``commit`` (main thread)."""
+    the scene changed only in ``commit`` (main thread).
 
-    def __init__(self, obj_name: str, V, F, settings, final_path: str, notes: list[str]):
+    ``ss``: :class:`SSJobInputs` to bake single scattering too; ``base_bake``:
+    an existing QuadGraph bake to bake single scattering onto (no QuadGraph bake).
+    """
+
+    def __init__(self, obj_name: str, V, F, settings, final_path: str, notes: list[str], ss: SSJobInputs | None = None,
+                 base_bake=None):
         self.obj_name = obj_name
+        self.ss = ss
+        self.base_bake = base_bake
+        self.ss_seconds = 0.0
         self.V, self.F = V, F
         self.settings = settings
         self.final_path = final_path
@@ -81,9 +118,16 @@ class BakeJob:
         from ..translucency_addon.errors import BakeCancelled
 
         try:
-            bake = bake_mod.bake_mesh(self.V, self.F, self.settings, progress=self.progress)
+            if self.base_bake is None:
+                share = 1.0 - SS_SHARE if self.ss is not None else 1.0
+                bake = bake_mod.bake_mesh(self.V, self.F, self.settings,
+                                          progress=lambda f, st: self.progress(share * f, st))
+            else:
+                bake = self.base_bake
             if self.cancel_requested:
                 raise BakeCancelled("bake cancelled")
+            if self.ss is not None:
+                bake = self._bake_single_scattering(bake)
             self.stage = "writing cache"
             save_bake(self.tmp_path, bake)
             with self.lock:
@@ -96,6 +140,26 @@ class BakeJob:
         finally:
             self.seconds = time.perf_counter() - self.t0
             self.done = True
+
+    def _bake_single_scattering(self, bake):
+        from ..translucency_addon.errors import BakeCancelled, TranslucencyError
+        from ..translucency_addon.single_scattering import attach, bake_single_scattering_for
+
+        base = 1.0 - SS_SHARE if self.base_bake is None else 0.0
+        span = 1.0 - base
+
+        def progress(fraction, stage):
+            if not self.progress(base + span * fraction, "single scattering: " + SS_STAGE_NAMES.get(stage, stage)):
+                raise BakeCancelled("bake cancelled")
+
+        t0 = time.perf_counter()
+        data = bake_single_scattering_for(bake, self.ss.material, self.ss.field, self.ss.settings, progress=progress,
+                                          field_fingerprint=self.ss.field_fp)
+        self.ss_seconds = time.perf_counter() - t0
+        out = attach(bake, data)
+        if out.key != self.ss.key:  # the file name was chosen from the key expected before the bake
+            raise TranslucencyError("internal error: the single-scattering key differs from the expected one")
+        return out
 
     def start(self) -> None:
         self.thread = threading.Thread(target=self.run, name=f"translucency-bake-{self.obj_name}", daemon=True)
@@ -154,7 +218,8 @@ class BakeJob:
             item.n_surface = int(lv.n_surface)
             item.n_inner = int(lv.n_inner)
         s.bake_memory = bake.graph_bytes() / 2**20
-        s.bake_seconds = float(self.seconds)
+        graph_seconds = float(self.seconds - self.ss_seconds) if self.base_bake is None else s.bake_seconds
+        s.bake_seconds = graph_seconds
         s.bake_vertices = int(len(bake.mesh_vertices))
         mesh_stats = bake.stats.get("mesh", {})
         warnings = list(mesh_stats.get("warnings", [])) + self.notes
@@ -162,14 +227,37 @@ class BakeJob:
         s.bake_stats = (
             "N_s " + " / ".join(_format_count(lv.n_surface) for lv in bake.levels)
             + "; N_i " + " / ".join(_format_count(lv.n_inner) for lv in bake.levels)
-            + f"; {s.bake_memory:.1f} MiB; {self.seconds:.1f} s"
+            + f"; {s.bake_memory:.1f} MiB; {graph_seconds:.1f} s"
         )
+        ss = bake.single_scattering
+        if ss is not None:
+            t = ss.stats.get("time", {})
+            s.ss_samples_baked = int(ss.n_samples)
+            s.ss_bake_seconds = float(self.ss_seconds)
+            s.ss_bake_stats = (f"{ss.n_samples:,} samples, {ss.n_dirs} directions, SH order {ss.order}, voxels "
+                               + "x".join(str(v) for v in ss.stats.get("voxels", [])) + f"; {self.ss_seconds:.1f} s ("
+                               + ", ".join(f"{SS_STAGE_NAMES.get(k, k)} {v:.1f}" for k, v in t.items()) + ")")
+            mfp = ss.stats.get("mean_free_path_voxels")
+            if mfp is not None and mfp < 0.5:
+                warnings.append(f"single scattering: the mean free path is {mfp:.2f} voxel; the voxels cannot "
+                                "resolve it, so the term comes out too dark (raise SS Quality or check the scale)")
+                s.bake_warnings = "\n".join(warnings)
+        else:
+            s.ss_samples_baked = 0
+            s.ss_bake_seconds = 0.0
+            s.ss_bake_stats = ""
+        s.ss_message = ""
         s.bake_status = "Baked"
         s.solve_message = ""
         s.enabled = True
         runtime.install_state(obj, bake, self.final_path)
-        runtime.log(f"baked '{obj.name}' -> {self.final_path}\n{format_stats(bake)}")
-        messages = [('INFO', f"Baked '{obj.name}' in {self.seconds:.1f} s: {s.bake_stats}")]
+        runtime.log(f"baked '{obj.name}' -> {self.final_path}\n{format_stats(bake)}"
+                    + (f"\nsingle scattering: {s.ss_bake_stats}" if ss is not None else ""))
+        if self.base_bake is not None:
+            messages = [('INFO', f"Baked single scattering of '{obj.name}' in {self.seconds:.1f} s: {s.ss_bake_stats}")]
+        else:
+            messages = [('INFO', f"Baked '{obj.name}' in {self.seconds:.1f} s: {s.bake_stats}"
+                         + (f"; single scattering: {s.ss_bake_stats}" if ss is not None else ""))]
         messages += [('WARNING', f"'{obj.name}': {w}") for w in warnings]
         try:
             report = runtime.solve_object(obj, context.scene, context.evaluated_depsgraph_get(), force=True)
@@ -181,9 +269,7 @@ class BakeJob:
         return messages
 
 
-def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
-    """Gather the bake's inputs on the main thread (raises ``TranslucencyError``)."""
-    from ..translucency_addon import bake as bake_mod
+def _check_object(obj) -> None:
     from ..translucency_addon.errors import MeshError
 
     if obj is None or obj.type != 'MESH':
@@ -192,6 +278,26 @@ def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
         raise MeshError(f"'{obj.name}' is in Edit Mode: switch to Object Mode to bake it")
     if obj.name in _RUNNING and not _RUNNING[obj.name].done:
         raise MeshError(f"'{obj.name}' is already being baked")
+
+
+def _ss_inputs(obj, depsgraph, V, graph_key: str, mm: float) -> SSJobInputs:
+    """Single-scattering inputs (main thread): settings, material, the field sampled on the voxel grid, the key."""
+    from ..translucency_addon.single_scattering import expected_key
+
+    s = obj.translucency
+    settings = scene_inputs.ss_settings(s)
+    material = scene_inputs.build_material(s)
+    field_fp = scene_inputs.ss_field_fingerprint(obj, s, depsgraph) if material.heterogeneous else None
+    field = scene_inputs.ss_field_sampler(obj, s, depsgraph, V, settings.quality) if material.heterogeneous else None
+    key = expected_key(graph_key, settings, material, field_fp=field_fp, mm_per_unit=mm)
+    return SSJobInputs(settings, material, field, field_fp, key)
+
+
+def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
+    """Gather the bake's inputs on the main thread (raises ``TranslucencyError``)."""
+    from ..translucency_addon import bake as bake_mod
+
+    _check_object(obj)
     scene = context.scene
     s = obj.translucency
     depsgraph = context.evaluated_depsgraph_get()
@@ -201,10 +307,38 @@ def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
                                      base_triangles=int(base_triangles) or None)
     settings.resolved()  # raises MeshError for impossible settings
     key = bake_mod.mesh_key(V, F, settings)
+    ss = _ss_inputs(obj, depsgraph, V, key, mm) if s.use_single_scattering else None
+    if ss is not None:
+        key = ss.key
     directory, note = runtime.cache_directory(scene)
     final = os.path.join(directory, runtime.cache_file_name(obj.name, key))
     notes = [w for w in (scale_warning, note) if w]
-    return BakeJob(obj.name, V, F, settings, final, notes)
+    return BakeJob(obj.name, V, F, settings, final, notes, ss=ss)
+
+
+def prepare_ss_job(context, obj) -> BakeJob:
+    """Inputs of a single-scattering-only bake onto the object's existing QuadGraph (main thread)."""
+    from ..translucency_addon.errors import CacheError
+
+    _check_object(obj)
+    scene = context.scene
+    depsgraph = context.evaluated_depsgraph_get()
+    if not runtime.is_baked(obj):
+        raise CacheError(f"'{obj.name}' has no QuadGraph bake yet: press Bake (it bakes single scattering too)")
+    st = runtime.ensure_state(obj, retry=True)
+    runtime.update_staleness(obj, st, depsgraph)
+    if st.stale_message:
+        raise CacheError(f"the QuadGraph of '{obj.name}' is stale ({st.stale_message}); press Bake, which bakes "
+                         "both")
+    mm, scale_warning = scene_inputs.mm_per_unit(obj, scene)
+    base = st.bake.with_scale(mm)
+    from ..translucency_addon.single_scattering import graph_key
+
+    ss = _ss_inputs(obj, depsgraph, base.mesh_vertices, graph_key(base), mm)
+    directory, note = runtime.cache_directory(scene)
+    final = os.path.join(directory, runtime.cache_file_name(obj.name, ss.key))
+    notes = [w for w in (scale_warning, note) if w]
+    return BakeJob(obj.name, base.mesh_vertices, base.mesh_faces, base.settings, final, notes, ss=ss, base_bake=base)
 
 
 def _error_text(obj_name: str, ex: BaseException) -> str:
@@ -215,20 +349,12 @@ def _error_text(obj_name: str, ex: BaseException) -> str:
     return f"Bake of '{obj_name}' failed: {type(ex).__name__}: {ex}"
 
 
-class TRANSLUCENCY_OT_bake(bpy.types.Operator):
-    """Bake the QuadGraph of the active mesh object (after modifiers) for subsurface scattering. Esc cancels"""
+class _ModalBake:
+    """Shared by the bake operators: synchronous ``execute`` (background mode, scripts) and a modal
+    ``invoke`` (UI: a worker thread, progress bar, status text with the stage, Esc cancels)."""
 
-    bl_idname = "translucency.bake"
-    bl_label = "Bake"
-    bl_options = {'REGISTER', 'UNDO'}
-
-    base_triangles: IntProperty(
-        name="Base Triangles",
-        description="Triangles of the coarsest level's resampled surface (0: the quality preset's)",
-        default=0,
-        min=0,
-        options={'SKIP_SAVE', 'HIDDEN'},
-    )
+    def _prepare(self, context, obj) -> BakeJob:
+        raise NotImplementedError
 
     @classmethod
     def poll(cls, context):
@@ -240,7 +366,7 @@ class TRANSLUCENCY_OT_bake(bpy.types.Operator):
         obj = context.active_object
         name = obj.name if obj is not None else "?"
         try:
-            job = prepare_job(context, obj, self.base_triangles)
+            job = self._prepare(context, obj)
         except Exception as ex:  # noqa: BLE001 - reported to the user
             self.report({'ERROR'}, _error_text(name, ex))
             return {'CANCELLED'}
@@ -253,7 +379,7 @@ class TRANSLUCENCY_OT_bake(bpy.types.Operator):
             return self.execute(context)
         obj = context.active_object
         try:
-            job = prepare_job(context, obj, self.base_triangles)
+            job = self._prepare(context, obj)
         except Exception as ex:  # noqa: BLE001
             self.report({'ERROR'}, _error_text(obj.name if obj else "?", ex))
             return {'CANCELLED'}
@@ -334,6 +460,41 @@ class TRANSLUCENCY_OT_bake(bpy.types.Operator):
             context.area.header_text_set(None)
 
 
+class TRANSLUCENCY_OT_bake(_ModalBake, bpy.types.Operator):
+    """Bake the QuadGraph of the active mesh object (after modifiers) for subsurface scattering, and the single-scattering samples when Single Scattering is on. Esc cancels"""
+
+    bl_idname = "translucency.bake"
+    bl_label = "Bake"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    base_triangles: IntProperty(
+        name="Base Triangles",
+        description="Triangles of the coarsest level's resampled surface (0: the quality preset's)",
+        default=0,
+        min=0,
+        options={'SKIP_SAVE', 'HIDDEN'},
+    )
+
+    def _prepare(self, context, obj) -> BakeJob:
+        return prepare_job(context, obj, self.base_triangles)
+
+
+class TRANSLUCENCY_OT_bake_single_scattering(_ModalBake, bpy.types.Operator):
+    """Re-bake only the single-scattering samples (RBF optical depth) onto the existing QuadGraph: needed after a change of the material, its field, the scale or the single-scattering settings. Esc cancels"""
+
+    bl_idname = "translucency.bake_single_scattering"
+    bl_label = "Bake Single Scattering"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        return obj is not None and obj.type == 'MESH' and runtime.is_baked(obj)
+
+    def _prepare(self, context, obj) -> BakeJob:
+        return prepare_ss_job(context, obj)
+
+
 class TRANSLUCENCY_OT_free_bake(bpy.types.Operator):
     """Remove the active object's bake: the cache reference, the solver (GPU memory) and the radiance attribute"""
 
@@ -358,6 +519,7 @@ class TRANSLUCENCY_OT_free_bake(bpy.types.Operator):
         path = runtime.resolve_cache_path(obj)
         runtime.drop_state(obj.name)
         removed_attr = runtime.remove_attribute(obj)
+        removed_attr = runtime.remove_attribute(obj, runtime.SS_ATTRIBUTE_NAME) or removed_attr
         had_bake = bool(s.cache_filepath or s.bake_key)
         s.cache_filepath = ""
         s.bake_key = ""
@@ -373,6 +535,12 @@ class TRANSLUCENCY_OT_free_bake(bpy.types.Operator):
         s.solve_iterations = 0
         s.solve_backend = ""
         s.solve_message = ""
+        s.ss_bake_stats = ""
+        s.ss_bake_seconds = 0.0
+        s.ss_samples_baked = 0
+        s.ss_solve_seconds = 0.0
+        s.ss_backend = ""
+        s.ss_message = ""
         deleted = False
         if self.delete_cache_file and path and os.path.isfile(path):
             os.remove(path)
@@ -384,4 +552,4 @@ class TRANSLUCENCY_OT_free_bake(bpy.types.Operator):
         return {'FINISHED'}
 
 
-CLASSES = (TRANSLUCENCY_OT_bake, TRANSLUCENCY_OT_free_bake)
+CLASSES = (TRANSLUCENCY_OT_bake, TRANSLUCENCY_OT_bake_single_scattering, TRANSLUCENCY_OT_free_bake)

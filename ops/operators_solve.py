@@ -2,7 +2,11 @@
 """``translucency.solve``: solve the diffusion for the active (or every) baked object now.
 
 The result goes into the ``translucency_radiance`` attribute of the object's
-mesh (see :mod:`.runtime`).  Loading a cache that is missing, truncated or
+mesh (see :mod:`.runtime`): the diffusion term (when "Multiple Scattering" is
+on) plus the single-scattering term (when "Single Scattering" is on and
+baked; also alone in ``translucency_radiance_ss`` with "Split Pass").  A
+single-scattering bake that no longer matches the material, field, scale or
+its settings is reported as a warning that asks for a re-bake.  Loading a cache that is missing, truncated or
 stale is retried here (the live handlers do not retry a failed load until the
 file changes) and reported as an error.
 """
@@ -63,8 +67,14 @@ class TRANSLUCENCY_OT_solve(bpy.types.Operator):
                 self.report({'WARNING'}, f"'{obj.name}' is in Edit Mode: switch to Object Mode to solve it")
                 continue
             st = runtime.get_state(obj)
-            self.report({'INFO'}, f"Solved '{obj.name}' on the {report.backend} in {report.seconds:.3f} s "
-                                  f"({report.iterations} iterations, residual {report.residual:.2e})")
+            if obj.translucency.use_multiple_scattering:
+                text = (f"Solved '{obj.name}' on the {report.backend} in {report.seconds:.3f} s "
+                        f"({report.iterations} iterations, residual {report.residual:.2e})")
+            else:
+                text = f"Evaluated '{obj.name}' (multiple scattering off)"
+            if report.ss_backend:
+                text += f"; single scattering {1000 * report.ss_seconds:.1f} ms on the {report.ss_backend}"
+            self.report({'INFO'}, text)
             if st is not None and st.backend_message and not getattr(st, "_message_reported", False):
                 self.report({'INFO'}, f"'{obj.name}': {st.backend_message}")
                 st._message_reported = True

@@ -5,10 +5,13 @@ Both panels share :func:`draw_translucency`.  If a bundled dependency does not
 import, the panel lists what is missing (with the import error) and draws
 nothing else, so a broken wheel never breaks the UI.
 
-Sections: bake settings, Bake / Free Bake, bake status and statistics (N_s
-and N_i per level, graph memory, bake time, warnings, cache problems found
-after a file load), material, heterogeneity field, Solve with the last solve
-time, iterations, residual, backend and fallback message, the cache file, then
+Sections: bake settings, the terms (multiple scattering, single scattering
+with its bake settings and Split Pass), Bake / Free Bake / Bake Single
+Scattering, bake status and statistics (N_s and N_i per level, graph memory,
+bake time, single-scattering samples and time per stage, warnings, cache
+problems found after a file load), material, heterogeneity field, Solve with the last solve
+time, iterations, residual, backend and fallback message, the
+single-scattering time and backend and why it needs a re-bake, the cache file, then
 the hooks of the optional modules (``overlay.draw_settings`` and
 ``render_pass.draw_settings``, see :func:`_draw_hooks`) and the scene settings.
 """
@@ -42,6 +45,20 @@ def _draw_multiline(layout, text: str, icon='NONE', width: int = 70) -> None:
             first = False
 
 
+def _draw_terms(layout, settings) -> None:
+    """Which terms are added, and the single-scattering bake settings."""
+    col = layout.column()
+    col.prop(settings, "use_multiple_scattering")
+    col.prop(settings, "use_single_scattering")
+    sub = col.column()
+    sub.active = settings.use_single_scattering
+    sub.prop(settings, "ss_quality")
+    sub.prop(settings, "ss_directions")
+    sub.prop(settings, "ss_samples")
+    sub.prop(settings, "ss_sh_order")
+    sub.prop(settings, "ss_split_pass")
+
+
 def _draw_object_settings(layout, obj, context=None) -> None:
     settings = obj.translucency
     layout.prop(settings, "enabled")
@@ -70,11 +87,16 @@ def _draw_object_settings(layout, obj, context=None) -> None:
                 _draw_multiline(box, warning, icon='ERROR')
         except Exception:  # noqa: BLE001 - drawing must never fail
             pass
+    _draw_terms(box, settings)
     if obj.type == 'MESH':
         row = box.row(align=True)
         row.operator("translucency.bake", icon='RENDER_STILL',
                      text="Re-Bake" if settings.bake_key else "Bake")
         row.operator("translucency.free_bake", icon='TRASH', text="Free Bake")
+        if settings.use_single_scattering:
+            row = box.row()
+            row.enabled = bool(settings.bake_key)
+            row.operator("translucency.bake_single_scattering", icon='LIGHT_SUN')
     box.label(text=f"Status: {settings.bake_status}")
     try:
         from .runtime import CACHE_STATUS
@@ -92,6 +114,8 @@ def _draw_object_settings(layout, obj, context=None) -> None:
         box.label(text=f"Graph memory {settings.bake_memory:.1f} MiB, bake time {settings.bake_seconds:.1f} s")
     elif settings.bake_stats:
         box.label(text=settings.bake_stats)
+    if settings.ss_samples_baked:
+        _draw_multiline(box, "Single scattering: " + settings.ss_bake_stats, icon='LIGHT_SUN')
     if settings.bake_warnings:
         _draw_multiline(box, settings.bake_warnings, icon='ERROR')
 
@@ -131,6 +155,13 @@ def _draw_object_settings(layout, obj, context=None) -> None:
                        f"{settings.solve_iterations} iterations, residual {settings.solve_residual:.2e}")
     if settings.solve_message:
         _draw_multiline(box, settings.solve_message, icon='INFO')
+    if settings.ss_backend:
+        box.label(text=f"Single scattering: {settings.ss_solve_seconds * 1000:.1f} ms on the {settings.ss_backend}")
+    if settings.ss_message:
+        stale = "re-bake" in settings.ss_message or "not baked" in settings.ss_message
+        sub = box.column()
+        sub.alert = stale
+        _draw_multiline(sub, settings.ss_message, icon='ERROR' if stale else 'INFO')
 
     box = col.box()
     box.label(text="Cache", icon='FILE_CACHE')

@@ -154,6 +154,74 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         precision=3,
     )
 
+    # -- terms and single scattering (Bernabei et al.) -------------------------
+    use_multiple_scattering: BoolProperty(
+        update=_request_update,
+        name="Multiple Scattering",
+        description="Add the diffusion (multiple scattering) term, solved on the QuadGraph",
+        default=True,
+    )
+    use_single_scattering: BoolProperty(
+        update=_request_update,
+        name="Single Scattering",
+        description=(
+            "Add the single-scattering term (RBF optical-depth samples). Bake bakes them too; after a material "
+            "change use Bake Single Scattering, which keeps the QuadGraph"
+        ),
+        default=False,
+    )
+    ss_quality: EnumProperty(
+        update=_request_update,
+        name="SS Quality",
+        description="Voxel resolution of the single-scattering bake (voxels along the longest side)",
+        items=(
+            ("DRAFT", "Draft", "32 voxels along the longest side"),
+            ("PREVIEW", "Preview", "48 voxels along the longest side"),
+            ("FINAL", "Final", "64 voxels along the longest side"),
+        ),
+        default="PREVIEW",
+    )
+    ss_directions: EnumProperty(
+        update=_request_update,
+        name="Directions",
+        description="Directions of the baked optical depth (more: sharper self-shadowing, longer bake)",
+        items=(
+            ("32", "32", "Fast bake, soft self-shadowing"),
+            ("128", "128", "The paper's default"),
+            ("512", "512", "Sharpest self-shadowing, slowest bake"),
+        ),
+        default="128",
+    )
+    ss_samples: IntProperty(
+        update=_request_update,
+        name="Samples",
+        description="Target number of RBF samples (Poisson-disk) in the single-scattering bake",
+        default=20000,
+        min=100,
+        soft_max=100000,
+        max=1000000,
+    )
+    ss_sh_order: IntProperty(
+        update=_request_update,
+        name="SH Order",
+        description=(
+            "Spherical-harmonics order of the baked attenuation (9, 16 or 25 coefficients). A lower order than "
+            "baked applies without a re-bake"
+        ),
+        default=4,
+        min=2,
+        max=4,
+    )
+    ss_split_pass: BoolProperty(
+        update=_request_update,
+        name="Split Pass",
+        description=(
+            "Also write the single-scattering term alone into the 'translucency_radiance_ss' attribute "
+            "(the Translucency_SS render pass after Add to Material); Translucency keeps the total"
+        ),
+        default=False,
+    )
+
     # -- material -----------------------------------------------------------
     material_preset: EnumProperty(
         update=_request_update,
@@ -306,6 +374,24 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         default=0,
         min=0,
     )
+    ss_bake_stats: StringProperty(
+        name="Single Scattering Bake",
+        description="Samples, directions, SH order and bake time per stage of the last single-scattering bake",
+        default="",
+    )
+    ss_bake_seconds: FloatProperty(
+        name="SS Bake Time (s)",
+        description="Wall-clock time of the last single-scattering bake in seconds",
+        default=0.0,
+        min=0.0,
+        precision=2,
+    )
+    ss_samples_baked: IntProperty(
+        name="SS Samples",
+        description="Number of RBF samples in the baked single-scattering data (0: not baked)",
+        default=0,
+        min=0,
+    )
     # -- solve status (written by the solver; shown in the panel) --------------
     solve_seconds: FloatProperty(
         name="Solve Time (s)",
@@ -335,6 +421,23 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
     solve_message: StringProperty(
         name="Solver Message",
         description="Why the solver fell back to the CPU, or the last solve error (written by the solver)",
+        default="",
+    )
+    ss_solve_seconds: FloatProperty(
+        name="SS Time (s)",
+        description="Wall-clock time of this object's last single-scattering evaluation in seconds",
+        default=0.0,
+        min=0.0,
+        precision=4,
+    )
+    ss_backend: StringProperty(
+        name="SS Backend",
+        description="Where the last single-scattering ray pass ran: GPU or CPU (numpy)",
+        default="",
+    )
+    ss_message: StringProperty(
+        name="SS Message",
+        description="Why the single-scattering term is stale (needs a re-bake) or not on the GPU",
         default="",
     )
 

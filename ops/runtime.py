@@ -13,6 +13,12 @@ Public API (also used by the overlay and render-pass code):
   or ``None`` when nothing changed since the last solve.
 * :func:`solve_scene(scene, ...) <solve_scene>`: the same for every enabled,
   baked object of a scene (what the handlers call).
+* :data:`SS_ATTRIBUTE_NAME` = ``"translucency_radiance_ss"``: the
+  single-scattering term alone, written when the object's "Split Pass" is on
+  (``render_pass`` turns it into the ``Translucency_SS`` AOV).
+  :data:`ATTRIBUTE_NAME` holds the total: diffusion (when "Multiple
+  Scattering" is on) plus single scattering (when "Single Scattering" is on
+  and baked).
 * :func:`request_update` (in ``handlers``) schedules a throttled re-solve.
 * :func:`is_baked`, :func:`get_state`, :func:`clear`, :func:`drop_state`.
 
@@ -24,6 +30,19 @@ the cache file on first use.  The solver is told only what changed: a
 material or field edit re-samples the coefficients (``set_material``, no
 re-bake); light, world or occluder edits re-solve, warm-started from the last
 result; a view change (render camera) only re-evaluates the radiance.
+
+Single scattering (Bernabei et al., baked into the same cache) is evaluated
+after the diffusion: toward the render camera in renders (and with Solve's
+"Towards Camera"), toward the first 3D viewport's eye in live solves when
+there is one, and along each vertex normal otherwise.  Its ray pass runs on
+the GPU kernel when ``gpu_shaders.single_scattering`` can (the scene's
+Solver setting; numpy on software rasterisers and off the main thread) and
+falls back to numpy per call.  View rays are cached per view, so a change of
+the lights only costs the light term and the ray pass.  A change of the
+material, its field, the scale or the single-scattering settings since the
+bake makes the baked optical depth stale: the term keeps using the old bake,
+and the panel, the log and the Solve operator say that single scattering
+needs a re-bake ("Bake Single Scattering").
 """
 
 from __future__ import annotations
@@ -42,6 +61,7 @@ import numpy as np
 from . import backend, scene_inputs
 
 ATTRIBUTE_NAME = "translucency_radiance"
+SS_ATTRIBUTE_NAME = "translucency_radiance_ss"
 ATTRIBUTE_DOMAIN = 'POINT'
 ATTRIBUTE_TYPE = 'FLOAT_COLOR'
 DEFAULT_CACHE_DIRECTORY = "//translucency_cache/"
@@ -59,6 +79,8 @@ class SolveReport:
     solved: bool  # False: only the view changed (radiance re-evaluated, no solve)
     view: str  # "NORMAL" or "CAMERA"
     vertices: int
+    ss_seconds: float = 0.0  # single-scattering evaluation (0: not evaluated)
+    ss_backend: str = ""
 
 
 @dataclass
@@ -94,6 +116,15 @@ class ObjectState:
     iterations: int = 0
     solves: int = 0
     warnings: tuple = ()
+    # single scattering
+    ss: object | None = None  # translucency_addon.single_scattering.FrameEvaluator
+    ss_key: tuple | None = None
+    ss_backend: str = ""
+    ss_backend_message: str = ""
+    ss_seconds: float = 0.0
+    ss_stale: str = ""
+    ss_field_fp: tuple | None = None  # (field_sig, fingerprint)
+    ss_rgb: object | None = None  # last single-scattering radiance (n_vertices, 3)
 
     def free(self) -> None:
         for solver in (self.solver, self.render_solver):
@@ -101,6 +132,12 @@ class ObjectState:
                 backend.free_solver(solver)
         self.solver = self.render_solver = None
         self.result = self.render_result = self.result_solver = None
+        if self.ss is not None:
+            try:
+                self.ss.free()
+            except Exception as ex:  # noqa: BLE001 - freeing must not break cleanup paths
+                print(f"Translucency: freeing the single-scattering data failed: {type(ex).__name__}: {ex}")
+        self.ss = self.ss_key = self.ss_rgb = None
 
 
 _STATES: dict[str, ObjectState] = {}
@@ -292,7 +329,7 @@ def check_cache(obj, depsgraph=None) -> str:
 
         try:
             baked = BakeSettings(**meta["settings"])
-            message = _staleness(obj, depsgraph, meta["key"], baked)
+            message = _staleness(obj, depsgraph, (meta.get("stats") or {}).get("graph_key") or meta["key"], baked)
         except Exception as ex:  # noqa: BLE001 - a status line must not raise
             message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
         if message:
@@ -301,7 +338,10 @@ def check_cache(obj, depsgraph=None) -> str:
 
 
 def _staleness(obj, depsgraph, key: str, baked_settings) -> str:
-    """Why the bake no longer matches the object (empty when it still does)."""
+    """Why the bake no longer matches the object (empty when it still does).
+
+    ``key``: the QuadGraph key (``single_scattering.graph_key``: a bake holding
+    single scattering has a combined key of its own)."""
     from dataclasses import replace
 
     from ..translucency_addon.bake import mesh_key
@@ -324,7 +364,9 @@ def update_staleness(obj, st: ObjectState, depsgraph) -> str:
     if digest != st.geometry_digest:
         st.geometry_digest = digest
         try:
-            st.stale_message = _staleness(obj, depsgraph, st.bake.key, st.bake.settings)
+            from ..translucency_addon.single_scattering import graph_key
+
+            st.stale_message = _staleness(obj, depsgraph, graph_key(st.bake), st.bake.settings)
         except Exception as ex:  # noqa: BLE001
             st.stale_message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
         if st.stale_message:
@@ -335,7 +377,7 @@ def update_staleness(obj, st: ObjectState, depsgraph) -> str:
 # ------------------------------------------------------------------ attribute
 
 
-def write_radiance(obj, rgb: np.ndarray) -> None:
+def write_radiance(obj, rgb: np.ndarray, name: str = ATTRIBUTE_NAME) -> None:
     """Write (n, 3) radiance into ``obj.data``'s ``translucency_radiance`` attribute.
 
     Only the attribute's values change: never the topology, never another
@@ -346,12 +388,12 @@ def write_radiance(obj, rgb: np.ndarray) -> None:
     rgb = np.asarray(rgb, dtype=np.float32)
     if rgb.shape != (n, 3):
         raise ValueError(f"radiance has shape {rgb.shape}, the mesh has {n} vertices")
-    attr = mesh.attributes.get(ATTRIBUTE_NAME)
+    attr = mesh.attributes.get(name)
     if attr is not None and (attr.domain != ATTRIBUTE_DOMAIN or attr.data_type != ATTRIBUTE_TYPE):
         mesh.attributes.remove(attr)
         attr = None
     if attr is None:
-        attr = mesh.attributes.new(ATTRIBUTE_NAME, ATTRIBUTE_TYPE, ATTRIBUTE_DOMAIN)
+        attr = mesh.attributes.new(name, ATTRIBUTE_TYPE, ATTRIBUTE_DOMAIN)
     rgba = np.ones((n, 4), dtype=np.float32)
     rgba[:, :3] = np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0)
     attr.data.foreach_set("color", rgba.ravel())
@@ -360,10 +402,10 @@ def write_radiance(obj, rgb: np.ndarray) -> None:
     mesh.update_tag()
 
 
-def read_radiance(obj) -> np.ndarray | None:
-    """The attribute as (n, 3) float32, or None."""
+def read_radiance(obj, name: str = ATTRIBUTE_NAME) -> np.ndarray | None:
+    """The attribute (default: the total radiance) as (n, 3) float32, or None."""
     mesh = obj.data
-    attr = mesh.attributes.get(ATTRIBUTE_NAME) if mesh is not None else None
+    attr = mesh.attributes.get(name) if mesh is not None else None
     if attr is None or attr.domain != ATTRIBUTE_DOMAIN or attr.data_type != ATTRIBUTE_TYPE:
         return None
     rgba = np.empty(len(attr.data) * 4, dtype=np.float32)
@@ -371,9 +413,9 @@ def read_radiance(obj) -> np.ndarray | None:
     return rgba.reshape(-1, 4)[:, :3].copy()
 
 
-def remove_attribute(obj) -> bool:
+def remove_attribute(obj, name: str = ATTRIBUTE_NAME) -> bool:
     mesh = obj.data
-    attr = mesh.attributes.get(ATTRIBUTE_NAME) if mesh is not None else None
+    attr = mesh.attributes.get(name) if mesh is not None else None
     if attr is None:
         return False
     mesh.attributes.remove(attr)
@@ -381,8 +423,8 @@ def remove_attribute(obj) -> bool:
     return True
 
 
-def _attribute_ok(obj) -> bool:
-    attr = obj.data.attributes.get(ATTRIBUTE_NAME)
+def _attribute_ok(obj, name: str = ATTRIBUTE_NAME) -> bool:
+    attr = obj.data.attributes.get(name)
     return (attr is not None and attr.domain == ATTRIBUTE_DOMAIN and attr.data_type == ATTRIBUTE_TYPE
             and len(attr.data) == len(obj.data.vertices))
 
@@ -503,11 +545,16 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     metres_per_bu = scene_inputs.metres_per_world_unit(obj, scene, mm, matrix)
     update_staleness(obj, st, depsgraph)
 
+    use_ms = bool(settings.use_multiple_scattering)
+    want_ss = bool(settings.use_single_scattering)
+    use_ss = want_ss and st.bake.single_scattering is not None
+    split = bool(settings.ss_split_pass)
+
     material = scene_inputs.build_material(settings)
     epoch = (GEOMETRY_EPOCH.get(obj.name, 0), GEOMETRY_EPOCH.get(FRAME_EPOCH, 0))
     field_sig = scene_inputs.field_signature(obj, settings, depsgraph, epoch)
     field_changed = field_sig != st.field_sig or (field_sig is not None and st.field_values is None)
-    if field_changed:
+    if field_changed and use_ms:
         if field_sig is None:
             st.field_values = None
         else:
@@ -518,45 +565,69 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     off_main = threading.current_thread() is not threading.main_thread()
     prefer = scene.translucency.solver_backend
     solver_sig = (round(mm, 9), prefer, float(scene.translucency.tolerance))
-    if st.solver is None or st.solver_sig != solver_sig:
-        if st.solver is not None:
-            backend.free_solver(st.solver)
-            st.solver = None
-        if st.render_solver is not None:
-            backend.free_solver(st.render_solver)
-            st.render_solver = st.render_result = st.render_solve_sig = None
-        bake = st.bake.with_scale(mm)
-        solver, name, message = backend.make_solver(bake, material, st.field_values, _options(scene),
-                                                    prefer="CPU" if off_main else prefer)
-        st.solver, st.backend, st.backend_message = solver, name, message
-        st.solver_sig, st.material, st.result, st.result_solver = solver_sig, material, None, None
-        st.solve_sig = st.view_sig = None
-        st.announced = False
-    elif material != st.material or field_changed:
-        st.solver.set_material(material, st.field_values)
-        if st.render_solver is not None:
-            st.render_solver.set_material(material, st.field_values)
-        st.material = material
-    st.field_sig = field_sig
-    if not st.announced:
-        log(f"'{obj.name}' solves on the {st.backend}" + (f" ({st.backend_message})" if st.backend_message else ""))
-        st.announced = True
-
     rendering = getattr(depsgraph, "mode", "VIEWPORT") == 'RENDER'
-    solver = st.solver
-    if st.backend != "CPU" and (off_main or (rendering and st.gpu_failed_in_render)):
-        solver = _cpu_twin(st, mm, material, scene)
+    solver = None
+    if use_ms:
+        if st.solver is None or st.solver_sig != solver_sig:
+            if st.solver is not None:
+                backend.free_solver(st.solver)
+                st.solver = None
+            if st.render_solver is not None:
+                backend.free_solver(st.render_solver)
+                st.render_solver = st.render_result = st.render_solve_sig = None
+            bake = st.bake.with_scale(mm)
+            solver, name, message = backend.make_solver(bake, material, st.field_values, _options(scene),
+                                                        prefer="CPU" if off_main else prefer)
+            st.solver, st.backend, st.backend_message = solver, name, message
+            st.solver_sig, st.material, st.result, st.result_solver = solver_sig, material, None, None
+            st.solve_sig = st.view_sig = None
+            st.announced = False
+        elif material != st.material or field_changed:
+            st.solver.set_material(material, st.field_values)
+            if st.render_solver is not None:
+                st.render_solver.set_material(material, st.field_values)
+            st.material = material
+        st.field_sig = field_sig
+        if not st.announced:
+            log(f"'{obj.name}' solves on the {st.backend}"
+                + (f" ({st.backend_message})" if st.backend_message else ""))
+            st.announced = True
+        solver = st.solver
+        if st.backend != "CPU" and (off_main or (rendering and st.gpu_failed_in_render)):
+            solver = _cpu_twin(st, mm, material, scene)
 
     lights = scene_inputs.collect_lights(depsgraph, matrix, metres_per_bu)
     environment, world_warning = scene_inputs.world_environment(scene.world)
-    occluders, occ_sig = scene_inputs.collect_occluders(depsgraph, obj, matrix, st.occluders)
     env_sig = None if environment is None else tuple(environment.radiance)
-    solve_sig = (solver_sig, material, field_sig, tuple(lights), env_sig, occ_sig)
+    if use_ms:
+        occluders, occ_sig = scene_inputs.collect_occluders(depsgraph, obj, matrix, st.occluders)
+        solve_sig = (solver_sig, material, field_sig, tuple(lights), env_sig, occ_sig)
+    else:
+        occluders, solve_sig = None, None
     view = scene_inputs.camera_view(scene, depsgraph, matrix) if use_camera else None
-    view_sig = (solve_sig, view, len(obj.data.vertices))
-    warnings = tuple(w for w in (scale_warning, world_warning, st.stale_message) if w)
+
+    # single scattering: its view, staleness and signature
+    ss_view = None
+    ss_sig = (want_ss, use_ss, split)
+    st.ss_stale = ""
+    if use_ss:
+        ss_view = view
+        if ss_view is None and not use_camera and not rendering and not off_main:
+            ss_view = scene_inputs.viewport_view(matrix)
+        st.ss_stale = _ss_staleness(obj, st, settings, depsgraph, material, field_sig, mm)
+        ss_sig += (st.bake.key, min(int(settings.ss_sh_order), st.bake.single_scattering.order), prefer,
+                   float(material.eta), round(mm, 9), tuple(lights), env_sig, ss_view)
+    elif want_ss:
+        st.ss_stale = ("Single Scattering is on but was not baked: press Bake Single Scattering "
+                       "(or Bake, which bakes both)")
+    view_sig = (solve_sig, view, len(obj.data.vertices), use_ms, ss_sig)
+    warnings = tuple(w for w in (scale_warning, world_warning, st.stale_message, st.ss_stale) if w)
     for w in warnings:
         log(f"'{obj.name}': {w}", once_key=("warn", obj.name, w))
+
+    def current() -> bool:
+        return (not force and view_sig == st.view_sig and _attribute_ok(obj)
+                and (not (use_ss and split) or _attribute_ok(obj, SS_ATTRIBUTE_NAME)))
 
     def previous_for(s):
         """(last result, its signature) of solver ``s`` (the GPU/main one or the CPU twin)."""
@@ -566,44 +637,66 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
 
     solved = False
     seconds = 0.0
-    for attempt in (0, 1):
-        previous, previous_sig = previous_for(solver)
-        try:
-            if not force and previous is not None and solve_sig == previous_sig:
-                if view_sig == st.view_sig and _attribute_ok(obj):
-                    return None
-                result = previous
-            else:
-                t0 = time.perf_counter()
-                result = solver.solve(lights, environment, warm_start=previous, shadows=True, occluders=occluders)
-                seconds = time.perf_counter() - t0
-                solved = True
-            rgb = radiance_for_mesh(obj, st, solver, result, view)
-            break
-        except TranslucencyError:
-            raise
-        except Exception as ex:  # noqa: BLE001 - a GPU failure (e.g. no GPU context during a render)
-            if attempt or solver is not st.solver or st.backend == "CPU":
+    n_vertices = len(obj.data.vertices)
+    result = None
+    if use_ms:
+        for attempt in (0, 1):
+            previous, previous_sig = previous_for(solver)
+            try:
+                if not force and previous is not None and solve_sig == previous_sig:
+                    if current():
+                        return None
+                    result = previous
+                else:
+                    t0 = time.perf_counter()
+                    result = solver.solve(lights, environment, warm_start=previous, shadows=True,
+                                          occluders=occluders)
+                    seconds = time.perf_counter() - t0
+                    solved = True
+                rgb = radiance_for_mesh(obj, st, solver, result, view)
+                break
+            except TranslucencyError:
                 raise
-            message = f"the GPU solve failed ({type(ex).__name__}: {ex}); using the CPU solver"
-            log(f"'{obj.name}': {message}" + (" for renders" if rendering else ""))
-            if rendering:
-                st.gpu_failed_in_render = True
+            except Exception as ex:  # noqa: BLE001 - a GPU failure (e.g. no GPU context during a render)
+                if attempt or solver is not st.solver or st.backend == "CPU":
+                    raise
+                message = f"the GPU solve failed ({type(ex).__name__}: {ex}); using the CPU solver"
+                log(f"'{obj.name}': {message}" + (" for renders" if rendering else ""))
+                if rendering:
+                    st.gpu_failed_in_render = True
+                else:
+                    backend.free_solver(st.solver)
+                    st.solver = backend.cpu_solver(st.bake.with_scale(mm), material, st.field_values, _options(scene))
+                    st.backend, st.backend_message = "CPU", message
+                    st.result = st.result_solver = None
+                solver = _cpu_twin(st, mm, material, scene) if rendering else st.solver
+                solved = False
+        if solved:
+            if solver is st.render_solver:
+                st.render_result, st.render_solve_sig = result, solve_sig
             else:
-                backend.free_solver(st.solver)
-                st.solver = backend.cpu_solver(st.bake.with_scale(mm), material, st.field_values, _options(scene))
-                st.backend, st.backend_message = "CPU", message
-                st.result = st.result_solver = None
-            solver = _cpu_twin(st, mm, material, scene) if rendering else st.solver
-            solved = False
-    if solved:
-        if solver is st.render_solver:
-            st.render_result, st.render_solve_sig = result, solve_sig
-        else:
-            st.result, st.result_solver, st.solve_sig = result, solver, solve_sig
+                st.result, st.result_solver, st.solve_sig = result, solver, solve_sig
+    else:
+        if current():
+            return None
+        rgb = np.zeros((n_vertices, 3))
+    rgb = np.asarray(rgb, dtype=np.float64)
     if not np.all(np.isfinite(rgb)):
         raise TranslucencyError(f"'{obj.name}': the solve produced NaN or Inf radiance; check the material")
+
+    ss_rgb = None
+    if use_ss:
+        ss_rgb = _single_scattering(obj, st, material, lights, environment, mm, ss_view, prefer, off_main)
+        if not np.all(np.isfinite(ss_rgb)):
+            raise TranslucencyError(f"'{obj.name}': single scattering produced NaN or Inf radiance")
+        rgb = rgb + ss_rgb
+    else:
+        st.ss_seconds, st.ss_rgb = 0.0, None
     write_radiance(obj, rgb)
+    if use_ss and split:
+        write_radiance(obj, ss_rgb, SS_ATTRIBUTE_NAME)
+    elif not off_main and obj.data.attributes.get(SS_ATTRIBUTE_NAME) is not None:
+        remove_attribute(obj, SS_ATTRIBUTE_NAME)  # no stale single-scattering pass
     st.view_sig = view_sig
     st.warnings = warnings
     if solved:
@@ -616,9 +709,98 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
         COUNTERS["radiance_only"] += 1
     if not off_main:
         _publish(obj, scene, st)
-    return SolveReport(name=obj.name, backend="CPU" if solver is st.render_solver else st.backend,
-                       seconds=st.seconds, residual=st.residual, iterations=st.iterations, solved=solved,
-                       view="CAMERA" if view is not None else "NORMAL", vertices=len(rgb))
+    if use_ms:
+        report_backend = "CPU" if solver is st.render_solver else st.backend
+    else:
+        report_backend = st.ss_backend if use_ss else ""
+    return SolveReport(name=obj.name, backend=report_backend, seconds=st.seconds if use_ms else 0.0,
+                       residual=st.residual if use_ms else 0.0, iterations=st.iterations if use_ms else 0,
+                       solved=solved, view="CAMERA" if view is not None else "NORMAL", vertices=len(rgb),
+                       ss_seconds=st.ss_seconds if use_ss else 0.0, ss_backend=st.ss_backend if use_ss else "")
+
+
+# ------------------------------------------------------------------ single scattering
+
+
+def _ss_staleness(obj, st: ObjectState, settings, depsgraph, material, field_sig, mm: float) -> str:
+    """Why the baked single scattering no longer matches the object ('' when it does)."""
+    from ..translucency_addon.single_scattering import stale_message, staleness
+
+    data = st.bake.single_scattering
+    try:
+        want = scene_inputs.ss_settings(settings)
+    except Exception as ex:  # noqa: BLE001
+        return str(ex)
+    field_fp = None
+    if material.heterogeneous:
+        if st.ss_field_fp is None or st.ss_field_fp[0] != field_sig:
+            st.ss_field_fp = (field_sig, scene_inputs.ss_field_fingerprint(obj, settings, depsgraph, field_sig))
+        field_fp = st.ss_field_fp[1]
+    reasons = staleness(data, settings=want, material=material, field_fp=field_fp, mm_per_unit=mm)
+    return stale_message(reasons)
+
+
+def _ss_integrator(data, prefer: str):
+    """``(integrator, backend, message)``: the GPU kernel's dispatcher (with a per-call numpy fallback)
+    when possible, else the numpy twin.  Never raises for GPU trouble."""
+    from ..translucency_addon.single_scattering import CPUIntegrator
+
+    prefer = (prefer or "AUTO").upper()
+    if prefer == "CPU":
+        return CPUIntegrator(data), "CPU", ""
+    try:
+        from ..gpu_shaders import single_scattering as gss
+    except Exception as ex:  # noqa: BLE001 - missing or broken GPU layer
+        return CPUIntegrator(data), "CPU", f"single-scattering GPU kernel not available ({type(ex).__name__}: {ex})"
+    try:
+        if prefer == "GPU":  # no software-rasteriser preference, still with the per-call fallback
+            integ, name, message = gss.make_integrator(data, "GPU")
+            return gss.AutoIntegrator(data, integ, ""), name, message
+        return gss.make_integrator(data, "AUTO")
+    except Exception as ex:  # noqa: BLE001
+        message = f"single-scattering GPU kernel unavailable ({type(ex).__name__}: {ex}); using numpy"
+        log(message, once_key=("ss-gpu", message))
+        return CPUIntegrator(data), "CPU", message
+
+
+def _single_scattering(obj, st: ObjectState, material, lights, environment, mm: float, view, prefer: str,
+                       off_main: bool) -> np.ndarray:
+    """The single-scattering radiance at ``obj.data``'s vertices, (n, 3)."""
+    from ..translucency_addon.single_scattering import FrameEvaluator
+
+    bake = st.bake
+    data = bake.single_scattering
+    order = min(int(obj.translucency.ss_sh_order), data.order)
+    mesh = obj.data
+    same = len(mesh.vertices) == len(bake.mesh_vertices)
+    geo = None
+    if not same:
+        V = scene_inputs.vertex_positions(mesh)
+        geo = scene_inputs.array_digest(V)
+    key = (bake.key, order, (prefer or "AUTO").upper(), geo)
+    if st.ss is None or st.ss_key != key:
+        if st.ss is not None:
+            st.ss.free()
+            st.ss = None
+        data_o = data if order == data.order else data.with_order(order)
+        integrator, name, message = _ss_integrator(data_o, "CPU" if off_main else prefer)
+        if same:
+            ev = FrameEvaluator(data_o, bake.mesh_vertices, bake.mesh_faces, bake.mesh_normals, integrator=integrator)
+        else:
+            ev = FrameEvaluator(data_o, bake.mesh_vertices, bake.mesh_faces, points=V,
+                                point_normals=_original_normals(mesh, V), integrator=integrator)
+        st.ss, st.ss_key, st.ss_backend_message = ev, key, message
+        log(f"'{obj.name}': single scattering on the {name}" + (f" ({message})" if message else ""),
+            once_key=("ss-backend", obj.name, name, message))
+    t0 = time.perf_counter()
+    rgb = st.ss.radiance(lights, environment, float(material.eta), mm, view, use_gpu=not off_main)
+    st.ss_seconds = time.perf_counter() - t0
+    st.ss_backend = st.ss.backend
+    msg = getattr(st.ss.integrator, "message", "")
+    if msg:
+        st.ss_backend_message = msg
+    st.ss_rgb = rgb
+    return rgb
 
 
 def _publish(obj, scene, st: ObjectState) -> None:
@@ -636,6 +818,10 @@ def _publish(obj, scene, st: ObjectState) -> None:
         CACHE_STATUS[obj.name] = f"Stale: {st.stale_message}"
     else:
         CACHE_STATUS.pop(obj.name, None)
+    _set_if_changed(s, "ss_solve_seconds", float(st.ss_seconds))
+    _set_if_changed(s, "ss_backend", st.ss_backend if st.ss_rgb is not None else "")
+    ss_message = st.ss_stale or (st.ss_backend_message if st.ss_rgb is not None else "")
+    _set_if_changed(s, "ss_message", ss_message)
     t = scene.translucency
     _set_if_changed(t, "last_solve_time", float(st.seconds))
     _set_if_changed(t, "last_residual", float(st.residual))

@@ -615,3 +615,84 @@ def view_directions(view, positions: np.ndarray) -> np.ndarray | None:
     d = np.asarray(value, dtype=np.float64)[None, :] - positions
     length = np.linalg.norm(d, axis=1, keepdims=True)
     return d / np.maximum(length, 1e-30)
+
+
+# ------------------------------------------------------------------ single scattering
+
+
+def viewport_view(obj_matrix):
+    """The first 3D viewport's view in object space, like :func:`camera_view`, or None.
+
+    None in background mode (no windows) and when no 3D viewport is open.
+    Single scattering uses it for live solves; moving the view alone does not
+    trigger a solve (the next live solve, or Solve, picks the new view up).
+    """
+    try:
+        windows = bpy.context.window_manager.windows
+    except Exception:  # noqa: BLE001 - no window manager (background) or a restricted context
+        return None
+    to_object = obj_matrix.inverted_safe()
+    for window in windows:
+        screen = getattr(window, "screen", None)
+        for area in getattr(screen, "areas", ()):
+            if area.type != 'VIEW_3D':
+                continue
+            r3d = getattr(area.spaces.active, "region_3d", None)
+            if r3d is None:
+                continue
+            inv = r3d.view_matrix.inverted_safe()
+            if r3d.is_perspective:
+                eye = to_object @ inv.translation
+                return ('PERSP', (float(eye.x), float(eye.y), float(eye.z)))
+            d = to_object.to_3x3() @ (inv.to_3x3() @ Vector((0.0, 0.0, 1.0)))
+            d.normalize()
+            return ('ORTHO', (float(d.x), float(d.y), float(d.z)))
+    return None
+
+
+def ss_field_fingerprint(obj, settings, depsgraph, field_sig=None) -> str | None:
+    """A fingerprint of the heterogeneity field that stays the same across sessions (None: homogeneous).
+
+    Recorded by the single-scattering bake and compared at solve time (a field
+    change makes the baked optical depth stale).  Textures: their settings and
+    scale; attributes: a digest of positions and values; vertex groups: a
+    digest of the weights (one loop over the vertices, so callers cache it per
+    :func:`field_signature`).
+    """
+    if not settings.use_heterogeneity:
+        return None
+    sig = field_sig if field_sig is not None else field_signature(obj, settings, depsgraph)
+    if sig is None:
+        return None
+    if sig[0] == 'VERTEX_GROUP':
+        positions, values = mesh_field(obj, settings, depsgraph)
+        sig = ('VERTEX_GROUP', settings.field_vertex_group, array_digest(positions, values))
+    return "blender:" + hashlib.sha256(repr(sig).encode("utf-8")).hexdigest()[:32]
+
+
+def ss_field_sampler(obj, settings, depsgraph, V, quality):
+    """The field sampled now (main thread) on the voxel grid the single-scattering bake will use.
+
+    Returns a bpy-free :class:`GridField` the bake thread can call, or None
+    for a homogeneous material.
+    """
+    if not settings.use_heterogeneity:
+        return None
+    from ..translucency_addon.single_scattering import GridField
+
+    origin, h, shape, points = GridField.grid_points(V, quality)
+    values = sample_field(obj, settings, [points], depsgraph)[0]
+    return GridField(origin, h, shape, values)
+
+
+def ss_settings(settings):
+    """The engine's :class:`SingleScatteringSettings` of an object's panel settings (validated)."""
+    from ..translucency_addon.errors import TranslucencyError
+    from ..translucency_addon.single_scattering import SingleScatteringSettings
+
+    s = SingleScatteringSettings(quality=settings.ss_quality.lower(), n_dirs=int(settings.ss_directions),
+                                 n_samples=int(settings.ss_samples), sh_order=int(settings.ss_sh_order))
+    try:
+        return s.validated()
+    except ValueError as ex:
+        raise TranslucencyError(f"single-scattering settings: {ex}") from None
