@@ -129,7 +129,7 @@ def test_material_change_asks_for_a_single_scattering_rebake(baked, memo_bakes, 
     s = obj.translucency
     solve(obj)
     assert s.ss_message == "" or "re-bake" not in s.ss_message
-    old_key, old_path = s.bake_key, runtime.resolve_cache_path(obj)
+    old_key, old_path, old_stored = s.bake_key, runtime.resolve_cache_path(obj), s.cache_filepath
     before = ss_radiance(obj)
     s.material_preset = 'KETCHUP'
     assert solve(obj) == {'FINISHED'}
@@ -151,6 +151,12 @@ def test_material_change_asks_for_a_single_scattering_rebake(baked, memo_bakes, 
     s.eta = 1.45
     solve(obj)
     assert "re-bake" not in s.ss_message
+    # what undo does: the old key and path come back, and the old file is still there to load
+    new_key = s.bake_key
+    s.bake_key, s.cache_filepath = old_key, old_stored
+    assert solve(obj) == {'FINISHED'}
+    assert runtime.get_state(obj).bake.key == old_key != new_key
+    assert "the material changed" in s.ss_message
 
 
 def test_single_scattering_settings_staleness(baked):
