@@ -271,3 +271,58 @@ def test_gpu_kernel_in_blender_matches_numpy(gpu_context, baked):
     assert obj.translucency.ss_backend == "GPU" and runtime.get_state(obj).ss_backend == "GPU"
     gpu = ss_radiance(obj)
     assert np.abs(gpu - cpu).max() <= 1e-5 * np.abs(cpu).max()
+
+
+def test_modifier_changes_the_vertex_count(blender, cache_dir, memo_bakes):
+    """The baked (evaluated) mesh has more vertices than obj.data: rays start at the closest baked surface point."""
+    add_light()
+    obj = ss_sphere(subsurf=1)
+    assert bake(obj) == {'FINISHED'}
+    assert obj.translucency.bake_vertices > len(obj.data.vertices)
+    solve(obj)
+    ss = ss_radiance(obj)
+    assert ss.shape == (len(obj.data.vertices), 3) and np.all(np.isfinite(ss))
+    x = np.array([v.co.x for v in obj.data.vertices])
+    assert ss[x > 0.5].mean() > 3 * ss[x < -0.5].mean() and ss[x > 0.5].mean() > 0
+
+
+@pytest.mark.parametrize("backend", ["AUTO", "GPU"])
+def test_render_evaluates_single_scattering_toward_the_camera(blender, cache_dir, memo_bakes, tmp_path, backend):
+    """An F12-style render solves in frame_change_post toward the render camera; with the GPU preferred the
+    kernel runs when the render handler has a GPU context, numpy otherwise (per-call fallback)."""
+    from translucency.ops import runtime
+
+    scene = bpy.context.scene
+    add_light()
+    obj = ss_sphere()
+    assert bake(obj) == {'FINISHED'}
+    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+    cam.location = (0.0, -6.0, 0.0)
+    cam.rotation_euler = (np.pi / 2, 0.0, 0.0)
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    scene.render.engine = 'BLENDER_WORKBENCH'
+    scene.render.resolution_x = scene.render.resolution_y = 8
+    scene.render.filepath = str(tmp_path / "frame_")
+    scene.translucency.solver_backend = backend
+    seen = []
+
+    def written(*_args):
+        seen.append(ss_radiance(obj).copy())
+        backends.append(runtime.get_state(obj).ss_backend)
+
+    backends = []
+
+    bpy.app.handlers.render_write.append(written)
+    try:
+        bpy.ops.render.render(write_still=True)
+    finally:
+        bpy.app.handlers.render_write.remove(written)
+    assert len(seen) == 1
+    print(f"render with solver {backend}: single scattering on the {backends[0]}")
+    assert backends[0] == "CPU" if backend == "AUTO" else backends[0] in {"GPU", "CPU"}
+    y = np.array([v.co.y for v in obj.data.vertices])
+    assert np.all(seen[0][y > 0.3] == 0) and seen[0][y < -0.3].max() > 0  # toward the camera at -y
+    scene.translucency.solver_backend = 'CPU'
+    runtime.solve_object(obj, scene, use_camera=True, force=True)
+    np.testing.assert_allclose(ss_radiance(obj), seen[0], rtol=1e-4, atol=1e-6 * seen[0].max())
