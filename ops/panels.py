@@ -50,6 +50,7 @@ def _draw_terms(layout, settings) -> None:
     col = layout.column()
     col.prop(settings, "use_multiple_scattering")
     col.prop(settings, "use_single_scattering")
+    col.prop(settings, "pass_planning")
     sub = col.column()
     sub.active = settings.use_single_scattering
     sub.prop(settings, "ss_quality")
@@ -157,6 +158,16 @@ def _draw_object_settings(layout, obj, context=None) -> None:
         _draw_multiline(box, settings.solve_message, icon='INFO')
     if settings.ss_backend:
         box.label(text=f"Single scattering: {settings.ss_solve_seconds * 1000:.1f} ms on the {settings.ss_backend}")
+    try:
+        from .runtime import plan_summary
+
+        plan_text = plan_summary(obj.name)
+    except Exception:  # noqa: BLE001 - drawing must never fail
+        plan_text = ""
+    if plan_text:
+        sub = box.box()
+        sub.label(text="Passes this frame (planner)", icon='PRESET')
+        _draw_multiline(sub, plan_text.split("\n", 1)[1] if "\n" in plan_text else plan_text, width=90)
     if settings.ss_message:
         stale = "re-bake" in settings.ss_message or "not baked" in settings.ss_message
         sub = box.column()

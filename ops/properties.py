@@ -170,6 +170,19 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         ),
         default=False,
     )
+    pass_planning: EnumProperty(
+        update=_request_update,
+        name="Pass Planning",
+        description="Which passes and colour channels run each frame",
+        items=(
+            ("AUTO", "Automatic",
+             "The planner runs only the passes and channels this object calls for (diffusion where it is valid "
+             "and not negligible; single scattering where diffusion is not valid) and skips unlit or unseen "
+             "objects; the panel says why"),
+            ("ALL", "All Passes", "Run every enabled term on every channel, every frame"),
+        ),
+        default="AUTO",
+    )
     ss_quality: EnumProperty(
         update=_request_update,
         name="SS Quality",

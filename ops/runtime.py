@@ -125,6 +125,7 @@ class ObjectState:
     ss_stale: str = ""
     ss_field_fp: tuple | None = None  # (field_sig, fingerprint)
     ss_rgb: object | None = None  # last single-scattering radiance (n_vertices, 3)
+    plan: object | None = None  # translucency_addon.planner.Plan of the last solve
 
     def free(self) -> None:
         for solver in (self.solver, self.render_solver):
@@ -147,7 +148,8 @@ _LOGGED: set = set()
 # by the panel.  Runtime only: a file load refills it, the .blend is never modified for it.
 CACHE_STATUS: dict[str, str] = {}
 # Counters for tests and diagnostics.
-COUNTERS = {"solves": 0, "radiance_only": 0, "loads": 0, "field_samples": 0, "writes": 0}
+COUNTERS = {"solves": 0, "radiance_only": 0, "loads": 0, "field_samples": 0, "writes": 0, "planner_skips": 0}
+PLANS: dict = {}  # object name -> the planner's last Plan (shown in the panel)
 # Object names whose mesh we just wrote (the handler ignores the update that causes).
 OWN_WRITES: set = set()
 # Bumped by the handlers when a mesh is edited (vertex-group weights are not hashed each time).
@@ -192,6 +194,7 @@ def clear() -> None:
         CACHE_STATUS.clear()
         OWN_WRITES.clear()
         GEOMETRY_EPOCH.clear()
+        PLANS.clear()
 
 
 def invalidate_views() -> None:
@@ -545,15 +548,14 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     metres_per_bu = scene_inputs.metres_per_world_unit(obj, scene, mm, matrix)
     update_staleness(obj, st, depsgraph)
 
-    use_ms = bool(settings.use_multiple_scattering)
     want_ss = bool(settings.use_single_scattering)
-    use_ss = want_ss and st.bake.single_scattering is not None
     split = bool(settings.ss_split_pass)
 
     material = scene_inputs.build_material(settings)
     epoch = (GEOMETRY_EPOCH.get(obj.name, 0), GEOMETRY_EPOCH.get(FRAME_EPOCH, 0))
     field_sig = scene_inputs.field_signature(obj, settings, depsgraph, epoch)
     field_changed = field_sig != st.field_sig or (field_sig is not None and st.field_values is None)
+    use_ms = bool(settings.use_multiple_scattering)  # refined by the planner below
     if field_changed and use_ms:
         if field_sig is None:
             st.field_values = None
@@ -599,9 +601,24 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     lights = scene_inputs.collect_lights(depsgraph, matrix, metres_per_bu)
     environment, world_warning = scene_inputs.world_environment(scene.world)
     env_sig = None if environment is None else tuple(environment.radiance)
+
+    # The planner: which passes and channels this object needs this frame, and why.
+    plan = make_plan(obj, st, settings, material, lights, environment, mm, scene, depsgraph, use_camera)
+    st.plan = plan
+    PLANS[obj.name] = plan
+    if not plan.run and plan.reason.startswith("outside the camera view"):
+        COUNTERS["planner_skips"] += 1
+        return None  # unseen in this render: no work at all
+    use_ms = use_ms and plan.run and plan.multiple.runs
+    use_ss = plan.run and plan.single.runs and st.bake.single_scattering is not None
+    ms_channels = plan.multiple.channels if plan.multiple is not None else (False, False, False)
+    # Only the lights that reach the object enter its signature: moving a light re-solves
+    # only the objects it lights (planner.light_reaching: range, spot cone, area facing).
+    reaching = set(plan.facts.get("lights_reaching", ()))
+    lights_sig = tuple(light for light in lights if light.name in reaching)
     if use_ms:
         occluders, occ_sig = scene_inputs.collect_occluders(depsgraph, obj, matrix, st.occluders)
-        solve_sig = (solver_sig, material, field_sig, tuple(lights), env_sig, occ_sig)
+        solve_sig = (solver_sig, material, field_sig, lights_sig, env_sig, occ_sig, ms_channels)
     else:
         occluders, solve_sig = None, None
     view = scene_inputs.camera_view(scene, depsgraph, matrix) if use_camera else None
@@ -620,7 +637,8 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     elif want_ss:
         st.ss_stale = ("Single Scattering is on but was not baked: press Bake Single Scattering "
                        "(or Bake, which bakes both)")
-    view_sig = (solve_sig, view, len(obj.data.vertices), use_ms, ss_sig)
+    view_sig = (solve_sig, view, len(obj.data.vertices), use_ms, ss_sig, plan.run, plan.single.channels
+                if plan.single is not None else None)
     warnings = tuple(w for w in (scale_warning, world_warning, st.stale_message, st.ss_stale) if w)
     for w in warnings:
         log(f"'{obj.name}': {w}", once_key=("warn", obj.name, w))
@@ -650,7 +668,7 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
                 else:
                     t0 = time.perf_counter()
                     result = solver.solve(lights, environment, warm_start=previous, shadows=True,
-                                          occluders=occluders)
+                                          occluders=occluders, channels=ms_channels)
                     seconds = time.perf_counter() - t0
                     solved = True
                 rgb = radiance_for_mesh(obj, st, solver, result, view)
@@ -689,6 +707,7 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
         ss_rgb = _single_scattering(obj, st, material, lights, environment, mm, ss_view, prefer, off_main)
         if not np.all(np.isfinite(ss_rgb)):
             raise TranslucencyError(f"'{obj.name}': single scattering produced NaN or Inf radiance")
+        ss_rgb = ss_rgb * np.asarray(plan.single.channels, dtype=np.float64)  # the planner's channels
         rgb = rgb + ss_rgb
     else:
         st.ss_seconds, st.ss_rgb = 0.0, None
@@ -720,6 +739,40 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
 
 
 # ------------------------------------------------------------------ single scattering
+
+
+def make_plan(obj, st: ObjectState, settings, material, lights, environment, mm: float, scene, depsgraph,
+              use_camera: bool):
+    """The planner's decision for this object and frame (``translucency_addon.planner.plan_object``).
+
+    The object's switches become overrides: a term that is off is forced off;
+    with Pass Planning "All" every enabled term runs on every channel.
+    """
+    from ..translucency_addon.planner import plan_object
+
+    has_ss = st.bake.single_scattering is not None
+    overrides = {}
+    every = getattr(settings, "pass_planning", "AUTO") == 'ALL'
+    if not settings.use_multiple_scattering:
+        overrides["multiple"] = False
+    elif every:
+        overrides["multiple"] = True
+    if not (settings.use_single_scattering and has_ss):
+        overrides["single"] = False
+    elif every:
+        overrides["single"] = True
+    in_view = scene_inputs.in_camera_view(scene, depsgraph, obj) if use_camera else True
+    return plan_object(st.bake.with_scale(mm), material, lights, environment, field_values=st.field_values,
+                       has_single_scattering=has_ss, in_view=in_view, enabled=bool(settings.enabled),
+                       overrides=overrides, name=obj.name)
+
+
+def plan_summary(name: str) -> str:
+    """The last plan of an object as text for the panel ('' when it has not been solved)."""
+    from ..translucency_addon.planner import describe_plan
+
+    plan = PLANS.get(name)
+    return describe_plan(plan) if plan is not None else ""
 
 
 def _ss_staleness(obj, st: ObjectState, settings, depsgraph, material, field_sig, mm: float) -> str:

@@ -605,6 +605,37 @@ def camera_view(scene, depsgraph, obj_matrix):
     return ('PERSP', (float(eye.x), float(eye.y), float(eye.z)))
 
 
+def in_camera_view(scene, depsgraph, obj) -> bool:
+    """Whether any part of the object's bounding box lies inside the scene camera's frustum.
+
+    Conservative: True without a camera, and True when the box straddles the
+    camera plane (the planner only skips objects that are certainly unseen).
+    """
+    cam = scene.camera
+    if cam is None:
+        return True
+    cam_eval = cam.evaluated_get(depsgraph) if depsgraph is not None else cam
+    obj_eval = obj.evaluated_get(depsgraph) if depsgraph is not None else obj
+    try:
+        r = scene.render
+        proj = cam_eval.calc_matrix_camera(depsgraph, x=r.resolution_x, y=r.resolution_y,
+                                           scale_x=r.pixel_aspect_x, scale_y=r.pixel_aspect_y)
+    except Exception:  # noqa: BLE001 - an unusual camera: assume visible
+        return True
+    m = proj @ cam_eval.matrix_world.inverted_safe() @ obj_eval.matrix_world
+    corners = np.array([tuple(c) + (1.0,) for c in obj_eval.bound_box], dtype=np.float64)
+    clip = corners @ np.array(m, dtype=np.float64).T
+    w = clip[:, 3]
+    if np.any(w <= 1e-9):
+        return not np.all(w <= 1e-9)  # all behind the camera: unseen; straddling: assume seen
+    ndc = clip[:, :3] / w[:, None]
+    # outside if all corners are beyond the same side of one frustum plane
+    for axis in range(3):
+        if np.all(ndc[:, axis] > 1.0) or np.all(ndc[:, axis] < -1.0):
+            return False
+    return True
+
+
 def view_directions(view, positions: np.ndarray) -> np.ndarray | None:
     """Unit vectors from each vertex towards the viewer (None: along the normal)."""
     if view is None:

@@ -19,6 +19,7 @@ def ss_sphere(name="Blob", split=True, **kw):
     obj = sphere(name=name, **kw)
     s = obj.translucency
     s.use_single_scattering = True
+    s.pass_planning = 'ALL'  # these tests exercise the single-scattering pipeline, not the planner
     s.ss_quality = 'DRAFT'
     s.ss_directions = '32'
     s.ss_samples = 500

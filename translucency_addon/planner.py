@@ -122,9 +122,9 @@ def object_thickness(bake, samples: int = 2000, seed: int = 0) -> dict:
 
     Cached on the bake.  Returns percentiles and the bounding-sphere radius.
     """
-    cached = getattr(bake, "_thickness_cache", None)
-    if cached is not None and cached[0] == bake.mm_per_unit:
-        return cached[1]
+    key = (bake.key, float(bake.mm_per_unit), samples, seed)
+    if key in _THICKNESS:
+        return _THICKNESS[key]
     from .raycast import TriangleBVH
 
     lv = bake.finest
@@ -134,7 +134,7 @@ def object_thickness(bake, samples: int = 2000, seed: int = 0) -> dict:
     n = lv.normal[pick]
     V = bake.mesh_vertices
     diag = float(np.linalg.norm(np.ptp(V, axis=0)))
-    bvh = getattr(bake, "_thickness_bvh", None) or TriangleBVH(V, bake.mesh_faces)
+    bvh = TriangleBVH(V, bake.mesh_faces)
     t, tri, _, _ = bvh.intersect(p - 1e-5 * diag * n, -n, tmin=1e-6 * diag)
     t = np.where(tri >= 0, t, diag) * bake.mm_per_unit
     center = 0.5 * (V.max(axis=0) + V.min(axis=0))
@@ -145,11 +145,13 @@ def object_thickness(bake, samples: int = 2000, seed: int = 0) -> dict:
         "center": center,
         "radius_units": float(np.max(np.linalg.norm(V - center, axis=1))),
     }
-    try:
-        bake._thickness_cache = (bake.mm_per_unit, out)
-    except AttributeError:  # pragma: no cover - frozen containers
-        pass
+    if len(_THICKNESS) > 64:
+        _THICKNESS.clear()
+    _THICKNESS[key] = out
     return out
+
+
+_THICKNESS: dict = {}  # (bake key, mm per unit, ...) -> thickness facts (bakes are immutable)
 
 
 def light_reaching(lights, environment, center, radius_units: float, mm_per_unit: float) -> tuple[np.ndarray, list]:
@@ -207,7 +209,7 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
     E, reaching = light_reaching(lights, environment, geo["center"], geo["radius_units"], bake.mm_per_unit)
     facts = {"thin_mm": geo["thin_mm"], "radius_mm": geo["radius_mm"], "irradiance": E.tolist(),
              "lights_reaching": [getattr(light, "name", "") for light in reaching]}
-    if not np.any(E > 0) and not overrides:
+    if not np.any(E > 0) and not any(overrides.values()):
         return Plan(name, False, "unlit: no light reaches it", facts=facts)
 
     # Coefficients: the bulk medium, or the spread over the nodes of a heterogeneous one.

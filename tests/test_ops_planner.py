@@ -1,0 +1,108 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""The planner in Blender (issue 10): visible reasons, change tracking that counts solves,
+objects outside the camera and unlit objects doing no work."""
+
+from __future__ import annotations
+
+import math
+
+import bpy
+import numpy as np
+
+from test_ops_bake import activate, add_light, bake, cache_dir, memo_bakes, radiance, sphere  # noqa: F401
+
+
+def _solve_scene(use_camera=False):
+    from translucency.ops import runtime
+
+    dg = bpy.context.evaluated_depsgraph_get()
+    return runtime.solve_scene(bpy.context.scene, dg, use_camera=use_camera)
+
+
+def test_marble_plan_is_shown_and_single_scattering_is_contained(blender, cache_dir, memo_bakes):
+    from translucency.ops import runtime
+
+    add_light()
+    obj = sphere()
+    obj.translucency.use_single_scattering = True
+    obj.translucency.ss_quality = 'DRAFT'
+    obj.translucency.ss_directions = '32'
+    obj.translucency.ss_samples = 500
+    assert bake(obj) == {'FINISHED'}
+    activate(obj)
+    assert bpy.ops.translucency.solve() == {'FINISHED'}
+    text = runtime.plan_summary(obj.name)
+    assert "multiple scattering [RGB]" in text
+    assert "contained in the diffusion term" in text
+    assert obj.translucency.ss_backend == ""  # the single-scattering pass did not run
+    # forcing every pass runs it
+    obj.translucency.pass_planning = 'ALL'
+    assert bpy.ops.translucency.solve() == {'FINISHED'}
+    assert obj.translucency.ss_backend in {"CPU", "GPU"}
+
+
+def test_unchanged_frame_does_no_solve_and_a_moved_light_resolves_only_what_it_lights(blender, cache_dir,
+                                                                                      memo_bakes):
+    from translucency.ops import runtime
+
+    left = sphere(name="Left", location=(-6.0, 0.0, 0.0))
+    right = sphere(name="Right", location=(6.0, 0.0, 0.0))
+    # two narrow spots, each aimed straight down at one object
+    spot_l = add_light('SPOT', location=(-6.0, 0.0, 4.0), energy=2000.0, name="SpotL")
+    spot_r = add_light('SPOT', location=(6.0, 0.0, 4.0), energy=2000.0, name="SpotR")
+    for s in (spot_l, spot_r):
+        s.data.spot_size = math.radians(30.0)
+    for o in (left, right):
+        assert bake(o) == {'FINISHED'}
+    bpy.context.scene.world = None  # no world light: only the spots
+    _solve_scene()
+    start = runtime.COUNTERS["solves"]
+    assert _solve_scene() == []  # nothing changed: no work
+    assert runtime.COUNTERS["solves"] == start
+    before_r = radiance(right).copy()
+    spot_l.location.z = 3.0
+    bpy.context.view_layer.update()
+    reports = _solve_scene()
+    assert [r.name for r in reports if r.solved] == ["Left"]
+    assert runtime.COUNTERS["solves"] == start + 1
+    np.testing.assert_array_equal(radiance(right), before_r)
+    assert "SpotL" in runtime.PLANS["Left"].facts["lights_reaching"]
+    assert "SpotL" not in runtime.PLANS["Right"].facts["lights_reaching"]
+
+
+def test_objects_outside_the_camera_do_no_work_in_renders(blender, cache_dir, memo_bakes):
+    from translucency.ops import runtime
+
+    add_light()
+    seen = sphere(name="Seen")
+    hidden = sphere(name="Hidden", location=(0.0, 0.0, 40.0))
+    for o in (seen, hidden):
+        assert bake(o) == {'FINISHED'}
+    cam_data = bpy.data.cameras.new("Cam")
+    cam = bpy.data.objects.new("Cam", cam_data)
+    bpy.context.scene.collection.objects.link(cam)
+    cam.location = (0.0, -10.0, 0.0)
+    cam.rotation_euler = (math.radians(90.0), 0.0, 0.0)  # looking along +y at the origin
+    bpy.context.scene.camera = cam
+    bpy.context.view_layer.update()
+    skips = runtime.COUNTERS["planner_skips"]
+    reports = _solve_scene(use_camera=True)
+    assert [r.name for r in reports] == ["Seen"]
+    assert runtime.COUNTERS["planner_skips"] == skips + 1
+    assert "camera" in runtime.PLANS["Hidden"].reason
+
+
+def test_an_unlit_object_gets_exactly_zero_without_a_solve(blender, cache_dir, memo_bakes):
+    from translucency.ops import runtime
+
+    obj = sphere()
+    spot = add_light('SPOT', location=(0.0, 0.0, 5.0), energy=1000.0, name="Away")
+    spot.rotation_euler = (math.pi, 0.0, 0.0)  # pointing up, away from the object
+    bpy.context.scene.world = None
+    assert bake(obj) == {'FINISHED'}
+    start = runtime.COUNTERS["solves"]
+    _solve_scene()
+    assert runtime.COUNTERS["solves"] == start
+    assert "unlit" in runtime.PLANS[obj.name].reason
+    L = radiance(obj)
+    assert L is not None and np.all(L == 0.0)
