@@ -494,6 +494,7 @@ class SolveResult:
     level_solves: list
     seconds: dict = field(default_factory=dict)
     scheme: str = "fv"
+    warnings: list = field(default_factory=list)  # from the light pass (e.g. a light inside the object)
 
     @property
     def iterations(self) -> int:
@@ -526,6 +527,7 @@ class DiffusionSolver:
         if self.options.solver not in SOLVERS:
             raise TranslucencyError(f"unknown solver {self.options.solver!r}; choose one of {', '.join(SOLVERS)}")
         self._shadow_bvh = None
+        self.warnings: list[str] = []  # of the latest light pass (incident)
         self.set_material(material, field_values)
 
     # -- material ------------------------------------------------------------
@@ -574,8 +576,20 @@ class DiffusionSolver:
 
     def incident(self, lights, environment=None, shadows: bool = True, occluders=None,
                  levels=None) -> list:
-        """q (eq. 3) at the surface nodes of the requested levels (default all); None elsewhere."""
+        """q (eq. 3) at the surface nodes of the requested levels (default all); None elsewhere.
+
+        Lights inside the object contribute nothing and are named in
+        :attr:`warnings` (see :meth:`lights_inside`).
+        """
         want = range(len(self.bake.levels)) if levels is None else levels
+        lights = list(lights or ())
+        inside = self.lights_inside(lights)
+        self.warnings = [
+            f"light {light.name or light.kind!r} at {tuple(round(float(x), 6) for x in light.position)} is inside "
+            "the object: a source inside the medium is not part of the surface-lighting model, so it adds no "
+            "light; move it outside the surface" for light in inside]
+        if inside:
+            lights = [light for light in lights if not any(light is x for x in inside)]
         vis = None
         if shadows and lights:
             diag = float(np.linalg.norm(np.ptp(self.bake.mesh_vertices, axis=0)))
@@ -586,6 +600,36 @@ class DiffusionSolver:
             out[i] = incident_flux(lights, environment, lv.surface_position, lv.normal, self.eta,
                                    self.bake.mm_per_unit, visibility=vis)
         return out
+
+    def lights_inside(self, lights) -> list:
+        """The point, spot and area lights whose position lies inside the object.
+
+        Eq. 3's q is the light that reaches the surface from outside.  A
+        source inside the medium would be an interior source term of the
+        diffusion equation, which this boundary-source model (and its GPU
+        kernels, which form b from q at surface nodes only) does not have.
+        Counting it through the surface would be wrong: with shadow rays the
+        object's own surface blocks it (zero), without them the surface
+        elements on the far side of a concavity that face it would be lit as
+        if from outside.  So such a light contributes nothing and
+        :meth:`incident` says so.  Inside = majority vote of ray parity
+        against the user's mesh (``raycast.inside_mesh``, robust to small
+        holes); results are cached per position.
+        """
+        cand = [light for light in lights if light.kind != "sun"]
+        if not cand:
+            return []
+        from .raycast import inside_mesh
+
+        cache = self.__dict__.setdefault("_inside_cache", {})
+        keys = [tuple(float(x) for x in light.position) for light in cand]
+        todo = sorted({k for k in keys if k not in cache})
+        if todo:
+            flags = inside_mesh(self.shadow_bvh(None), np.array(todo))
+            if len(cache) > 1024:
+                cache.clear()
+            cache.update(zip(todo, (bool(f) for f in flags)))
+        return [light for light, k in zip(cand, keys) if cache[k]]
 
     # -- solve -------------------------------------------------------------------
     def solve(self, lights=(), environment=None, *, q=None, warm_start=None, shadows=True,
@@ -605,8 +649,10 @@ class DiffusionSolver:
         usable = warm_start is not None and warm_start.phi[-1] is not None
         finest_only = opts.levels == "finest" or usable
         active = [n_lv - 1] if finest_only else list(range(n_lv))
+        warnings = []
         if q is None:
             q = self.incident(lights, environment, shadows=shadows, occluders=occluders, levels=active)
+            warnings = list(self.warnings)
         t1 = time.perf_counter()
         mask = (True, True, True) if channels is None else tuple(bool(c) for c in channels)
         self._channels = tuple(c for c in range(3) if mask[c])
@@ -623,7 +669,7 @@ class DiffusionSolver:
                         p[:, off] = 0.0
         t2 = time.perf_counter()
         return SolveResult(phi=phi, q=q, level_solves=solves, scheme=self.systems[-1].scheme,
-                           seconds={"lights": t1 - t0, "solve": t2 - t1, "total": t2 - t0})
+                           seconds={"lights": t1 - t0, "solve": t2 - t1, "total": t2 - t0}, warnings=warnings)
 
     def solve_systems(self, q, active, warm_start=None):
         """Run the linear solves on the ``active`` levels, coarse to fine (eq. 10 between them).
