@@ -192,7 +192,12 @@ def validate_mesh(
     areas = triangle_areas(V, F)
     degenerate = int((areas <= 1e-12 * diag * diag).sum())
     vol = abs(signed_volume(V, F))
-    holes, nbe = count_holes(F)
+    # Holes are counted on the mesh welded by position, without its degenerate
+    # triangles (what the tetrahedralizer gets): an unwelded mesh -- every
+    # triangle on its own vertices, as some exporters write -- is closed all
+    # the same, and a triangle with a repeated vertex has no real edge (a, a).
+    _, F_welded, _ = clean_mesh(V, F)
+    holes, nbe = count_holes(F_welded)
     # For a closed mesh the signed volume is exact; compare it with the
     # volume of the principal box so a closed-but-flat mesh is refused too.
     if holes == 0 and vol < 1e-6 * ext[0] * ext[1] * ext[2] + 1e-30:
