@@ -112,15 +112,41 @@ def sphere_mesh(subdivisions: int = 4):
     return icosphere(1.0, subdivisions)
 
 
+MESH_FILE = ROOT / "bench" / "data" / "meshes.npz"
+
+
+@lru_cache(maxsize=None)
+def _stored_meshes() -> dict:
+    """The benchmark meshes as committed (bench/data/meshes.npz), so that the cached references
+    (keyed by the exact vertices) stay valid whatever the decimator does in later versions."""
+    if not MESH_FILE.exists():
+        return {}
+    with np.load(MESH_FILE, allow_pickle=False) as z:
+        return {k: np.array(z[k]) for k in z.files}
+
+
+def store_meshes() -> None:
+    MESH_FILE.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {}
+    for name, fn in (("bunny", bunny_mesh), ("sphere", sphere_mesh)):
+        V, F = fn()
+        arrays[f"{name}_V"], arrays[f"{name}_F"] = np.asarray(V, np.float64), np.asarray(F, np.int64)
+    np.savez_compressed(MESH_FILE, **arrays)
+    _stored_meshes.cache_clear()
+
+
 def mesh(name: str):
     """``(V, F, mm_per_unit)`` of a benchmark mesh."""
+    if name not in MESH_NAMES:
+        raise ValueError(f"unknown mesh {name!r}; choose one of {', '.join(MESH_NAMES)}")
+    stored = _stored_meshes()
+    if f"{name}_V" in stored:
+        V, F = stored[f"{name}_V"], stored[f"{name}_F"]
+    else:
+        V, F = bunny_mesh() if name == "bunny" else sphere_mesh()
     if name == "bunny":
-        V, F = bunny_mesh()
         return V, F, BUNNY_SIZE_MM / float(np.linalg.norm(np.ptp(V, axis=0)))
-    if name == "sphere":
-        V, F = sphere_mesh()
-        return V, F, SPHERE_RADIUS_MM
-    raise ValueError(f"unknown mesh {name!r}; choose one of {', '.join(MESH_NAMES)}")
+    return V, F, SPHERE_RADIUS_MM
 
 
 def material(name: str, sigma_a_scale: float = 1.0) -> Material:
@@ -211,6 +237,17 @@ def get_reference(scene, quick: bool = False, refresh: bool = False, progress=No
         for p in d.glob(f"{scene.name}-{scene_key(scene)}.npz"):
             p.unlink()
     return cached_reference(scene, d, progress=progress)
+
+
+def prune_references(quick: bool = False) -> list:
+    """Delete cached references that no current scene uses (e.g. after a change of spp)."""
+    from bench.reference.mitsuba_ref import scene_key
+
+    keep = {f"{s.name}-{scene_key(s)}.npz" for s in reference_scenes(quick)}
+    gone = [p for p in reference_dir(quick).glob("*.npz") if p.name not in keep]
+    for p in gone:
+        p.unlink()
+    return [p.name for p in gone]
 
 
 if __name__ == "__main__":  # render the reference set:  python -m bench.accuracy_scenes [--quick]
