@@ -208,10 +208,11 @@ def place_surface_nodes(inner_pos, face_centroid, face_normal, surface_bvh, vert
 
 
 def relax_inner_nodes(TV, TT, pos, neighbors_tet, iterations: int, step: float = 0.5, min_bary: float = 0.05):
-    """Move inner nodes towards the mean of their inner neighbours for an even spacing.
+    """Move inner nodes so that their links to inner neighbours even out.
 
     The paper uses reaction-diffusion (Turk 1991) for this.  We use damped
-    Laplacian smoothing and keep every node inside its own tetrahedron
+    springs towards each node's mean link length, and keep every node inside
+    its own tetrahedron
     (barycentric coordinates >= ``min_bary``), so nodes stay inside the volume
     and the link geometry stays valid.
     """
@@ -224,8 +225,14 @@ def relax_inner_nodes(TV, TT, pos, neighbors_tet, iterations: int, step: float =
     has = nb >= 0
     cnt = np.maximum(has.sum(axis=1), 1)
     for _ in range(iterations):
-        mean = np.where(has[..., None], pos[np.maximum(nb, 0)], 0.0).sum(axis=1) / cnt[:, None]
-        target = pos + step * (mean - pos) * (has.any(axis=1))[:, None]
+        # Springs towards the node's mean link length: links longer than it pull,
+        # shorter ones push, so the (up to) 4 distances of every node even out.
+        delta = np.where(has[..., None], pos[np.maximum(nb, 0)] - pos[:, None, :], 0.0)
+        d = np.linalg.norm(delta, axis=2)
+        dbar = np.where(has, d, 0.0).sum(axis=1) / cnt
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pull = np.where(has & (d > 0), 1.0 - dbar[:, None] / d, 0.0)
+        target = pos + step * (pull[..., None] * delta).sum(axis=1) / cnt[:, None]
         # Barycentric coordinates of the target in the node's own tet.
         lam = np.einsum("tij,tj->ti", Minv, target - P[:, 0])
         bary = np.concatenate([1.0 - lam.sum(axis=1, keepdims=True), lam], axis=1)
