@@ -49,24 +49,9 @@ def init_gpu() -> str:
     """Start Blender's GPU backend headless (1x1 Workbench render); returns the renderer."""
     if "bpy" not in sys.modules:
         os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="translucency-bench-"))
-    import bpy
-    import gpu
+    from gpu_shaders import init_headless
 
-    try:
-        return gpu.platform.renderer_get()
-    except SystemError:
-        pass
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    scene = bpy.context.scene
-    cam = bpy.data.objects.new("bench-camera", bpy.data.cameras.new("bench-camera"))
-    scene.collection.objects.link(cam)
-    scene.camera = cam
-    scene.render.engine = "BLENDER_WORKBENCH"
-    scene.render.resolution_x = scene.render.resolution_y = 1
-    scene.render.resolution_percentage = 100
-    bpy.ops.render.render()
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    return gpu.platform.renderer_get()
+    return init_headless()
 
 
 TARGET_NODES = 500_000

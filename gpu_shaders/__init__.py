@@ -38,6 +38,40 @@ def _log_once(message: str) -> None:
         log.warning(message)
 
 
+def init_headless() -> str:
+    """Start Blender's GPU backend in background mode (``blender -b``, bpy from PyPI).
+
+    Every ``gpu`` call raises ``SystemError`` there until Blender has set up
+    its GPU backend; a 1x1 Workbench render of a temporary scene does that in
+    about a second (the trick Blender's own test scripts use; ../shared/NOTES.md).
+    The user's scenes are not touched.  Returns the renderer string; raises
+    what the render raised when it cannot start.  Never call it at import or
+    register time.
+    """
+    import bpy
+    import gpu
+
+    try:
+        return gpu.platform.renderer_get()
+    except SystemError:
+        pass
+    scene = bpy.data.scenes.new("translucency-gpu-init")
+    cam_data = bpy.data.cameras.new("translucency-gpu-init")
+    cam = bpy.data.objects.new("translucency-gpu-init", cam_data)
+    try:
+        scene.collection.objects.link(cam)
+        scene.camera = cam
+        scene.render.engine = "BLENDER_WORKBENCH"
+        scene.render.resolution_x = scene.render.resolution_y = 1
+        scene.render.resolution_percentage = 100
+        bpy.ops.render.render(scene=scene.name)
+    finally:
+        bpy.data.objects.remove(cam)
+        bpy.data.cameras.remove(cam_data)
+        bpy.data.scenes.remove(scene)
+    return gpu.platform.renderer_get()
+
+
 def available() -> tuple[bool, str]:
     """Whether compute shaders can run now: ``(True, renderer)`` or ``(False, reason)``. Never raises."""
     try:

@@ -147,19 +147,9 @@ def init_gpu_backend() -> GPUContext:
 
     context = GPUContext()
     try:
-        try:
-            gpu.platform.renderer_get()
-        except SystemError:  # "GPU functions for drawing are not available in background mode"
-            factory_reset()
-            scene = bpy.context.scene
-            camera = bpy.data.objects.new("gpu-init-camera", bpy.data.cameras.new("gpu-init-camera"))
-            scene.collection.objects.link(camera)
-            scene.camera = camera
-            scene.render.engine = 'BLENDER_WORKBENCH'
-            scene.render.resolution_x = scene.render.resolution_y = 1
-            scene.render.resolution_percentage = 100
-            bpy.ops.render.render()
-            factory_reset()
+        from gpu_shaders import init_headless  # the repo root is on sys.path (see above)
+
+        init_headless()
         context.renderer = gpu.platform.renderer_get()
         context.version = gpu.platform.version_get()
         context.backend = getattr(gpu.platform, "backend_type_get", lambda: "")()
