@@ -190,6 +190,14 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
                               scheme=res.scheme, phi_surface=self.last_surface, precision=self.precision,
                               generation=self._resident_generation, solver_id=id(self))
 
+    def can_warm_start(self, warm_start) -> bool:
+        """A result read back with phi, or one of this solver's still resident on the GPU."""
+        return super().can_warm_start(warm_start) or self._is_resident(warm_start)
+
+    def _is_resident(self, ws) -> bool:
+        return (isinstance(ws, GPUSolveResult) and ws.solver_id == id(self) and ws.generation >= 0
+                and ws.generation == self._resident_generation)
+
     def _q_scale(self, q, active) -> float:
         if self.precision != "fp16":
             return 1.0
@@ -245,8 +253,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         return phi, solves
 
     def _warm(self, g: device.GPULevel, ws, old_scale: float, new_scale: float) -> None:
-        if (isinstance(ws, GPUSolveResult) and ws.solver_id == id(self) and ws.generation >= 0
-                and ws.generation == self._resident_generation):
+        if self._is_resident(ws):
             if new_scale != old_scale:  # the iterate on the GPU is in units of the old q scale
                 g.scale_x(new_scale / old_scale)
             return

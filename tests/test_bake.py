@@ -42,7 +42,8 @@ def test_graph_invariants(name):
         # in thin parts a coarse tet's centroid can lie outside the original surface)
         np.testing.assert_allclose(np.linalg.norm(lv.normal, axis=1), 1.0, atol=1e-6)
         to_node = lv.surface_position - lv.position[lv.surface_inner]
-        assert np.mean(np.einsum("ij,ij->i", to_node, lv.normal) > 0) > 0.9
+        # (0.89-0.95 over fTetWild runs, which are not deterministic; a flipped normal field gives ~0)
+        assert np.mean(np.einsum("ij,ij->i", to_node, lv.normal) > 0) > 0.8
     # Shepard weights sum to 1 and point to nodes of the same kind on the coarser level
     for k, (idx, w) in enumerate(bake.shepard):
         coarse, fine = bake.levels[k], bake.levels[k + 1]

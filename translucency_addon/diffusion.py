@@ -790,6 +790,10 @@ class DiffusionSolver:
         return [light for light, k in zip(cand, keys) if cache[k]]
 
     # -- solve -------------------------------------------------------------------
+    def can_warm_start(self, warm_start) -> bool:
+        """Whether ``warm_start`` carries a finest-level solution this solver can start from."""
+        return warm_start is not None and warm_start.phi[-1] is not None
+
     def solve(self, lights=(), environment=None, *, q=None, warm_start=None, shadows=True,
               occluders=None, channels=None) -> SolveResult:
         """Solve every level coarse to fine (or only the finest, from ``warm_start``).
@@ -804,7 +808,7 @@ class DiffusionSolver:
         t0 = time.perf_counter()
         opts = self.options
         n_lv = len(self.bake.levels)
-        usable = warm_start is not None and warm_start.phi[-1] is not None
+        usable = self.can_warm_start(warm_start)
         finest_only = opts.levels == "finest" or usable
         active = [n_lv - 1] if finest_only else list(range(n_lv))
         warnings = []
