@@ -40,14 +40,19 @@ def fresnel_reflectance(cos_i, eta: float):
 
     ``cos_i`` is the cosine of the angle of incidence in the outside medium
     (values are clipped to [0, 1]).  With eta >= 1 there is no total internal
-    reflection on this side.
+    reflection on this side.  At grazing incidence (cos_i = 0) it is 1; with
+    eta = 1 there is no interface and it is 0 everywhere (the formula is 0/0
+    at grazing incidence and loses cos_t to round-off near it).
     """
     c = np.clip(np.asarray(cos_i, dtype=np.float64), 0.0, 1.0)
+    if eta == 1.0:
+        return np.zeros_like(c)
     sin_t2 = (1.0 - c * c) / (eta * eta)
     cos_t = np.sqrt(np.maximum(0.0, 1.0 - sin_t2))
-    r_par = (eta * c - cos_t) / (eta * c + cos_t)
-    r_perp = (c - eta * cos_t) / (c + eta * cos_t)
-    return 0.5 * (r_par * r_par + r_perp * r_perp)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r_par = (eta * c - cos_t) / (eta * c + cos_t)
+        r_perp = (c - eta * cos_t) / (c + eta * cos_t)
+    return np.where(c > 0.0, 0.5 * (r_par * r_par + r_perp * r_perp), 1.0)
 
 
 def fresnel_transmittance(cos_i, eta: float):
