@@ -185,6 +185,12 @@ class Bench:
             for K in values:
                 r = self.ev.run(self.scenes[name], dict(quality=base, K=K), dict(solver="fast", tol=USER_TOL))
                 self.record("K", f"K={K:g}", name, r, K=K)
+        if not self.quick and HEADLINE in self.scenes:  # the Final surface with Preview's K
+            from translucency_addon.bake import QUALITY_PRESETS
+
+            K = QUALITY_PRESETS["preview"]["K"]
+            r = self.ev.run(self.scenes[HEADLINE], dict(quality="final", K=K), dict(solver="fast", tol=USER_TOL))
+            self.record("K_final", f"Final surface, K={K:g}", HEADLINE, r, K=K)
 
     def sweep_levels(self):
         name = HEADLINE if HEADLINE in self.scenes else next(iter(self.scenes))
@@ -255,6 +261,12 @@ class Bench:
                    "residual": float(np.max(ls.residual)), "diverged": any(x.diverged for x in res.level_solves),
                    "seconds": time.perf_counter() - t0,
                    "history": [float(h) for h in ls.history]}
+            # the plot: the finest level alone from zero (the multi-level run starts it from the
+            # coarse levels' result, which for the paper's scheme has already diverged)
+            s1 = self.ev.make_solver(bk, sc, SolveOptions(solver=solver, tol=USER_TOL, max_iterations=cap,
+                                                          levels="finest"), "cpu")
+            r1 = s1.solve(environment=sc.environment)
+            row["history_finest"] = [float(h) for h in r1.level_solves[-1].history]
             self.kappa_rows.append(row)
             self.log(f"  kappa-jump {solver}: iterations {row['iterations']} residual {row['residual']:.2e} "
                      f"diverged {row['diverged']}")
@@ -399,8 +411,25 @@ class Bench:
                  f"operators vs API {rec['err_vs_api']:.2e}")
 
 
+def engine_state() -> str:
+    """The commit the engine came from, and any uncommitted engine files (others work in the same tree)."""
+    import subprocess
+
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                              timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--short", "--", "translucency_addon", "gpu_shaders"], cwd=ROOT,
+                               capture_output=True, text=True, timeout=10).stdout.split("\n")
+        dirty = [d[3:] for d in dirty if d.strip()]
+    except Exception:  # noqa: BLE001 - not a git checkout
+        return "unknown"
+    return f"commit {head}" + (f" with uncommitted changes in {', '.join(dirty)}" if dirty else "")
+
+
 def run(quick=False, refresh=False, sections=SECTIONS, log=print, bake_cache=None) -> Bench:
     b = Bench(quick, refresh, log, bake_cache)
+    b.engine = engine_state()
+    log(f"engine: {b.engine}")
     t0 = time.perf_counter()
     b.load_references()
     b.t_refs = time.perf_counter() - t0

@@ -60,6 +60,8 @@ def fmt_seconds(s: float) -> str:
 
 
 def fmt_ms(ms: float) -> str:
+    if ms >= 1000:
+        return f"{ms / 1000:.1f} s"
     return f"{ms:.0f} ms" if ms >= 10 else f"{ms:.1f} ms"
 
 

@@ -123,6 +123,7 @@ def test_writer_output_matches_the_reader(tmp_path):
     qc = _costs_module()
     assert qc.validate(data) is None and qc.load_costs(path) == data
     assert "30 ms" in qc.quality_items(path)[2][1]
+    assert qc.fmt_ms(12345.0) == "12.3 s" and qc.fmt_ms(250.0) == "250 ms"
 
 
 def test_quality_enum_in_blender_shows_the_costs(blender, addon):
