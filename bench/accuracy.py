@@ -420,7 +420,7 @@ def engine_state() -> str:
                               timeout=10).stdout.strip()
         dirty = subprocess.run(["git", "status", "--short", "--", "translucency_addon", "gpu_shaders"], cwd=ROOT,
                                capture_output=True, text=True, timeout=10).stdout.split("\n")
-        dirty = [d[3:] for d in dirty if d.strip()]
+        dirty = [d[3:] for d in dirty if d.strip() and "translucency_addon/data" not in d]  # our own output
     except Exception:  # noqa: BLE001 - not a git checkout
         return "unknown"
     return f"commit {head}" + (f" with uncommitted changes in {', '.join(dirty)}" if dirty else "")

@@ -19,12 +19,8 @@ void main()
     return;
   }
   uvec4 nb = texelFetch(nbr, p, 0);
-  vec3 s = vec3(0.0);
-  for (int k = 0; k < 4; k++) {
-    if (nb[k] != NONE) {
-      s += vec3(o_r[k], o_g[k], o_b[k]) * texelFetch(d_in, node_texel(nb[k]), 0).rgb;
-    }
-  }
+  vec3 s;
+  NEIGHBOUR_SUM(s, d_in, nb, o_r, o_g, o_b);
   vec3 d = texelFetch(d_in, p, 0).rgb;
   vec3 r = imageLoad(r_io, p).rgb - (diag * d - s);
   imageStore(x_io, p, vec4(imageLoad(x_io, p).rgb + d, 0.0));

@@ -24,3 +24,15 @@ vec3 diagonal(vec4 o_r, vec4 o_g, vec4 o_b, vec4 ext)
   const vec4 one = vec4(1.0);
   return ext.rgb + vec3(dot(o_r, one), dot(o_g, one), dot(o_b, one));
 }
+
+/* s = sum_j c_ij v_j over the links nb of one node (c_ij per channel in
+ * o_r, o_g, o_b; v the sampler holding the vector).  Shared by the Jacobi,
+ * residual and Chebyshev kernels.  A macro, not a function: samplers as
+ * function arguments are not portable across Blender's GPU backends. */
+#define NEIGHBOUR_SUM(s, v, nb, o_r, o_g, o_b) \
+  s = vec3(0.0); \
+  for (int k_ = 0; k_ < 4; k_++) { \
+    if (nb[k_] != NONE) { \
+      s += vec3(o_r[k_], o_g[k_], o_b[k_]) * texelFetch(v, node_texel(nb[k_]), 0).rgb; \
+    } \
+  }

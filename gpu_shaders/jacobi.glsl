@@ -18,12 +18,8 @@ void main()
     return;
   }
   uvec4 nb = texelFetch(nbr, p, 0);
-  vec3 s = vec3(0.0);
-  for (int k = 0; k < 4; k++) {
-    if (nb[k] != NONE) {
-      s += vec3(o_r[k], o_g[k], o_b[k]) * texelFetch(x_in, node_texel(nb[k]), 0).rgb;
-    }
-  }
+  vec3 s;
+  NEIGHBOUR_SUM(s, x_in, nb, o_r, o_g, o_b);
   vec3 b = ex.a * texelFetch(q, p, 0).rgb;
   imageStore(x_out, p, vec4((b + s) / diag, 0.0));
 }
