@@ -25,6 +25,22 @@ vec3 diagonal(vec4 o_r, vec4 o_g, vec4 o_b, vec4 ext)
   return ext.rgb + vec3(dot(o_r, one), dot(o_g, one), dot(o_b, one));
 }
 
+/* Exact unpolarised Fresnel transmittance F_t = 1 - F_r for light leaving
+ * through the surface at cos_i (twin: translucency_addon.fresnel; used by
+ * radiance.glsl and single_scattering.glsl).  eta = 1: no interface, F_t = 1. */
+float fresnel_transmittance(float cos_i, float n)
+{
+  if (n == 1.0) {
+    return 1.0;
+  }
+  float c = clamp(cos_i, 0.0, 1.0);
+  float sin_t2 = (1.0 - c * c) / (n * n);
+  float cos_t = sqrt(max(0.0, 1.0 - sin_t2));
+  float r_par = (n * c - cos_t) / (n * c + cos_t);
+  float r_perp = (c - n * cos_t) / (c + n * cos_t);
+  return 1.0 - 0.5 * (r_par * r_par + r_perp * r_perp);
+}
+
 /* s = sum_j c_ij v_j over the links nb of one node (c_ij per channel in
  * o_r, o_g, o_b; v the sampler holding the vector).  Shared by the Jacobi,
  * residual and Chebyshev kernels.  A macro, not a function: samplers as

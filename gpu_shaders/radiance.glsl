@@ -7,16 +7,6 @@
  * F_t = 1 - F_r, the exact unpolarised Fresnel transmittance of fresnel.py;
  * F_t = 0 for cos <= 0.  Vertices are stored row-major in a texture of width
  * `width`; texels past `count` are left untouched. */
-float fresnel_transmittance(float cos_i, float n)
-{
-  float c = clamp(cos_i, 0.0, 1.0);
-  float sin_t2 = (1.0 - c * c) / (n * n);
-  float cos_t = sqrt(max(0.0, 1.0 - sin_t2));
-  float r_par = (n * c - cos_t) / (n * c + cos_t);
-  float r_perp = (c - n * cos_t) / (c + n * cos_t);
-  return 1.0 - 0.5 * (r_par * r_par + r_perp * r_perp);
-}
-
 void main()
 {
   ivec3 p = ivec3(gl_GlobalInvocationID);

@@ -88,17 +88,6 @@ float erf_approx(float x)
   return x < 0.0 ? -r : r;
 }
 
-/* Exact unpolarised Fresnel transmittance (fresnel.py; same as radiance.glsl). */
-float fresnel_t(float cos_i, float n)
-{
-  float c = clamp(cos_i, 0.0, 1.0);
-  float sin_t2 = (1.0 - c * c) / (n * n);
-  float cos_t = sqrt(max(0.0, 1.0 - sin_t2));
-  float r_par = (n * c - cos_t) / (n * c + cos_t);
-  float r_perp = (c - n * cos_t) / (c + n * cos_t);
-  return 1.0 - 0.5 * (r_par * r_par + r_perp * r_perp);
-}
-
 /* Real orthonormal SH without the Condon-Shortley phase, order <= 4, in the
  * order and signs of translucency_addon/sh.py (sh_basis). */
 void sh_basis(vec3 w, out float Y[25])
@@ -268,7 +257,7 @@ void main()
       ia = t_next;
     }
   }
-  float ft = cos_o > 0.0 ? fresnel_t(cos_o, eta) : 0.0;
+  float ft = cos_o > 0.0 ? fresnel_transmittance(cos_o, eta) : 0.0;
   imageStore(out_l, p, vec4(acc * (out_scale * ft), 0.0));
 }
 #endif

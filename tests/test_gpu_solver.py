@@ -357,7 +357,9 @@ def test_heterogeneous_fast_solve_matches_cpu(layered_cube):
     rc = cpu.solve([], env)
     s = GPUDiffusionSolver(bk, mat, field, opts)
     r = s.solve([], env, q=rc.q)
-    assert r.residual.max() <= 1.05e-5 and r.iterations == rc.iterations
+    # Same step count, or one residual check more: fp32 rounding can leave the residual just above
+    # tol at the check where fp64 met it (seen on about one fTetWild graph in five: 80 vs 72 steps).
+    assert r.residual.max() <= 1.05e-5 and 0 <= r.iterations - rc.iterations <= opts.check_every
     assert rel_err(s.vertex_radiance(r), cpu.vertex_radiance(rc)) < SOLVE_TOL
     s.free()
 
