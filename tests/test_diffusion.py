@@ -321,3 +321,12 @@ def test_cli_solve_writes_radiance_and_stats(tmp_path):
     r = subprocess.run([sys.executable, "-m", "translucency_addon", "solve", c, "-o", str(out),
                         "--sigma-a", "nan,0,0", "--sigma-s", "1,1,1"], capture_output=True, text=True, env=env)
     assert r.returncode == 2 and "NaN" in r.stderr
+
+
+def test_subnormal_light_colours_are_flushed_to_zero():
+    """A colour channel below float32's smallest normal carries no light (no subnormal arithmetic)."""
+    from translucency_addon.lights import Light
+
+    sun = Light("sun", color=(1.0, 2.2e-311, 1e-39), irradiance=2.0)
+    np.testing.assert_array_equal(sun.rgb, [2.0, 0.0, 0.0])
+    assert Light("point", color=(1e-30, 1.0, 1.0), intensity=1.0).rgb[0] == 1e-30  # small but normal: kept
