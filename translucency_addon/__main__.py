@@ -1,7 +1,7 @@
 """Command line: bake and solve OBJ files without Blender (pipelines, render farms).
 
     python -m translucency_addon bake MESH.obj -o CACHE.npz [--quality draft|preview|final]
-                                      [--levels N] [--mm-per-unit X]
+                                      [--levels N] [--mm-per-unit X] [--sky-directions 64]
                                       [--single-scattering [--material marble] [--ss-quality preview]
                                        [--ss-dirs 128] [--ss-samples 20000] [--ss-order 4]]
     python -m translucency_addon solve CACHE.npz -o OUT.npy
@@ -77,6 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quality", default="preview", choices=["draft", "preview", "final"])
     b.add_argument("--levels", type=int, default=None, help="number of multi-resolution levels (default: the quality's)")
     b.add_argument("--mm-per-unit", type=float, default=1.0, help="millimetres per mesh unit (default 1)")
+    b.add_argument("--sky-directions", type=int, default=0,
+                   help="also bake sky visibility with N rays per surface node (self-occlusion and one "
+                        "interreflection bounce for world light; 0 = off, the default; the Blender add-on uses 64)")
     b.add_argument("--level-mode", choices=["refine", "independent"], default="refine",
                    help="finer levels by nested refinement (fast) or independent tetrahedralisation (paper)")
     b.add_argument("--no-optimize", action="store_true", help="skip fTetWild's optimisation (fast, slivers)")
@@ -168,7 +171,7 @@ def cmd_bake(a) -> int:
 
     V, F = load_obj(a.mesh)
     settings = BakeSettings(quality=a.quality, levels=a.levels, mm_per_unit=a.mm_per_unit,
-                            level_mode=a.level_mode, optimize=not a.no_optimize)
+                            level_mode=a.level_mode, optimize=not a.no_optimize, sky_directions=a.sky_directions)
     t0 = time.perf_counter()
 
     def progress(frac, stage):
@@ -229,7 +232,7 @@ def cmd_solve(a) -> int:
     lights, env = lights_from_args(a)
     solver = DiffusionSolver(bake, material, field_values, SolveOptions(solver=a.solver, tol=a.tol))
     t1 = time.perf_counter()
-    result = solver.solve(lights, env, shadows=not a.no_shadows)
+    result, _ = solver.solve_interreflected(lights, env, shadows=not a.no_shadows)  # = solve() without sky data
     view_dirs = None
     if a.camera is not None:
         d = np.asarray(a.camera, dtype=np.float64)[None, :] - np.asarray(bake.mesh_vertices)

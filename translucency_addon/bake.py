@@ -72,6 +72,7 @@ class BakeSettings:
     shepard_surface: int = 4  # b for surface nodes (eq. 10)
     shepard_inner: int = 8  # b for inner nodes (eq. 10)
     vertex_map_k: int = 6
+    sky_directions: int = 0  # > 0: also bake sky visibility with this many directions (sky_visibility.py)
 
     def resolved(self) -> "BakeSettings":
         q = self.quality.lower()
@@ -98,6 +99,8 @@ class BakeSettings:
             raise MeshError(f"mm_per_unit must be a positive number, got {r.mm_per_unit}")
         if r.K < 0 or r.base_triangles < 20:
             raise MeshError("K must be >= 0 and base_triangles >= 20")
+        if r.sky_directions and not 8 <= r.sky_directions <= 4096:
+            raise MeshError(f"sky_directions must be 0 (off) or between 8 and 4096, got {r.sky_directions}")
         return r
 
     def expected_nodes(self) -> int:
@@ -113,6 +116,8 @@ class BakeSettings:
         d = asdict(self.resolved())
         d.pop("mm_per_unit")
         d.pop("memory_budget")
+        if not d["sky_directions"]:  # bakes without sky visibility keep the keys they always had
+            d.pop("sky_directions")
         return d
 
 
@@ -133,6 +138,7 @@ class Bake:
     key: str
     stats: dict = field(default_factory=dict)
     single_scattering: object | None = None  # single_scattering data, when baked
+    sky: object | None = None  # sky_visibility.SkyVisibility, when baked (environment self-occlusion)
 
     @property
     def finest(self) -> GraphLevel:
@@ -321,6 +327,8 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     plan = [("validate", 1), ("resample", 1), ("tetrahedralize", 10), ("levels", 4), ("quadgraph", 6), ("transfer", 2)]
+    if s.sky_directions:
+        plan.append(("sky visibility", 6))
     pr = _Progress(progress, plan)
     t_start = time.perf_counter()
 
@@ -390,6 +398,16 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
     shepard = [level_transfer(levels[k], levels[k + 1], s.shepard_surface, s.shepard_inner)
                for k in range(len(levels) - 1)]
     vmap = vertex_mapping(V, normals, levels[-1], s.vertex_map_k)
+    sky = None
+    if s.sky_directions:
+        from .sky_visibility import compute_sky_visibility
+
+        pr.stage("sky visibility")
+        sky_bake = Bake(levels=levels, shepard=shepard, vertex_map=vmap, mesh_vertices=V, mesh_faces=F,
+                        mesh_normals=normals, shadow_vertices=Vb, shadow_faces=Fb, settings=s,
+                        mm_per_unit=float(s.mm_per_unit), key=key)
+        sky = compute_sky_visibility(sky_bake, s.sky_directions, bvh=bvh,
+                                     progress=lambda f: pr.within("sky visibility", f))
     pr.done()
 
     stats = {
@@ -405,7 +423,7 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
     }
     bake = Bake(levels=levels, shepard=shepard, vertex_map=vmap, mesh_vertices=V, mesh_faces=F,
                 mesh_normals=normals, shadow_vertices=Vb, shadow_faces=Fb, settings=s,
-                mm_per_unit=float(s.mm_per_unit), key=key, stats=stats)
+                mm_per_unit=float(s.mm_per_unit), key=key, stats=stats, sky=sky)
     stats["graph_bytes"] = bake.graph_bytes()
     return bake
 

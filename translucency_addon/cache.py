@@ -68,9 +68,12 @@ def bake_to_arrays(bake: Bake) -> dict:
         "level_stats": [lv.stats for lv in bake.levels],
         "n_levels": len(bake.levels),
         "single_scattering": bake.single_scattering is not None,
+        "sky": bake.sky is not None,
     }
     if bake.single_scattering is not None:
         d.update(bake.single_scattering.to_arrays(prefix="ss/"))
+    if bake.sky is not None:
+        d.update(bake.sky.to_arrays(prefix="sky/"))
     d["meta"] = _json_array(meta)
     return d
 
@@ -150,12 +153,17 @@ def load_bake(path, expected_key: str | None = None) -> Bake:
             from .single_scattering import SingleScatteringData
 
             ss = SingleScatteringData.from_arrays(arrays, prefix="ss/")
+        sky = None
+        if meta.get("sky"):
+            from .sky_visibility import SkyVisibility
+
+            sky = SkyVisibility.from_arrays(arrays, n, len(arrays["mesh/V"]), prefix="sky/")
         bake = Bake(
             levels=levels, shepard=shepard, vertex_map=(arrays["vmap/idx"], arrays["vmap/w"]),
             mesh_vertices=arrays["mesh/V"], mesh_faces=arrays["mesh/F"], mesh_normals=arrays["mesh/N"],
             shadow_vertices=arrays["shadow/V"], shadow_faces=arrays["shadow/F"], settings=settings,
             mm_per_unit=float(meta["mm_per_unit"]), key=meta["key"], stats=meta["stats"],
-            single_scattering=ss,
+            single_scattering=ss, sky=sky,
         )
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise CacheError(f"bake cache {os.fspath(path)!r} is incomplete or inconsistent: {exc}") from exc
@@ -184,3 +192,5 @@ def _check_consistency(bake: Bake, path) -> None:
     idx, w = bake.vertex_map
     if len(idx) != len(bake.mesh_vertices) or (idx.size and idx.max() >= bake.levels[-1].n_surface):
         raise CacheError(f"bake cache {os.fspath(path)!r}: vertex mapping does not match the mesh")
+    if bake.sky is not None and [s.n_surface for s in bake.sky.levels] != [lv.n_surface for lv in bake.levels]:
+        raise CacheError(f"bake cache {os.fspath(path)!r}: sky visibility does not match the graph")

@@ -107,7 +107,7 @@ from . import kernels
 from .bake import Bake
 from .errors import MaterialError, TranslucencyError
 from .fresnel import boundary_A, diffuse_reflectance_internal, fresnel_transmittance
-from .lights import incident_flux, shadow_visibility
+from .lights import environment_flux, incident_flux, shadow_visibility
 from .materials import Material, diffusion_coefficient
 from .quadgraph import GraphLevel
 
@@ -640,6 +640,7 @@ class SolveOptions:
     check_every: int = 8
     coarse_tol: float | None = None  # tolerance on coarser levels (default: tol)
     levels: str = "all"  # "all": multi-resolution warm start; "finest": single level
+    sky_occlusion: bool = True  # use the bake's sky visibility (when baked) for environment light
 
     def scheme(self) -> str:
         return "paper" if self.solver == "paper" else "fv"
@@ -733,12 +734,20 @@ class DiffusionSolver:
         return bvh
 
     def incident(self, lights, environment=None, shadows: bool = True, occluders=None,
-                 levels=None) -> list:
+                 levels=None, bounce=None) -> list:
         """q (eq. 3) at the surface nodes of the requested levels (default all); None elsewhere.
 
         Lights inside the object contribute nothing and are named in
-        :attr:`warnings` (see :meth:`lights_inside`).
+        :attr:`warnings` (see :meth:`lights_inside`).  When the bake carries
+        sky visibility (``sky_visibility``) and ``options.sky_occlusion`` is
+        on, the environment term loses the directions in which the object
+        sees itself, and ``bounce`` -- the mesh's vertex radiance from a
+        previous solve, (n_vertices, 3) -- adds the light the object sends to
+        itself through those directions (one interreflection bounce).
         """
+        sky = self.bake.sky if self.options.sky_occlusion else None
+        if sky is None:
+            bounce = None
         want = range(len(self.bake.levels)) if levels is None else levels
         lights = list(lights or ())
         inside = self.lights_inside(lights)
@@ -755,8 +764,15 @@ class DiffusionSolver:
         out = [None] * len(self.bake.levels)
         for i in want:
             lv = self.bake.levels[i]
-            out[i] = incident_flux(lights, environment, lv.surface_position, lv.normal, self.eta,
-                                   self.bake.mm_per_unit, visibility=vis)
+            if sky is None:
+                out[i] = incident_flux(lights, environment, lv.surface_position, lv.normal, self.eta,
+                                       self.bake.mm_per_unit, visibility=vis)
+                continue
+            q = incident_flux(lights, None, lv.surface_position, lv.normal, self.eta, self.bake.mm_per_unit,
+                              visibility=vis)
+            env = environment if environment is not None and not environment.is_black else None
+            q_env = environment_flux(env, lv.normal, self.eta) if env is not None else None
+            out[i] = q + sky.correct(i, lv.normal, self.eta, q_env, env, bounce)
         return out
 
     def lights_inside(self, lights) -> list:
@@ -795,10 +811,13 @@ class DiffusionSolver:
         return warm_start is not None and warm_start.phi[-1] is not None
 
     def solve(self, lights=(), environment=None, *, q=None, warm_start=None, shadows=True,
-              occluders=None, channels=None) -> SolveResult:
+              occluders=None, channels=None, bounce=None) -> SolveResult:
         """Solve every level coarse to fine (or only the finest, from ``warm_start``).
 
         ``q``: precomputed incident light per level (skips the light pass).
+        ``bounce``: vertex radiance of a previous solve, the light the object
+        sends to itself (used only with the bake's sky visibility; see
+        :meth:`incident` and :meth:`solve_interreflected`).
         ``warm_start``: a previous :class:`SolveResult` of this solver; its
         finest solution starts the finest level directly (the frame-to-frame
         case), so coarse levels are skipped.
@@ -813,7 +832,8 @@ class DiffusionSolver:
         active = [n_lv - 1] if finest_only else list(range(n_lv))
         warnings = []
         if q is None:
-            q = self.incident(lights, environment, shadows=shadows, occluders=occluders, levels=active)
+            q = self.incident(lights, environment, shadows=shadows, occluders=occluders, levels=active,
+                              bounce=bounce)
             warnings = list(self.warnings)
         t1 = time.perf_counter()
         mask = (True, True, True) if channels is None else tuple(bool(c) for c in channels)
@@ -832,6 +852,24 @@ class DiffusionSolver:
         t2 = time.perf_counter()
         return SolveResult(phi=phi, q=q, level_solves=solves, scheme=self.systems[-1].scheme,
                            seconds={"lights": t1 - t0, "solve": t2 - t1, "total": t2 - t0}, warnings=warnings)
+
+    def solve_interreflected(self, lights=(), environment=None, *, bounces: int = 1, warm_start=None,
+                             bounce=None, **kw) -> tuple:
+        """Solve, then solve again ``bounces`` times with the object's own radiance as ``bounce``.
+
+        Each pass is warm-started from the previous one.  ``bounce`` (a
+        previous frame's vertex radiance) replaces the first plain pass.
+        Without sky visibility in the bake this is a single :meth:`solve`.
+        Returns ``(SolveResult, vertex radiance along the normals)``.
+        """
+        res = self.solve(lights, environment, warm_start=warm_start, bounce=bounce, **kw)
+        L = self.vertex_radiance(res)
+        if self.bake.sky is None or not self.options.sky_occlusion:
+            return res, L
+        for _ in range(int(bounces) - (bounce is not None)):
+            res = self.solve(lights, environment, warm_start=res, bounce=L, **kw)
+            L = self.vertex_radiance(res)
+        return res, L
 
     def solve_systems(self, q, active, warm_start=None):
         """Run the linear solves on the ``active`` levels, coarse to fine (eq. 10 between them).
