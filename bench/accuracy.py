@@ -57,7 +57,7 @@ if str(ROOT) not in sys.path:
 import numpy as np  # noqa: E402
 
 from bench import accuracy_scenes as scenes  # noqa: E402
-from bench.accuracy_core import SUPERSAMPLE, Evaluator  # noqa: E402
+from bench.accuracy_core import SUPERSAMPLE, Evaluator, solve  # noqa: E402
 from bench.reference.metrics import relative_rms  # noqa: E402
 
 DOCS = ROOT / "docs"
@@ -144,7 +144,7 @@ class Bench:
         solver, res = final.extra.pop("solver"), final.extra.pop("result")
         t0 = time.perf_counter()
         solver.options = SolveOptions(**CONVERGED, max_iterations=50_000)
-        res = solver.solve(environment=sc.environment, warm_start=res)
+        res = solve(solver, environment=sc.environment, warm_start=res)[0]
         L = solver.vertex_radiance(res, view_dirs(sc))
         ras = rasterize(sc.V, sc.F, L, sc.camera, sc.resolution, supersample=SUPERSAMPLE)
         self.converged_images[name] = (ras.image, ras.mask)
@@ -255,7 +255,7 @@ class Bench:
 
             s = self.ev.make_solver(bk, sc, SolveOptions(solver=solver, tol=USER_TOL, max_iterations=cap), "cpu")
             t0 = time.perf_counter()
-            res = s.solve(environment=sc.environment)
+            res = s.solve(environment=sc.environment)  # convergence only: one plain solve
             ls = res.level_solves[-1]
             row = {"solver": solver, "iterations": [int(x.iterations) for x in res.level_solves],
                    "residual": float(np.max(ls.residual)), "diverged": any(x.diverged for x in res.level_solves),
@@ -316,9 +316,10 @@ class Bench:
                 self.record("ss", label, name, r, ss=ss)
 
     def model(self):
-        """Where the bunny's model error comes from: the engine's sky term is unoccluded; here the
-        same solve with q from a self-occluded sky (shadow rays against the mesh, no interreflection)."""
-        from bench.accuracy_core import SUPERSAMPLE, occluded_environment_q, view_dirs
+        """Where the bunny's model error comes from: the environment term without sky visibility
+        (every surface point sees the whole sky), with the hidden sky removed only, and with the
+        hidden sky plus one interreflection bounce (the add-on's default; sky_visibility.py)."""
+        from bench.accuracy_core import SUPERSAMPLE, view_dirs
         from bench.reference.raster import rasterize
         from translucency_addon.diffusion import SolveOptions
 
@@ -327,34 +328,31 @@ class Bench:
         base = "draft" if self.quick else "preview"
         bk, bake_s = self.ev.bake(sc, quality=base)
         solver = self.ev.make_solver(bk, sc, SolveOptions(solver="fast", tol=USER_TOL), "cpu")
+        plain = self.ev.make_solver(bk, sc, SolveOptions(solver="fast", tol=USER_TOL, sky_occlusion=False), "cpu")
         t0 = time.perf_counter()
-        q = occluded_environment_q(bk, sc.environment, sc.material.eta, 64 if self.quick else 256)
-        t_q = time.perf_counter() - t0
-        q0 = solver.incident([], sc.environment)
+        q0 = plain.incident([], sc.environment)
+        q = solver.incident([], sc.environment)
         # per-pixel sky visibility (occluded / unoccluded q at the finest surface nodes -> vertices -> pixels)
         idx, w = bk.vertex_map
         vis_node = np.mean(q[-1] / np.maximum(q0[-1], 1e-30), axis=1)
         vis = rasterize(sc.V, sc.F, np.einsum("vk,vk->v", w, vis_node[idx])[:, None], sc.camera,
                         sc.resolution).image[..., 0]
-        # one interreflection bounce: occluded directions see the object's own radiance (first solve)
-        res0 = solver.solve(q=q0)
-        L0 = solver.vertex_radiance(res0)  # along the normals: the diffuse exitance, radiance units
-        t0 = time.perf_counter()
-        q_ir = occluded_environment_q(bk, sc.environment, sc.material.eta, 64 if self.quick else 256, bounce=L0)
-        t_q = max(t_q, time.perf_counter() - t0)
-        variants = (("sky unoccluded (engine)", q0), ("sky self-occluded, no interreflection", q),
-                    ("sky self-occluded + one bounce off the object", q_ir))
+        res0 = solver.solve(q=q)  # the add-on's first pass: hidden sky removed, no bounce yet
+        q_ir = solver.incident([], sc.environment, bounce=solver.vertex_radiance(res0))
+        t_q = time.perf_counter() - t0
+        variants = (("without sky visibility", q0, plain), ("hidden sky removed, no interreflection", q, solver),
+                    ("hidden sky + one bounce (the add-on's default)", q_ir, solver))
         conv = self.converged_images.get(name)
         if conv is not None:
-            variants += (("converged Final graph, engine sky", None),)
-        for label, qq in variants:
+            variants += (("converged Final graph (default)", None, None),)
+        for label, qq, sv in variants:
             t0 = time.perf_counter()
             if qq is None:
                 image, mask = conv
                 rec = {"knob": "model", "label": label, "scene": name, "q_ratio": 1.0}
             else:
-                res = solver.solve(q=qq)
-                L = solver.vertex_radiance(res, view_dirs(sc))
+                res = sv.solve(q=qq)
+                L = sv.vertex_radiance(res, view_dirs(sc))
                 dt = time.perf_counter() - t0
                 ras = rasterize(sc.V, sc.F, L, sc.camera, sc.resolution, supersample=SUPERSAMPLE)
                 image, mask = ras.image, ras.mask

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+from bench.accuracy_core import SKY_DIRECTIONS
 from bench.accuracy_report import (headline_table, knob_table, ms, one, pct, reference_table, rows, scenes_table,
                                    sec, table)
 
@@ -73,10 +74,14 @@ def render(b, link: dict, costs, head: str) -> str:
     add("")
     add(reference_table(b))
     add("")
-    add("Our side: the engine API exactly as the add-on calls it (`bake_mesh`, `DiffusionSolver` or "
-        "`gpu_shaders.make_solver`, `vertex_radiance(result, view_dirs)` with per-vertex directions toward "
-        "the camera, plus `single_scattering.render_vertices` where switched on), the per-vertex radiance "
-        "rasterised from the reference's camera by `bench/reference/raster.py`.")
+    add("Our side: the engine API exactly as the add-on calls it (`bake_mesh` with sky visibility, "
+        f"{SKY_DIRECTIONS} rays per surface node (the add-on's Self-Occlusion default), `DiffusionSolver` or "
+        "`gpu_shaders.make_solver`, each frame solved twice: a first pass, then the pass with its "
+        "interreflection bounce, warm-started; `vertex_radiance(result, view_dirs)` with per-vertex directions "
+        "toward the camera, plus `single_scattering.render_vertices` where switched on), the per-vertex radiance "
+        "rasterised from the reference's camera by `bench/reference/raster.py`. Bake times include the sky "
+        "visibility; frame times include both passes; *iterations* are those of the first pass (from zero, "
+        "comparable with the paper's scheme).")
     ur = rows(b, "user")
     if ur:
         r = ur[0]
@@ -305,8 +310,8 @@ def findings_scenes(b):
         out.append(f"Marble: on the convex sphere diffusion is within {pct(sphere['err_ref_debiased'])} of the "
                    f"path tracer (bias {pct(sphere.get('bias'))}, consistent with docs/reference.md's closed-form "
                    f"check), on the bunny {pct(bunny['err_ref_debiased'])} with almost no mean bias "
-                   f"({pct(bunny.get('bias'))}): the bunny's error is spatial and comes from its concavities "
-                   "(see *Where the bunny's model error comes from* below).")
+                   f"({pct(bunny.get('bias'))}); see *Where the bunny's model error comes from* below for how much "
+                   "of it sits in the concavities.")
     return out
 
 
@@ -441,28 +446,26 @@ def findings_ss(b):
 
 def findings_model(b):
     mr = _label_rows(b, "model")
-    u = mr.get("sky unoccluded (engine)")
-    o = mr.get("sky self-occluded, no interreflection")
-    ir = mr.get("sky self-occluded + one bounce off the object")
-    c = mr.get("converged Final graph, engine sky")
-    if u is None or o is None:
+    u = mr.get("without sky visibility")
+    o = mr.get("hidden sky removed, no interreflection")
+    ir = mr.get("hidden sky + one bounce (the add-on's default)")
+    c = mr.get("converged Final graph (default)")
+    if u is None or o is None or ir is None:
         return []
-    out = [f"The engine's sky term ignores the object itself: no self-occlusion, no light the object sends "
-           f"to itself. On the bunny the error concentrates where the surface sees less than 90 % of the sky "
-           f"(concave: (b) {pct(u.get('err_ref_concave'))}, ours {pct(u.get('bias_concave'))} too bright) against "
-           f"{pct(u.get('err_ref_open'))} elsewhere (bias {pct(u.get('bias_open'))})"
-           + (f"; on the converged Final graph {pct(c.get('err_ref_concave'))} against {pct(c.get('err_ref_open'))}"
-              if c else "") + "."]
-    out.append(f"Shadowing the sky by the mesh alone (mean q x {o['q_ratio']:.2f}) overshoots: (b) "
-               f"{pct(o['err_ref'])}, concave pixels {pct(o.get('bias_concave'))} too dark -- the occluded directions "
-               "see the bright translucent bunny, not black, so a plain ambient-occlusion factor is the wrong fix.")
-    if ir is not None:
-        out.append(f"Shadowing plus one bounce (occluded directions see the object's own outgoing radiance from "
-                   f"a first solve, interpolated at the ray's hit point; computed here in the benchmark, "
-                   f"{sec(ir.get('q_seconds'))} s of numpy ray casting at Preview) brings (b) down from "
-                   f"{pct(u['err_ref'])} to **{pct(ir['err_ref'])}** (concave {pct(ir.get('err_ref_concave'))}, open "
-                   f"{pct(ir.get('err_ref_open'))}). This is the main engine change this benchmark recommends: an "
-                   "occlusion + interreflection term for environment light (the visibility per node and "
-                   "direction is static, so it can be baked, e.g. as SH transfer vectors, and the bounce reuses "
-                   "the previous frame's radiance).")
+    out = [f"Without sky visibility the environment term ignores the object itself: no self-occlusion, no "
+           f"light the object sends to itself. On the bunny the error then concentrates where the surface sees "
+           f"less than 90 % of the sky (concave: (b) {pct(u.get('err_ref_concave'))}, ours "
+           f"{pct(u.get('bias_concave'))} too bright) against {pct(u.get('err_ref_open'))} elsewhere (bias "
+           f"{pct(u.get('bias_open'))})."]
+    out.append(f"Removing the hidden sky alone (mean q x {o['q_ratio']:.2f}) overshoots: (b) {pct(o['err_ref'])}, "
+               f"concave pixels {pct(o.get('bias_concave'))} too dark -- the hidden directions see the bright "
+               "translucent bunny, not black, so a plain ambient-occlusion factor is the wrong fix.")
+    out.append(f"The hidden sky plus one bounce (hidden directions see the object's own outgoing radiance from "
+               f"a first solve, interpolated at the ray's hit point: `sky_visibility.py`, baked with "
+               f"{SKY_DIRECTIONS} rays per surface node, the add-on's default) brings (b) from {pct(u['err_ref'])} "
+               f"to **{pct(ir['err_ref'])}** (concave {pct(ir.get('err_ref_concave'))}, open "
+               f"{pct(ir.get('err_ref_open'))})"
+               + (f"; on the converged Final graph {pct(c['err_ref'])} (concave {pct(c.get('err_ref_concave'))}, "
+                  f"open {pct(c.get('err_ref_open'))})" if c else "") + ". What remains is spread over the "
+               "open surface as well: the diffusion model itself (compare the convex sphere's row above).")
     return out

@@ -296,6 +296,7 @@ def _ss_inputs(obj, depsgraph, V, graph_key: str, mm: float) -> SSJobInputs:
 def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
     """Gather the bake's inputs on the main thread (raises ``TranslucencyError``)."""
     from ..translucency_addon import bake as bake_mod
+    from ..translucency_addon.sky_visibility import DEFAULT_DIRECTIONS
 
     _check_object(obj)
     scene = context.scene
@@ -304,7 +305,8 @@ def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
     V, F = scene_inputs.evaluated_triangles(obj, depsgraph)
     mm, scale_warning = scene_inputs.mm_per_unit(obj, scene)
     settings = bake_mod.BakeSettings(quality=s.quality.lower(), levels=int(s.levels), mm_per_unit=mm,
-                                     base_triangles=int(base_triangles) or None)
+                                     base_triangles=int(base_triangles) or None,
+                                     sky_directions=DEFAULT_DIRECTIONS if s.sky_occlusion else 0)
     settings.resolved()  # raises MeshError for impossible settings
     key = bake_mod.mesh_key(V, F, settings)
     ss = _ss_inputs(obj, depsgraph, V, key, mm) if s.use_single_scattering else None

@@ -72,6 +72,7 @@ def _draw_object_settings(layout, obj, context=None) -> None:
     box.label(text="Bake", icon='MOD_REMESH')
     box.prop(settings, "quality")
     box.prop(settings, "levels")
+    box.prop(settings, "sky_occlusion")
     row = box.row(heading="Scale")
     row.prop(settings, "use_mm_per_unit_override", text="Override")
     sub = box.row()

@@ -155,6 +155,15 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
     )
 
     # -- terms and single scattering (Bernabei et al.) -------------------------
+    sky_occlusion: BoolProperty(
+        name="Self-Occlusion",
+        description=(
+            "Bake which directions of each surface point see the object itself, so that world light is "
+            "shadowed there and the light the object sends to itself is added (one interreflection "
+            "bounce). Matters on concave objects; adds a few seconds to the bake"
+        ),
+        default=True,
+    )
     use_multiple_scattering: BoolProperty(
         update=_request_update,
         name="Multiple Scattering",

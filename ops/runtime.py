@@ -106,6 +106,7 @@ class ObjectState:
     render_solver: object | None = None  # CPU twin for solves off the main thread
     render_result: object | None = None
     render_solve_sig: tuple | None = None
+    bounce: object | None = None  # vertex radiance (along the normals) of the last interreflected solve
     gpu_failed_in_render: bool = False
     occluders: scene_inputs.OccluderCache = field(default_factory=scene_inputs.OccluderCache)
     geometry_digest: str = ""
@@ -472,6 +473,22 @@ def _partial_current(solver, result, bake) -> np.ndarray:
                                     diffuse_reflectance_internal(solver.eta))
 
 
+def _solve(st: ObjectState, solver, lights, environment, previous, occluders, channels):
+    """One multiple-scattering solve, with the interreflection bounce when the bake has sky visibility.
+
+    The bounce comes from a first solve of the same frame (``DiffusionSolver.
+    solve_interreflected``; the second solve is warm-started from the first),
+    never from an earlier frame, so a frame's result depends only on that
+    frame's inputs (renders of single frames and of animations agree).
+    """
+    if st.bake.sky is None or not solver.options.sky_occlusion:
+        return solver.solve(lights, environment, warm_start=previous, shadows=True, occluders=occluders,
+                            channels=channels)
+    result, st.bounce = solver.solve_interreflected(lights, environment, warm_start=previous, shadows=True,
+                                                    occluders=occluders, channels=channels)
+    return result
+
+
 def radiance_for_mesh(obj, st: ObjectState, solver, result, view) -> np.ndarray:
     """(len(obj.data.vertices), 3) outgoing radiance for the original mesh's vertices."""
     from ..translucency_addon.diffusion import outgoing_radiance
@@ -667,8 +684,7 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
                     result = previous
                 else:
                     t0 = time.perf_counter()
-                    result = solver.solve(lights, environment, warm_start=previous, shadows=True,
-                                          occluders=occluders, channels=ms_channels)
+                    result = _solve(st, solver, lights, environment, previous, occluders, ms_channels)
                     seconds = time.perf_counter() - t0
                     solved = True
                 rgb = radiance_for_mesh(obj, st, solver, result, view)
