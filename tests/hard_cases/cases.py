@@ -598,7 +598,7 @@ class Run:
     warnings: list | None = None  # the light pass's warnings (None: q was given, no light pass ran)
 
 
-def run_solver(scn: Scenario, name: str, q=None) -> Run:
+def run_solver(scn: Scenario, name: str, q=None, tol: float = TOL) -> Run:
     """Solve ``scn`` with ``name``: "fast" | "paper" | "direct" (CPU) or "gpu" (GPU, fast, scn.precision)."""
     if name == "gpu":
         import gpu_shaders
@@ -609,7 +609,7 @@ def run_solver(scn: Scenario, name: str, q=None) -> Run:
         assert backend == "GPU", message
         label = "gpu-fast" + ("-fp16" if scn.precision == "fp16" else "")
     else:
-        opts = SolveOptions(solver=name, tol=TOL,
+        opts = SolveOptions(solver=name, tol=tol,
                             max_iterations=PAPER_MAX_ITERATIONS if name == "paper" else 50_000)
         solver = DiffusionSolver(scn.bake, scn.material, scn.field_values, opts)
         label = name
