@@ -79,7 +79,7 @@ def solve(solver, **kw):
     report (comparable with the paper's scheme), the second gives the image.
     """
     first = solver.solve(**kw)
-    if solver.bake.sky is None or not solver.options.sky_occlusion:
+    if solver.sky is None:
         return first, first
     kw["warm_start"] = first
     return solver.solve(bounce=solver.vertex_radiance(first), **kw), first
@@ -245,49 +245,3 @@ class Evaluator:
         ras = rasterize(scene.V, scene.F, out.vertex, scene.camera, scene.resolution, supersample=SUPERSAMPLE)
         out.image, out.mask = ras.image, ras.mask
         return out
-
-
-def occluded_environment_q(bk, env, eta, n_dirs: int = 512, levels=None, bounce=None):
-    """q (eq. 3) of an environment *with the object's self-occlusion*, per level (a bench-side
-    experiment: the engine's environment term is unoccluded).
-
-    ``q_occ = q_engine * sum_w L F_t cos V / sum_w L F_t cos`` over ``n_dirs`` Fibonacci
-    directions per node (the ratio cancels most of the quadrature error; V from shadow rays
-    against the baked mesh).  Returns a list like ``DiffusionSolver.incident``.
-    """
-    from bench.reference.mitsuba_ref import environment_radiance
-    from translucency_addon.fresnel import fresnel_transmittance
-    from translucency_addon.lights import environment_flux
-    from translucency_addon.raycast import TriangleBVH
-    from translucency_addon.sh import fibonacci_directions
-
-    bvh = TriangleBVH(bk.mesh_vertices, bk.mesh_faces)
-    diag = float(np.linalg.norm(np.ptp(bk.mesh_vertices, axis=0)))
-    dirs = fibonacci_directions(int(n_dirs))
-    Lw = environment_radiance(env, dirs)  # (D, 3)
-    out = [None] * len(bk.levels)
-    for i in (range(len(bk.levels)) if levels is None else levels):
-        lv = bk.levels[i]
-        P, N = lv.surface_position, lv.normal
-        q0 = environment_flux(env, N, eta)
-        cos = N @ dirs.T  # (n, D)
-        w = np.where(cos > 0, cos * fresnel_transmittance(np.clip(cos, 0, 1), eta), 0.0)
-        vis = np.ones_like(w, dtype=bool)
-        extra = np.zeros((len(P), 3))
-        ii, dd = np.nonzero(cos > 0)
-        for s in range(0, len(ii), 400_000):
-            a, d = ii[s:s + 400_000], dd[s:s + 400_000]
-            if bounce is None:
-                vis[a, d] = ~bvh.occluded(P[a] + 1e-4 * diag * N[a], dirs[d], np.inf)
-                continue
-            _, tri, u, v = bvh.intersect(P[a] + 1e-4 * diag * N[a], dirs[d])
-            hit = tri >= 0
-            vis[a[hit], d[hit]] = False
-            f = bk.mesh_faces[tri[hit]]
-            Lh = ((1 - u[hit] - v[hit])[:, None] * bounce[f[:, 0]] + u[hit][:, None] * bounce[f[:, 1]]
-                  + v[hit][:, None] * bounce[f[:, 2]])
-            np.add.at(extra, a[hit], w[a[hit], d[hit]][:, None] * Lh)
-        full = w @ Lw
-        occ = (w * vis) @ Lw + extra
-        out[i] = q0 * np.divide(occ, full, out=np.ones_like(occ), where=full > 1e-12)
-    return out

@@ -481,7 +481,7 @@ def _solve(st: ObjectState, solver, lights, environment, previous, occluders, ch
     never from an earlier frame, so a frame's result depends only on that
     frame's inputs (renders of single frames and of animations agree).
     """
-    if st.bake.sky is None or not solver.options.sky_occlusion:
+    if solver.sky is None:
         return solver.solve(lights, environment, warm_start=previous, shadows=True, occluders=occluders,
                             channels=channels)
     result, st.bounce = solver.solve_interreflected(lights, environment, warm_start=previous, shadows=True,

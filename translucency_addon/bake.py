@@ -398,19 +398,18 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
     shepard = [level_transfer(levels[k], levels[k + 1], s.shepard_surface, s.shepard_inner)
                for k in range(len(levels) - 1)]
     vmap = vertex_mapping(V, normals, levels[-1], s.vertex_map_k)
-    sky = None
+    bake = Bake(levels=levels, shepard=shepard, vertex_map=vmap, mesh_vertices=V, mesh_faces=F,
+                mesh_normals=normals, shadow_vertices=Vb, shadow_faces=Fb, settings=s,
+                mm_per_unit=float(s.mm_per_unit), key=key)
     if s.sky_directions:
         from .sky_visibility import compute_sky_visibility
 
         pr.stage("sky visibility")
-        sky_bake = Bake(levels=levels, shepard=shepard, vertex_map=vmap, mesh_vertices=V, mesh_faces=F,
-                        mesh_normals=normals, shadow_vertices=Vb, shadow_faces=Fb, settings=s,
-                        mm_per_unit=float(s.mm_per_unit), key=key)
-        sky = compute_sky_visibility(sky_bake, s.sky_directions, bvh=bvh,
-                                     progress=lambda f: pr.within("sky visibility", f))
+        bake.sky = compute_sky_visibility(bake, s.sky_directions, bvh=bvh,
+                                          progress=lambda f: pr.within("sky visibility", f))
     pr.done()
 
-    stats = {
+    bake.stats = stats = {
         "mesh": {
             "vertices": report.n_vertices, "triangles": report.n_triangles, "holes": report.holes,
             "boundary_edges": report.boundary_edges, "warnings": report.warnings,
@@ -421,9 +420,6 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
         "seconds": round(time.perf_counter() - t_start, 4),
         "settings": asdict(s),
     }
-    bake = Bake(levels=levels, shepard=shepard, vertex_map=vmap, mesh_vertices=V, mesh_faces=F,
-                mesh_normals=normals, shadow_vertices=Vb, shadow_faces=Fb, settings=s,
-                mm_per_unit=float(s.mm_per_unit), key=key, stats=stats, sky=sky)
     stats["graph_bytes"] = bake.graph_bytes()
     return bake
 

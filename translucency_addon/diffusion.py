@@ -745,7 +745,7 @@ class DiffusionSolver:
         previous solve, (n_vertices, 3) -- adds the light the object sends to
         itself through those directions (one interreflection bounce).
         """
-        sky = self.bake.sky if self.options.sky_occlusion else None
+        sky = self.sky
         if sky is None:
             bounce = None
         want = range(len(self.bake.levels)) if levels is None else levels
@@ -804,6 +804,11 @@ class DiffusionSolver:
                 cache.clear()
             cache.update(zip(todo, (bool(f) for f in flags)))
         return [light for light, k in zip(cand, keys) if cache[k]]
+
+    @property
+    def sky(self):
+        """The bake's sky visibility when this solver uses it (baked and ``options.sky_occlusion``), else None."""
+        return self.bake.sky if self.options.sky_occlusion else None
 
     # -- solve -------------------------------------------------------------------
     def can_warm_start(self, warm_start) -> bool:
@@ -864,7 +869,7 @@ class DiffusionSolver:
         """
         res = self.solve(lights, environment, warm_start=warm_start, bounce=bounce, **kw)
         L = self.vertex_radiance(res)
-        if self.bake.sky is None or not self.options.sky_occlusion:
+        if self.sky is None:
             return res, L
         for _ in range(int(bounces) - (bounce is not None)):
             res = self.solve(lights, environment, warm_start=res, bounce=L, **kw)

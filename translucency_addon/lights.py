@@ -108,6 +108,17 @@ class Environment:
     def is_black(self) -> bool:
         return not np.any(np.asarray(self.radiance) > 0) and (self.sh is None or not np.any(self.sh))
 
+    def radiance_at(self, dirs: np.ndarray) -> np.ndarray:
+        """Radiance arriving from unit directions (n, 3) -> (n, 3): the uniform part plus the
+        real-SH part (``sh`` conventions)."""
+        dirs = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+        L = np.broadcast_to(np.asarray(self.radiance, dtype=np.float64), (len(dirs), 3)).copy()
+        if self.sh is not None:
+            from .sh import evaluate
+
+            L += evaluate(np.asarray(self.sh, dtype=np.float64), dirs)
+        return L
+
 
 def spot_falloff(light: Light, cos_angle: np.ndarray) -> np.ndarray:
     """Blender's spot cone: 0 outside ``spot_size/2``, smoothstep over ``spot_blend``."""

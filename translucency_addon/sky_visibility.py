@@ -46,7 +46,7 @@ import scipy.sparse as sp
 
 from .errors import BakeCancelled, CacheError
 from .fresnel import diffuse_reflectance_external, fresnel_transmittance
-from .sh import evaluate, fibonacci_directions
+from .sh import fibonacci_directions
 
 RAY_CHUNK = 400_000  # rays per BVH call (memory)
 DEFAULT_DIRECTIONS = 64  # what the add-on bakes; 128 changed the bunny's error by < 0.1 % (docs/accuracy.md)
@@ -107,13 +107,6 @@ class SkyVisibility:
     directions: np.ndarray  # (D, 3) unit directions
     levels: list  # [LevelSky], coarse -> fine, like Bake.levels
 
-    def sky_radiance(self, environment) -> np.ndarray:
-        """The environment's radiance at :attr:`directions`, (D, 3)."""
-        L = np.broadcast_to(np.asarray(environment.radiance, dtype=np.float64), (len(self.directions), 3)).copy()
-        if environment.sh is not None:
-            L += evaluate(np.asarray(environment.sh, dtype=np.float64), self.directions)
-        return L
-
     def correct(self, level: int, normals: np.ndarray, eta: float, q_env, environment=None,
                 vertex_radiance=None) -> np.ndarray:
         """q of the environment on ``level`` with the hidden sky removed and the bounce added.
@@ -127,7 +120,7 @@ class SkyVisibility:
         w = lv.weight(eta, normals, self.directions)
         q = np.zeros((lv.n_surface, 3)) if q_env is None else np.array(q_env, dtype=np.float64)
         if environment is not None and not environment.is_black:
-            q = np.maximum(q - lv.hidden_sky(w, self.sky_radiance(environment)), 0.0)
+            q = np.maximum(q - lv.hidden_sky(w, environment.radiance_at(self.directions)), 0.0)
         if vertex_radiance is not None:
             q = q + lv.bounce(w, vertex_radiance)
         return q

@@ -187,14 +187,9 @@ ENVMAP_WIDTH = 512  # lat-long map for an SH environment; bilinear error < 1e-4 
 
 
 def environment_radiance(env, dirs: np.ndarray) -> np.ndarray:
-    """The engine's environment radiance at unit directions (n, 3) -> (n, 3):
-    the uniform ``radiance`` plus the real-SH part (``translucency_addon.sh`` conventions)."""
-    L = np.broadcast_to(np.asarray(env.radiance, dtype=np.float64), (len(dirs), 3)).copy()
-    if env.sh is not None:
-        from translucency_addon.sh import evaluate
-
-        L += evaluate(np.asarray(env.sh, dtype=np.float64), dirs)
-    return L
+    """The engine's environment radiance at unit directions (n, 3) -> (n, 3) (the scene
+    description's own ``Environment.radiance_at``)."""
+    return env.radiance_at(dirs)
 
 
 def _envmap_bitmap(env, channel: int, variant: str, mi, width: int = ENVMAP_WIDTH):
