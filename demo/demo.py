@@ -157,8 +157,9 @@ def import_bunny():
 def bunny_material():
     """Black base + clear specular: all diffuse light on the bunny is the subsurface solve."""
     mat = bpy.data.materials.new("Bunny Marble")
-    if bpy.app.version < (5, 0, 0):
-        mat.use_nodes = True
+    from translucency.ops.compat import ensure_node_tree
+
+    ensure_node_tree(mat)
     bsdf = next(n for n in mat.node_tree.nodes if n.type == 'BSDF_PRINCIPLED')
     bsdf.inputs["Base Color"].default_value = (0.0, 0.0, 0.0, 1.0)
     bsdf.inputs["Roughness"].default_value = 0.25
@@ -167,8 +168,9 @@ def bunny_material():
 
 def floor_material():
     mat = bpy.data.materials.new("Floor")
-    if bpy.app.version < (5, 0, 0):
-        mat.use_nodes = True
+    from translucency.ops.compat import ensure_node_tree
+
+    ensure_node_tree(mat)
     bsdf = next(n for n in mat.node_tree.nodes if n.type == 'BSDF_PRINCIPLED')
     bsdf.inputs["Base Color"].default_value = (0.18, 0.18, 0.2, 1.0)
     bsdf.inputs["Roughness"].default_value = 0.6
@@ -232,8 +234,9 @@ def build_scene(args):
     scene.camera = camera
 
     world = bpy.data.worlds.new("Dim World")
-    if bpy.app.version < (5, 0, 0):
-        world.use_nodes = True
+    from translucency.ops.compat import ensure_node_tree
+
+    ensure_node_tree(world)
     background = world.node_tree.nodes.get("Background")
     if background is not None:
         background.inputs["Color"].default_value = (0.02, 0.022, 0.03, 1.0)

@@ -23,6 +23,8 @@ from bpy.props import (
     StringProperty,
 )
 
+from . import compat
+
 # Used when the engine's preset table cannot be imported (it needs only numpy,
 # but registration must never depend on it): Jensen et al. 2001 names.
 _FALLBACK_PRESET_NAMES = (
@@ -84,7 +86,7 @@ MATERIAL_ITEMS = PRESET_ITEMS + [
 ]
 # Blender 4.5+ warns when a path property gets a "//" (blend-relative) value
 # unless the property says it supports one; 4.2 does not know the flag.
-PATH_OPTIONS = {'PATH_SUPPORTS_BLEND_RELATIVE'} if bpy.app.version >= (4, 5, 0) else set()
+PATH_OPTIONS = compat.PATH_OPTIONS
 
 _DEFAULT_PRESET = "MARBLE" if any(item[0] == "MARBLE" for item in PRESET_ITEMS) else PRESET_ITEMS[0][0]
 _DEFAULT_SECOND = "KETCHUP" if any(item[0] == "KETCHUP" for item in PRESET_ITEMS) else PRESET_ITEMS[-1][0]

@@ -113,9 +113,9 @@ def material_uses_aov(material, aov_name) -> bool:
 
 
 def _ensure_node_tree(material):
-    if material.node_tree is None or (bpy.app.version < (5, 0, 0) and not material.use_nodes):
-        material.use_nodes = True  # Blender < 5.0; 5.0 materials always have a node tree
-    return material.node_tree
+    from .compat import ensure_node_tree
+
+    return ensure_node_tree(material)
 
 
 def _add_aov_pair(tree, attr_role, aov_role, attribute, aov_name, origin, row):
@@ -341,8 +341,10 @@ def draw_settings(layout, context) -> None:
 # --- render settings helpers (tests, demo, scripts) --------------------------------------
 
 def eevee_engine_id() -> str:
-    """EEVEE's ``scene.render.engine`` id: BLENDER_EEVEE_NEXT in 4.2-4.5, BLENDER_EEVEE in 5.0."""
-    return 'BLENDER_EEVEE_NEXT' if (4, 2, 0) <= bpy.app.version < (5, 0, 0) else 'BLENDER_EEVEE'
+    """EEVEE's ``scene.render.engine`` id (:func:`.compat.eevee_engine_id`)."""
+    from .compat import eevee_engine_id as engine_id
+
+    return engine_id()
 
 
 def configure_output(image_settings, file_format, codec='ZIP') -> None:
@@ -351,8 +353,9 @@ def configure_output(image_settings, file_format, codec='ZIP') -> None:
     Blender 5.0 first needs the media type (``MULTI_LAYER_IMAGE`` for a
     multilayer EXR); 4.x has only the file format.
     """
-    if hasattr(image_settings, "media_type"):
-        image_settings.media_type = 'MULTI_LAYER_IMAGE' if file_format == 'OPEN_EXR_MULTILAYER' else 'IMAGE'
+    from .compat import set_media_type
+
+    set_media_type(image_settings, file_format == 'OPEN_EXR_MULTILAYER')
     image_settings.file_format = file_format
     if file_format.startswith('OPEN_EXR'):
         image_settings.exr_codec = codec

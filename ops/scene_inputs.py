@@ -63,6 +63,8 @@ import bpy
 import numpy as np
 from mathutils import Vector
 
+from . import compat
+
 # ------------------------------------------------------------------ object scale
 
 
@@ -277,8 +279,7 @@ def world_environment(world):
     if world is None:
         return None, None
     tree = world.node_tree
-    use_nodes = bpy.app.version >= (5, 0, 0) or bool(getattr(world, "use_nodes", False))
-    if not use_nodes or tree is None:
+    if not compat.uses_nodes(world):
         rgb = tuple(float(c) for c in world.color[:3])
         return (Environment(radiance=rgb) if max(rgb) > 0 else None), None
     out = _active_world_output(tree)

@@ -37,8 +37,9 @@ def _white_plane():
     plane = bpy.context.object
     plane.scale = (1.5, 1.5, 1.5)
     mat = bpy.data.materials.new("white")
-    if bpy.app.version < (5, 0, 0):
-        mat.use_nodes = True
+    from translucency.ops.compat import ensure_node_tree
+
+    ensure_node_tree(mat)
     tree = mat.node_tree
     for node in list(tree.nodes):
         tree.nodes.remove(node)
@@ -196,8 +197,9 @@ def test_world_colour_times_strength_is_radiance(blender, addon, tmp_path):
     scene = _scene(tmp_path, samples=64)
     plane = _white_plane()
     world = bpy.data.worlds.new("sky")
-    if bpy.app.version < (5, 0, 0):
-        world.use_nodes = True
+    from translucency.ops.compat import ensure_node_tree
+
+    ensure_node_tree(world)
     background = next(n for n in world.node_tree.nodes if n.type == 'BACKGROUND')
     background.inputs["Color"].default_value = (0.6, 0.5, 0.4, 1.0)
     background.inputs["Strength"].default_value = 1.5
@@ -218,8 +220,9 @@ def test_exposure_and_linked_world_warning(blender, addon):
     (converted,) = scene_inputs.collect_lights(depsgraph, plane.matrix_world, 1.0)
     assert converted.intensity == pytest.approx(2.0 * 100.0 / (4.0 * math.pi))
     world = bpy.data.worlds.new("sky")
-    if bpy.app.version < (5, 0, 0):
-        world.use_nodes = True
+    from translucency.ops.compat import ensure_node_tree
+
+    ensure_node_tree(world)
     tree = world.node_tree
     sky = tree.nodes.new("ShaderNodeTexSky")
     background = next(n for n in tree.nodes if n.type == 'BACKGROUND')

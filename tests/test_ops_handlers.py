@@ -88,8 +88,9 @@ def test_changes_that_resolve(live, change):
         obj.location = (0.0, 0.0, 2.0)
     elif change == "world":
         world = bpy.data.worlds.new("sky")
-        if bpy.app.version < (5, 0, 0):
-            world.use_nodes = True
+        from translucency.ops.compat import ensure_node_tree
+
+        ensure_node_tree(world)
         next(n for n in world.node_tree.nodes if n.type == 'BACKGROUND').inputs["Strength"].default_value = 5.0
         bpy.context.scene.world = world
     elif change == "texture":
@@ -252,7 +253,7 @@ def test_headless_render_of_a_saved_file(blender, addon, memo_bakes, tmp_path):
     assert result["1"] > 0 and result["10"] > 0 and result["1"] != pytest.approx(result["10"], rel=0.05)
     assert "loaded the bake of 'Blob'" in proc.stdout
     assert "'Blob' solves on the CPU" in proc.stdout or "'Blob' solves on the GPU" in proc.stdout
-    assert "frame 10: 'Blob' solved on the" in proc.stdout
+    assert "frame 10: 'Blob' solved on the" in proc.stdout, proc.stdout
 
 
 def test_load_post_clears_runtime_state(live, tmp_path):

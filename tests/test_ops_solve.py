@@ -214,8 +214,9 @@ def test_occluders_cast_shadows(blender, addon, cache_dir, memo_bakes):
 def test_world_lights_the_object(blender, addon, cache_dir, memo_bakes):
     obj = _baked()
     world = bpy.data.worlds.new("sky")
-    if bpy.app.version < (5, 0, 0):
-        world.use_nodes = True
+    from translucency.ops.compat import ensure_node_tree
+
+    ensure_node_tree(world)
     background = next(n for n in world.node_tree.nodes if n.type == 'BACKGROUND')
     background.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
     background.inputs["Strength"].default_value = 1.0

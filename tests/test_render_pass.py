@@ -60,8 +60,9 @@ def sphere_scene(material=True):
     bpy.ops.object.shade_smooth()
     if material:
         mat = bpy.data.materials.new("Sphere Material")
-        if bpy.app.version < (5, 0, 0):
-            mat.use_nodes = True  # 5.0 materials always have a node tree
+        from translucency.ops.compat import ensure_node_tree
+
+        ensure_node_tree(mat)
         obj.data.materials.append(mat)
     write_radiance(obj, lit_from_plus_x)
     scene = bpy.context.scene
