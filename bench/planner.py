@@ -108,12 +108,12 @@ def planned(o, lights, tracker):
         s = o.setdefault("solver_plan", DiffusionSolver(o["bake"], o["material"], options=SolveOptions(tol=1e-4)))
         r = s.solve(lights, warm_start=o.get("result"), channels=plan.multiple.channels)
         o["result"] = r
-        L_ms = s.vertex_radiance(r, o["view_dirs"])
+        L_ms = s.vertex_radiance(r, o["view_dirs"]) * plan.vertex_weights("multiple", *o["bake"].vertex_map)
     elif not plan.multiple.runs:
         L_ms = np.zeros((n, 3))
     if work.single and plan.single.runs:
         L_ss = o["ss_eval"].radiance(lights, None, o["material"].eta, 1.0, o["view"])
-        L_ss = L_ss * np.asarray(plan.single.channels, dtype=np.float64)
+        L_ss = L_ss * plan.vertex_weights("single", *o["bake"].vertex_map)  # its channels and region
     elif not plan.single.runs:
         L_ss = np.zeros((n, 3))
     o["last"] = (L_ms, L_ss)
@@ -147,13 +147,13 @@ def main(argv=None):
             peak = max(float(total_all.max()), 1e-12)
             plan = plan_object(o["bake"], o["material"], lights, None, has_single_scattering=True)
             # single scattering the planner skips as contained in diffusion: deliberate
-            skip_ss = np.zeros(3, dtype=bool)
-            invalid_ms = np.zeros(3, dtype=bool)
+            # and diffusion it replaces by single scattering where diffusion is invalid: deliberate too
+            contained_part = invalid_part = np.zeros_like(ms_all)
             if plan.run and plan.single is not None:
-                skip_ss = np.array(plan.multiple.channels) & ~np.array(plan.single.channels)
-                invalid_ms = np.array(["invalid" in r for r in plan.multiple.reasons])
-            contained_part = ss_all * skip_ss
-            invalid_part = ms_all * invalid_ms
+                w_ms = plan.vertex_weights("multiple", *o["bake"].vertex_map)
+                w_ss = plan.vertex_weights("single", *o["bake"].vertex_map)
+                contained_part = ss_all * (1.0 - w_ss) * plan.channel_mask("multiple")
+                invalid_part = ms_all * (1.0 - w_ms) * plan.channel_mask("single")
             contained[o["name"]] = max(contained[o["name"]], float(np.abs(contained_part).max()) / peak)
             invalid[o["name"]] = max(invalid[o["name"]], float(np.abs(invalid_part).max()) / peak)
             other = np.abs((ms_p + ss_p) - (total_all - contained_part - invalid_part)).max() / peak

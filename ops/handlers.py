@@ -158,9 +158,7 @@ def on_frame_change_post(scene, depsgraph=None):
     reports = runtime.solve_scene(scene, depsgraph, use_camera=rendering)
     if rendering:
         for r in reports:
-            runtime.log(f"frame {scene.frame_current}: '{r.name}' solved on the {r.backend} in "
-                        f"{r.seconds:.3f} s ({r.iterations} iterations, residual {r.residual:.2e}), "
-                        f"view towards the camera")
+            runtime.log(f"frame {scene.frame_current}: {r.describe()}, view towards the camera")
 
 
 @persistent

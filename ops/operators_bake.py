@@ -265,7 +265,7 @@ class BakeJob:
             messages.append(('WARNING', f"'{obj.name}' baked, but the first solve failed: {ex}"))
         else:
             if report is not None:
-                messages.append(('INFO', f"Solved '{obj.name}' on the {report.backend} in {report.seconds:.2f} s"))
+                messages.append(('WARNING' if report.skipped else 'INFO', report.describe()))
         return messages
 
 

@@ -67,14 +67,7 @@ class TRANSLUCENCY_OT_solve(bpy.types.Operator):
                 self.report({'WARNING'}, f"'{obj.name}' is in Edit Mode: switch to Object Mode to solve it")
                 continue
             st = runtime.get_state(obj)
-            if obj.translucency.use_multiple_scattering:
-                text = (f"Solved '{obj.name}' on the {report.backend} in {report.seconds:.3f} s "
-                        f"({report.iterations} iterations, residual {report.residual:.2e})")
-            else:
-                text = f"Evaluated '{obj.name}' (multiple scattering off)"
-            if report.ss_backend:
-                text += f"; single scattering {1000 * report.ss_seconds:.1f} ms on the {report.ss_backend}"
-            self.report({'INFO'}, text)
+            self.report({'WARNING'} if report.skipped else {'INFO'}, report.describe())
             if st is not None and st.backend_message and not getattr(st, "_message_reported", False):
                 self.report({'INFO'}, f"'{obj.name}': {st.backend_message}")
                 st._message_reported = True

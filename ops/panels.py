@@ -168,7 +168,7 @@ def _draw_object_settings(layout, obj, context=None) -> None:
     if plan_text:
         sub = box.box()
         sub.label(text="Passes this frame (planner)", icon='PRESET')
-        _draw_multiline(sub, plan_text.split("\n", 1)[1] if "\n" in plan_text else plan_text, width=90)
+        _draw_multiline(sub, plan_text, width=90)  # the first line says whether it runs, or why not
     if settings.ss_message:
         stale = "re-bake" in settings.ss_message or "not baked" in settings.ss_message
         sub = box.column()

@@ -81,6 +81,23 @@ class SolveReport:
     vertices: int
     ss_seconds: float = 0.0  # single-scattering evaluation (0: not evaluated)
     ss_backend: str = ""
+    skipped: str = ""  # why no pass ran (the planner's reason, with its numbers); "" when one ran
+    ms_ran: bool = True  # the diffusion pass ran (False: single scattering only, or skipped)
+
+    def describe(self) -> str:
+        """One line for the Info log and the status bar; a skip never reads as a solve."""
+        if self.skipped:
+            return f"'{self.name}' skipped, nothing computed: {self.skipped}"
+        parts = []
+        if self.ms_ran:
+            parts.append(f"solved on the {self.backend} in {self.seconds:.3f} s "
+                         f"({self.iterations} iterations, residual {self.residual:.2e})"
+                         + ("" if self.solved else "; that solution reused, nothing it depends on changed"))
+        if self.ss_backend:
+            parts.append(f"single scattering {1000 * self.ss_seconds:.1f} ms on the {self.ss_backend}")
+        if not parts:
+            parts.append("diffusion turned off; nothing else to evaluate")
+        return f"'{self.name}' " + "; ".join(parts)
 
 
 @dataclass
@@ -489,6 +506,14 @@ def _solve(st: ObjectState, solver, lights, environment, previous, occluders, ch
     return result
 
 
+def _vertex_map(obj, st: ObjectState):
+    """(idx, w): the finest surface nodes that carry values to ``obj.data``'s vertices."""
+    if len(obj.data.vertices) == len(st.bake.mesh_vertices):
+        return st.bake.vertex_map
+    _, idx, w, _V, _N = _original_mapping(obj, st)
+    return idx, w
+
+
 def radiance_for_mesh(obj, st: ObjectState, solver, result, view) -> np.ndarray:
     """(len(obj.data.vertices), 3) outgoing radiance for the original mesh's vertices."""
     from ..translucency_addon.diffusion import outgoing_radiance
@@ -715,6 +740,8 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
             return None
         rgb = np.zeros((n_vertices, 3))
     rgb = np.asarray(rgb, dtype=np.float64)
+    if use_ms and plan.multiple.weights is not None:  # diffusion only where the planner keeps it
+        rgb = rgb * plan.vertex_weights("multiple", *_vertex_map(obj, st))
     if not np.all(np.isfinite(rgb)):
         raise TranslucencyError(f"'{obj.name}': the solve produced NaN or Inf radiance; check the material")
 
@@ -723,7 +750,7 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
         ss_rgb = _single_scattering(obj, st, material, lights, environment, mm, ss_view, prefer, off_main)
         if not np.all(np.isfinite(ss_rgb)):
             raise TranslucencyError(f"'{obj.name}': single scattering produced NaN or Inf radiance")
-        ss_rgb = ss_rgb * np.asarray(plan.single.channels, dtype=np.float64)  # the planner's channels
+        ss_rgb = ss_rgb * plan.vertex_weights("single", *_vertex_map(obj, st))  # the planner's channels and region
         rgb = rgb + ss_rgb
     else:
         st.ss_seconds, st.ss_rgb = 0.0, None
@@ -751,7 +778,8 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     return SolveReport(name=obj.name, backend=report_backend, seconds=st.seconds if use_ms else 0.0,
                        residual=st.residual if use_ms else 0.0, iterations=st.iterations if use_ms else 0,
                        solved=solved, view="CAMERA" if view is not None else "NORMAL", vertices=len(rgb),
-                       ss_seconds=st.ss_seconds if use_ss else 0.0, ss_backend=st.ss_backend if use_ss else "")
+                       ss_seconds=st.ss_seconds if use_ss else 0.0, ss_backend=st.ss_backend if use_ss else "",
+                       skipped="" if plan.run else plan.reason, ms_ran=use_ms)
 
 
 # ------------------------------------------------------------------ single scattering

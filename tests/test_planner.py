@@ -265,3 +265,60 @@ def test_ketchup_plan_is_confirmed_by_the_path_tracer():
     # and the skipped diffusion channels are small in the reference: < 5 % of red
     mean_ref = ref.image[m].mean(axis=0)
     assert np.all(mean_ref[1:] < 0.05 * mean_ref[0]), mean_ref
+
+
+# ---------------------------------------------------------------- validity per region (issue 21)
+@pytest.fixture(scope="module")
+def finned():
+    """A marble sphere 15 mm across with a 0.3 mm fin (marble's transport mean free path: 0.33-0.46 mm)."""
+    V, F = primitives.finned_sphere()  # radius 1 unit, fin 0.04 units thick
+    return bake_mesh(V, F, BakeSettings(quality="preview", mm_per_unit=7.5))
+
+
+def test_a_thin_fin_does_not_turn_off_diffusion_on_the_body(finned):
+    """Without single scattering, diffusion keeps running everywhere (the only pass that can render),
+    says where it is doubtful and what would be better; the body renders exactly as with All Passes."""
+    marble, env = material_from_preset("marble"), Environment((1.0, 1.0, 1.0))
+    plan = plan_object(finned, marble, [], env, has_single_scattering=False, name="finned")
+    text = describe_plan(plan)
+    assert plan.run and plan.multiple.channels == (True, True, True) and plan.multiple.weights is None, text
+    share = plan.facts["thin_fraction"]
+    assert all(0.15 < f < 0.4 for f in share), share  # the fin is ~28 % of the area
+    assert "B: diffusion doubtful where thinner than 0.33 mm (1 transport mean free path)" in text, text
+    assert "single scattering would be more accurate on" in text and "bake it to use it" in text, text
+    s = DiffusionSolver(finned, marble, options=SolveOptions(tol=1e-6))
+    full = s.vertex_radiance(s.solve([], env))
+    planned = s.vertex_radiance(s.solve([], env, channels=plan.multiple.channels)) \
+        * plan.vertex_weights("multiple", *finned.vertex_map)
+    assert planned.min() >= 0 and planned.mean() > 0.1
+    np.testing.assert_allclose(planned, full, rtol=1e-9, atol=1e-12)
+
+
+def test_single_scattering_replaces_diffusion_only_where_it_is_invalid(finned):
+    marble, env = material_from_preset("marble"), Environment((1.0, 1.0, 1.0))
+    plan = plan_object(finned, marble, [], env, has_single_scattering=True, name="finned")
+    assert plan.multiple.channels == plan.single.channels == (True, True, True), describe_plan(plan)
+    lv = finned.finest
+    x = lv.surface_position[:, 0]
+    body, fin = x < 0.5, x > 1.05
+    assert np.all(plan.single.weights[body] == 0.0) and np.all(plan.multiple.weights[body] == 1.0)
+    assert plan.single.weights[fin].mean() > 0.7  # measured 0.82: the fin's rim measures thicker than its faces
+    np.testing.assert_array_equal(plan.single.weights + plan.multiple.weights, 1.0)
+    w_ss = plan.vertex_weights("single", *finned.vertex_map)
+    vx = finned.mesh_vertices[:, 0]
+    assert np.all(w_ss[vx < 0.5] == 0.0) and w_ss[vx > 1.05].mean() > 0.5
+    # turned off: single scattering is not available, so diffusion runs everywhere again
+    off = plan_object(finned, marble, [], env, has_single_scattering=True, overrides={"single": False})
+    assert off.multiple.weights is None and off.multiple.channels == (True, True, True)
+    assert "turn it on to use it" in describe_plan(off)
+
+
+def test_nothing_runs_only_when_no_pass_returns_light():
+    """An absorber (reduced albedo 0.1) with no single scattering: the skip says why, in numbers."""
+    b = baked("sphere", mm_per_unit=15.0)
+    absorber = Material(Medium((0.9,) * 3, (0.1,) * 3, "absorber"), None, 1.3)
+    plan = plan_object(b, absorber, SUN, None, has_single_scattering=False, name="absorber")
+    text = describe_plan(plan)
+    assert not plan.run and "no pass returns light" in plan.reason and "reduced albedo 0.10" in plan.reason, text
+    assert "single scattering is the valid term" not in text and "not baked" in plan.reason
+    assert "better: RGB: single scattering would be more accurate on 100 % of the surface" in text, text

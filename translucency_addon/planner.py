@@ -12,16 +12,23 @@ checked against the independent path tracer (Mitsuba, scattered light only:
 the render minus the same medium without scattering); the numbers are quoted
 below and in the tests.
 
-* **Diffusion valid** where the reduced albedo ``alpha'_c >= ALBEDO_MIN``
-  (0.5: on average at least one scattering event before absorption) and the
-  object's thin parts are at least ``THICK_MIN`` (1) transport mean free
-  paths thick.  A 10 mm cube with alpha' = 0.98 under uniform light:
+* **Diffusion valid**, decided per finest surface node (a region, not the
+  whole object: a thin tail does not invalidate a thick body), where the
+  reduced albedo ``alpha'_c >= ALBEDO_MIN`` (0.5: on average at least one
+  scattering event before absorption) and the local thickness (a ray along
+  the inward normal, :func:`surface_thickness`) is at least ``THICK_MIN`` (1)
+  transport mean free paths.  A 10 mm cube with alpha' = 0.98 under uniform light:
   diffusion is +440 % at 0.2 transport mean free paths (it diffuses light that
   would cross unscattered), +60 % at 1, +0.2 % at 10; single scattering is
   -66 %, -73 %, -88 %.  Ketchup (15 mm sphere): diffusion is right in red
   (alpha' 0.75), single scattering matches green and blue (alpha' 0.07, 0.02)
-  where diffusion returns nothing.  Otherwise the pass is not run for that
-  channel ("invalid"); single scattering is the valid term there.
+  where diffusion returns nothing.  Where diffusion is invalid and single
+  scattering is baked, single scattering replaces it *in that region only*
+  (per-node weights, :attr:`PassDecision.weights`, mapped to the vertices like
+  the radiance); where single scattering is not baked or is turned off,
+  diffusion keeps running there and the plan says it is doubtful, where and
+  how much (**never turn off the only pass**).  A channel is left out only
+  where its pass returns nothing (below).
 * **Contribution** of the diffusion pass: our own model's semi-infinite
   albedo (the diffusive-source boundary of eq. 2 over a half-space):
   ``R_ms = (1 - F_dr)/(2 (1 + F_dr)) max(0, 4/((1 - F_dr)(1 + 2 A sqrt((1 - alpha')/3))) - 2)``,
@@ -69,13 +76,17 @@ CHANNELS = ("R", "G", "B")
 
 @dataclass
 class PassDecision:
-    """One pass of one object: which channels run and why."""
+    """One pass of one object: which channels run, where, and why."""
 
     name: str  # "multiple" (diffusion) or "single"
     channels: tuple  # (bool, bool, bool)
     reasons: list  # one human-readable reason per channel
     bound: tuple = (0.0, 0.0, 0.0)  # single scattering: B_ss relative to diffusion, per channel
     forced: bool = False
+    # (n_surface, 3) weights in [0, 1] at the finest level's surface nodes: where in the object the
+    # pass counts (diffusion where it is valid, single scattering where it replaces diffusion).
+    # None: everywhere.  Only channels that run matter.
+    weights: np.ndarray | None = None
 
     @property
     def runs(self) -> bool:
@@ -93,6 +104,7 @@ class Plan:
     single: PassDecision | None = None
     estimated_ms: float = 0.0
     facts: dict = field(default_factory=dict)
+    advice: list = field(default_factory=list)  # what a better result would need (panel, CLI)
 
     @property
     def passes(self) -> dict:
@@ -101,6 +113,22 @@ class Plan:
     def channel_mask(self, name: str) -> np.ndarray:
         p = self.passes.get(name)
         return np.array(p.channels if (p is not None and self.run) else (False, False, False))
+
+    def vertex_weights(self, name: str, idx, w) -> np.ndarray:
+        """(n, 3) weight of pass ``name`` at points mapped onto the finest surface nodes.
+
+        ``idx``/``w`` (n, k): the same node indices and weights that carry the
+        radiance to the vertices (``Bake.vertex_map`` or :func:`.bake.vertex_mapping`),
+        so the region a pass covers blends over the same few nodes as its
+        radiance.  Channels that do not run are 0.
+        """
+        mask = self.channel_mask(name).astype(np.float64)
+        idx = np.asarray(idx)
+        p = self.passes.get(name)
+        if p is None or p.weights is None or not self.run:
+            return np.broadcast_to(mask, (len(idx), 3)).copy()
+        mapped = np.einsum("vk,vkc->vc", np.asarray(w, dtype=np.float64), p.weights[idx])
+        return np.clip(mapped, 0.0, 1.0) * mask
 
 
 def semi_infinite_albedo(alpha_reduced, eta: float) -> np.ndarray:
@@ -117,41 +145,59 @@ def semi_infinite_albedo(alpha_reduced, eta: float) -> np.ndarray:
     return (1.0 - fdr) * np.maximum(phi0 - 2.0, 0.0) / (2.0 * (1.0 + fdr))
 
 
-def object_thickness(bake, samples: int = 2000, seed: int = 0) -> dict:
-    """Local thickness of the object (mm) along inward normals of surface nodes.
+def surface_thickness(bake) -> np.ndarray:
+    """Local thickness (object units) at every surface node of the finest level.
 
-    Cached on the bake.  Returns percentiles and the bounding-sphere radius.
+    One ray per node along its inward normal to the baked mesh (the scene's
+    own BVH, :class:`.raycast.TriangleBVH`); a ray that leaves through no
+    triangle (an open mesh) counts as the bounding box's diagonal.  Geometry
+    only, so it is cached per bake key and scaled to mm by the caller.
     """
-    key = (bake.key, float(bake.mm_per_unit), samples, seed)
-    if key in _THICKNESS:
-        return _THICKNESS[key]
+    key = (bake.key, bake.finest.n_surface)
+    hit = _THICKNESS.get(key)
+    if hit is not None:
+        return hit
     from .raycast import TriangleBVH
 
     lv = bake.finest
-    rng = np.random.default_rng(seed)
-    pick = rng.choice(lv.n_surface, size=min(samples, lv.n_surface), replace=False)
-    p = lv.surface_position[pick]
-    n = lv.normal[pick]
-    V = bake.mesh_vertices
+    V = np.asarray(bake.mesh_vertices, dtype=np.float64)
     diag = float(np.linalg.norm(np.ptp(V, axis=0)))
-    bvh = TriangleBVH(V, bake.mesh_faces)
-    t, tri, _, _ = bvh.intersect(p - 1e-5 * diag * n, -n, tmin=1e-6 * diag)
-    t = np.where(tri >= 0, t, diag) * bake.mm_per_unit
-    center = 0.5 * (V.max(axis=0) + V.min(axis=0))
-    out = {
-        "thin_mm": float(np.percentile(t, 10)),
-        "median_mm": float(np.median(t)),
-        "radius_mm": float(np.max(np.linalg.norm(V - center, axis=1)) * bake.mm_per_unit),
-        "center": center,
-        "radius_units": float(np.max(np.linalg.norm(V - center, axis=1))),
-    }
+    n = np.asarray(lv.normal, dtype=np.float64)
+    p = np.asarray(lv.surface_position, dtype=np.float64)
+    t, tri, _, _ = TriangleBVH(V, bake.mesh_faces).intersect(p - 1e-5 * diag * n, -n, tmin=1e-6 * diag)
+    t = np.where(tri >= 0, t, diag)
     if len(_THICKNESS) > 64:
         _THICKNESS.clear()
-    _THICKNESS[key] = out
-    return out
+    _THICKNESS[key] = t
+    return t
 
 
-_THICKNESS: dict = {}  # (bake key, mm per unit, ...) -> thickness facts (bakes are immutable)
+def object_thickness(bake) -> dict:
+    """Thickness facts (mm) of the object: 10th percentile and median of :func:`surface_thickness`
+    (area-weighted over the surface nodes), the bounding sphere, and the per-node thickness."""
+    V = np.asarray(bake.mesh_vertices, dtype=np.float64)
+    t_mm = surface_thickness(bake) * bake.mm_per_unit
+    center = 0.5 * (V.max(axis=0) + V.min(axis=0))
+    radius = float(np.max(np.linalg.norm(V - center, axis=1)))
+    return {
+        "thin_mm": _weighted_percentile(t_mm, bake.finest.area, 10.0),
+        "median_mm": _weighted_percentile(t_mm, bake.finest.area, 50.0),
+        "radius_mm": radius * bake.mm_per_unit,
+        "center": center,
+        "radius_units": radius,
+        "node_mm": t_mm,
+    }
+
+
+def _weighted_percentile(x, w, q: float) -> float:
+    order = np.argsort(x)
+    cw = np.cumsum(np.asarray(w, dtype=np.float64)[order])
+    if cw[-1] <= 0:
+        return float(np.percentile(x, q))
+    return float(np.asarray(x)[order][min(np.searchsorted(cw, q / 100.0 * cw[-1]), len(x) - 1)])
+
+
+_THICKNESS: dict = {}  # (bake key, n_surface) -> per-node thickness in units (bakes are immutable)
 
 
 def light_reaching(lights, environment, center, radius_units: float, mm_per_unit: float) -> tuple[np.ndarray, list]:
@@ -197,10 +243,15 @@ def light_reaching(lights, environment, center, radius_units: float, mm_per_unit
 def plan_object(bake, material: Material, lights=(), environment: Environment | None = None, *,
                 field_values=None, has_single_scattering: bool | None = None, in_view: bool = True,
                 enabled: bool = True, overrides: dict | None = None, name: str = "object") -> Plan:
-    """Decide the passes of one object for this frame (see the module docstring)."""
+    """Decide the passes of one object for this frame (see the module docstring).
+
+    ``overrides`` force a pass on or off (``{"single": False}``: single
+    scattering is turned off, so it is not available to replace diffusion).
+    """
     overrides = overrides or {}
     if has_single_scattering is None:
         has_single_scattering = getattr(bake, "single_scattering", None) is not None
+    ss_available = bool(has_single_scattering) and overrides.get("single") is not False
     if not enabled:
         return Plan(name, False, "translucency disabled")
     if not in_view:
@@ -213,12 +264,15 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
         return Plan(name, False, "unlit: no light reaches it", facts=facts)
 
     # Coefficients: the bulk medium, or the spread over the nodes of a heterogeneous one.
+    lv = bake.finest
     if material.heterogeneous and field_values is not None:
         fv = np.asarray(field_values[-1] if isinstance(field_values, (list, tuple)) else field_values)
         sa_n, ss_n = material.coefficients(fv)
         sa, ss = sa_n.mean(axis=0), ss_n.mean(axis=0)
+        sa_s, ss_s = sa_n[lv.n_inner:], ss_n[lv.n_inner:]
     else:
         sa, ss = (np.asarray(x) for x in material.bulk().arrays())
+        sa_s, ss_s = np.broadcast_to(sa, (lv.n_surface, 3)), np.broadcast_to(ss, (lv.n_surface, 3))
     st = sa + ss
     alpha = reduced_albedo(sa, ss)
     l_tr = 1.0 / st
@@ -227,9 +281,22 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
     eta = material.eta
     R_ms = semi_infinite_albedo(alpha, eta)
     ms_estimate = R_ms * E
-    peak = max(float(ms_estimate.max()), 1e-300)
     facts.update(reduced_albedo=alpha.tolist(), optical_thickness=tau_thin.tolist(), ms_albedo=R_ms.tolist(),
                  transport_mfp_mm=l_tr.tolist())
+
+    # Validity per surface node: local thickness in transport mean free paths, local albedo.
+    area = np.asarray(lv.area, dtype=np.float64)
+    area = area / max(area.sum(), 1e-300)
+    tau_node = geo["node_mm"][:, None] * (sa_s + ss_s)
+    thin_node = tau_node < THICK_MIN
+    low_node = reduced_albedo(sa_s, ss_s) < ALBEDO_MIN
+    valid_node = ~(thin_node | low_node)
+    everywhere = ~valid_node.any(axis=0)  # exact, not a sum of areas that rounds below 1
+    invalid_frac = np.where(everywhere, 1.0, np.minimum(area @ (~valid_node), 1.0))
+    thin_frac = np.where(thin_node.all(axis=0), 1.0, area @ thin_node)
+    low_frac = np.where(low_node.all(axis=0), 1.0, area @ low_node)
+    facts.update(invalid_fraction=invalid_frac.tolist(), thin_fraction=thin_frac.tolist(),
+                 low_albedo_fraction=low_frac.tolist())
 
     # Single-scattering estimate: a half-space returns (1 - ln 2)/2 alpha = 0.153 alpha of the
     # light once scattered (isotropic phase); a thin part at most its optical thickness' share.
@@ -238,42 +305,97 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
     brightest = max(float(np.max(np.maximum(ms_estimate, ss_estimate))), 1e-300)
     facts.update(ms_estimate=ms_estimate.tolist(), ss_estimate=ss_estimate.tolist())
 
-    ms_ch, ms_why = [], []
+    def where(c: int) -> str:
+        """The region where diffusion is doubtful in channel c, in numbers."""
+        parts = []
+        if thin_frac[c] > 0:
+            parts.append(f"thinner than {THICK_MIN * l_tr[c]:.2g} mm ({THICK_MIN:g} transport mean free path)")
+        if low_frac[c] > 0:
+            parts.append(f"reduced albedo below {ALBEDO_MIN}")
+        return " or ".join(parts) + f": {_pct(invalid_frac[c])} of the surface"
+
+    def why_invalid(c: int) -> str:
+        if alpha[c] < ALBEDO_MIN or low_frac[c] >= 1.0:
+            return f"reduced albedo {alpha[c]:.2f} < {ALBEDO_MIN}"
+        return f"optically thin: {tau_thin[c]:.1f} transport mean free paths across its thin parts"
+
+    ms_ch, ms_why, ms_w = [], [], np.ones((lv.n_surface, 3))
+    ss_replaces = [False, False, False]
+    unbaked = {}  # channel -> share of the surface where single scattering would be better, not available
     for c in range(3):
-        if alpha[c] < ALBEDO_MIN:
+        C = CHANNELS[c]
+        negligible = ms_estimate[c] < NEGLIGIBLE * brightest
+        if invalid_frac[c] >= 1.0:
+            if ss_available:
+                ms_ch.append(False)
+                ms_why.append(f"{C}: diffusion invalid ({why_invalid(c)})")
+                ss_replaces[c] = True
+            elif negligible:
+                ms_ch.append(False)
+                ms_why.append(f"{C}: diffusion invalid ({why_invalid(c)}) and it returns "
+                              f"{_pct(ms_estimate[c] / brightest)} of the brightest channel")
+                unbaked[c] = 1.0
+            else:
+                ms_ch.append(True)
+                ms_why.append(f"{C}: diffusion doubtful everywhere ({why_invalid(c)}); it runs because "
+                              "single scattering is not baked or is turned off")
+                unbaked[c] = 1.0
+        elif negligible:
             ms_ch.append(False)
-            ms_why.append(f"{CHANNELS[c]}: diffusion invalid (reduced albedo {alpha[c]:.2f} < {ALBEDO_MIN})")
-        elif tau_thin[c] < THICK_MIN:
-            ms_ch.append(False)
-            ms_why.append(f"{CHANNELS[c]}: diffusion invalid (optically thin: {tau_thin[c]:.1f} transport "
-                          f"mean free paths across its thin parts)")
-        elif ms_estimate[c] < NEGLIGIBLE * brightest:
-            ms_ch.append(False)
-            ms_why.append(f"{CHANNELS[c]}: negligible ({_pct(ms_estimate[c] / brightest)} of the brightest channel)")
+            ms_why.append(f"{C}: negligible ({_pct(ms_estimate[c] / brightest)} of the brightest channel)")
+        elif invalid_frac[c] > 0.0:
+            ms_ch.append(True)
+            if ss_available:
+                ms_w[:, c] = valid_node[:, c]
+                ss_replaces[c] = True
+                ms_why.append(f"{C}: diffusion valid on {_pct(1.0 - invalid_frac[c])} of the surface; single "
+                              f"scattering replaces it where {where(c)}")
+            else:
+                ms_why.append(f"{C}: diffusion doubtful where {where(c)}; it runs there too")
+                unbaked[c] = float(invalid_frac[c])
         else:
             ms_ch.append(True)
-            ms_why.append(f"{CHANNELS[c]}: diffusion valid (reduced albedo {alpha[c]:.3f}, "
+            ms_why.append(f"{C}: diffusion valid (reduced albedo {alpha[c]:.3f}, "
                           f"{tau_thin[c]:.0f} transport mean free paths thick)")
-    multiple = PassDecision("multiple", tuple(ms_ch), ms_why)
+    multiple = PassDecision("multiple", tuple(ms_ch), ms_why,
+                            weights=None if np.all(ms_w == 1.0) else ms_w)
+    advice = []
+    if unbaked:
+        chans = "".join(CHANNELS[c] for c in sorted(unbaked))
+        share = max(unbaked.values())
+        what = "thin parts" if any(thin_frac[c] > 0 for c in unbaked) else "low albedo"
+        todo = "bake it to use it" if not has_single_scattering else "turn it on to use it"
+        advice.append(f"{chans}: single scattering would be more accurate on {_pct(share)} of the surface "
+                      f"({what}); {todo}")
 
-    ss_ch, ss_why, bound = [], [], []
+    ss_ch, ss_why, bound, ss_w = [], [], [], np.zeros((lv.n_surface, 3))
     for c in range(3):
+        C = CHANNELS[c]
         b = float(ss_estimate[c] / max(ms_estimate[c], 1e-300)) if ms_ch[c] else 0.0
         bound.append(b)
         if not has_single_scattering:
             ss_ch.append(False)
-            ss_why.append(f"{CHANNELS[c]}: not baked")
-        elif ms_ch[c]:
+            ss_why.append(f"{C}: not baked")
+        elif not ss_available:
             ss_ch.append(False)
-            ss_why.append(f"{CHANNELS[c]}: contained in the diffusion term (optical thickness "
+            ss_why.append(f"{C}: turned off")
+        elif ms_ch[c] and not ss_replaces[c]:
+            ss_ch.append(False)
+            ss_why.append(f"{C}: contained in the diffusion term (optical thickness "
                           f"{st[c] * thin:.0f}; a separate pass would count up to {_pct(b)} of it twice)")
         elif ss_estimate[c] < NEGLIGIBLE * brightest:
             ss_ch.append(False)
-            ss_why.append(f"{CHANNELS[c]}: negligible ({_pct(ss_estimate[c] / brightest)} of the brightest channel)")
+            ss_why.append(f"{C}: negligible ({_pct(ss_estimate[c] / brightest)} of the brightest channel)")
+        elif ms_ch[c]:
+            ss_ch.append(True)
+            ss_w[:, c] = ~valid_node[:, c]
+            ss_why.append(f"{C}: the valid term where diffusion is not ({where(c)})")
         else:
             ss_ch.append(True)
-            ss_why.append(f"{CHANNELS[c]}: the valid term where diffusion is not")
-    single = PassDecision("single", tuple(ss_ch), ss_why, tuple(bound))
+            ss_w[:, c] = 1.0
+            ss_why.append(f"{C}: the valid term where diffusion is not")
+    single = PassDecision("single", tuple(ss_ch), ss_why, tuple(bound),
+                          weights=None if all(np.all(ss_w[:, c] == 1.0) for c in range(3) if ss_ch[c]) else ss_w)
 
     for p in (multiple, single):
         force = overrides.get(p.name)
@@ -281,25 +403,38 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
             p.channels = (bool(force),) * 3
             p.reasons = [f"{CHANNELS[c]}: forced {'on' if force else 'off'} by the user" for c in range(3)]
             p.forced = True
+            p.weights = None
     if not (multiple.runs or single.runs):
-        return Plan(name, False, "no pass contributes", multiple, single, facts=facts)
+        return Plan(name, False, _nothing_runs(multiple, single, ss_available), multiple, single, facts=facts,
+                    advice=advice)
     cost = 0.0
     if multiple.runs:
         cost += 1e-4 * bake.finest.n_nodes * sum(multiple.channels) / 3.0  # ~0.1 us per node-channel sweep x ~50
     if single.runs:
         cost += 5.0
-    return Plan(name, True, "runs", multiple, single, estimated_ms=cost, facts=facts)
+    return Plan(name, True, "runs", multiple, single, estimated_ms=cost, facts=facts, advice=advice)
+
+
+def _nothing_runs(multiple: PassDecision, single: PassDecision, ss_available: bool) -> str:
+    """Why no pass runs, in numbers: every channel's reason (never a bare 'skipped')."""
+    forced_off = multiple.forced and not any(multiple.channels) and (single.forced or not ss_available)
+    if forced_off:
+        return "every pass is turned off in the object's settings"
+    return "no pass returns light (" + "; ".join(multiple.reasons) + ")" + (
+        "" if ss_available else "; single scattering is not baked")
 
 
 def _pct(x: float) -> str:
-    return "< 0.01 %" if x < 1e-4 else f"{100 * x:.2g} %"
+    v = 100.0 * x
+    return "< 0.01 %" if x < 1e-4 else (f"{v:.2g} %" if v < 10 else f"{v:.0f} %")
 
 
 def describe_plan(plan: Plan) -> str:
     """Multi-line, user-facing description (CLI and panel)."""
     if not plan.run:
-        return f"{plan.object_name}: skipped -- {plan.reason}"
-    lines = [f"{plan.object_name}: runs (estimated {plan.estimated_ms:.0f} ms per frame)"]
+        lines = [f"{plan.object_name}: skipped -- {plan.reason}"]
+    else:
+        lines = [f"{plan.object_name}: runs (estimated {plan.estimated_ms:.0f} ms per frame)"]
     for label, p in (("multiple scattering", plan.multiple), ("single scattering", plan.single)):
         if p is None:
             continue
@@ -307,6 +442,8 @@ def describe_plan(plan: Plan) -> str:
         lines.append(f"  {label} [{on}]{' (forced)' if p.forced else ''}")
         for r in p.reasons:
             lines.append(f"    {r}")
+    for a in plan.advice:
+        lines.append(f"  better: {a}")
     return "\n".join(lines)
 
 

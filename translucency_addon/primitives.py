@@ -138,3 +138,39 @@ def torus_grid(nx: int = 3, ny: int = 2, major: float = 1.0, minor: float = 0.35
     parts = [torus(major, minor, n_major, n_minor, center=(ix * pitch, iy * pitch, 0.0))
              for ix in range(nx) for iy in range(ny)]
     return merge(*parts)
+
+
+def finned_sphere(radius: float = 1.0, fin_thickness: float = 0.04, fin_reach: float = 1.5,
+                  fin_height: float = 1.6, subdivisions: int = 3, fin_divisions: int = 8):
+    """A sphere with one thin flat fin sticking out along +x (a body with a thin part).
+
+    The fin is a box ``fin_reach`` beyond the sphere, ``fin_thickness`` thick
+    (along y) and ``fin_height`` tall (along z), starting inside the sphere.
+    The result is the closed boundary of their union (:func:`union_surface`),
+    with no faces left inside, as a Boolean union in Blender would give.
+    """
+    Vs, Fs = icosphere(radius, subdivisions)
+    inner = 0.6 * radius
+    length = radius + fin_reach - inner
+    Vb, Fb = box((length, fin_thickness, fin_height), center=(inner + 0.5 * length, 0.0, 0.0), n=fin_divisions)
+    return union_surface(*merge((Vs, Fs), (Vb, Fb)), edge_length=0.5 * fin_thickness)
+
+
+def union_surface(V, F, edge_length: float):
+    """The outward-oriented boundary of the volume that overlapping closed pieces enclose.
+
+    fTetWild (:func:`.tetra.tetrahedralize`) fills the union by its winding
+    number; the boundary faces of its tetrahedra are the union's surface.  A
+    library does the Boolean here, so nothing is written by hand but the
+    orientation: each face's normal points away from its tet's fourth vertex.
+    """
+    from . import tetra
+
+    TV, TT = tetra.tetrahedralize(V, F, edge_length=edge_length, optimize=False)
+    t, k = tetra.boundary_faces(TT, tetra.topology(TT, len(TV)))
+    tris = TT[t][np.arange(len(t))[:, None], tetra.FACE_VERTS[k]]
+    a, b, c = (TV[tris[:, i]] for i in range(3))
+    outward = np.einsum("ij,ij->i", np.cross(b - a, c - a), (a + b + c) / 3.0 - TV[TT[t, k]]) > 0
+    tris[~outward] = tris[~outward][:, [0, 2, 1]]
+    used, inverse = np.unique(tris, return_inverse=True)
+    return TV[used], inverse.reshape(-1, 3)
