@@ -95,6 +95,30 @@ def available() -> tuple[bool, str]:
     return True, renderer or "unknown renderer"
 
 
+def storage_buffers() -> tuple[bool, str]:
+    """Whether this Blender's Python ``gpu`` module lets a compute shader bind a storage buffer.
+
+    The kernels pack the QuadGraph into 2D textures (image load/store and
+    samplers) because Blender 4.2-5.2 expose no storage buffer to Python:
+    ``gpu.types`` has no ``GPUStorageBuf`` and ``GPUShaderCreateInfo`` no
+    ``storage_buf`` (checked in 4.2.23, 4.5.15, 5.0.1 and 5.2.3; Blender's
+    main branch has a ``GPUStorageBuf`` type).  When a release has both, the
+    texture limits and the multi-pass reduction could go; until then this
+    says why the texture path runs.  Never raises; needs no GPU context.
+    """
+    try:
+        import gpu
+    except ImportError:
+        return False, "Blender's gpu module is not available (not running inside Blender)"
+    missing = [name for name, ok in (
+        ("gpu.types.GPUStorageBuf", hasattr(gpu.types, "GPUStorageBuf")),
+        ("GPUShaderCreateInfo.storage_buf", hasattr(gpu.types.GPUShaderCreateInfo, "storage_buf")),
+    ) if not ok]
+    if missing:
+        return False, f"this Blender's Python gpu module has no {' and no '.join(missing)}: textures carry the graph"
+    return True, "storage buffers are exposed to Python compute shaders"
+
+
 def make_solver(bake, material, field_values=None, options=None, prefer: str = "AUTO", **gpu_options):
     """A diffusion solver for ``bake``: ``(solver, backend_name, message)``.
 

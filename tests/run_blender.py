@@ -6,11 +6,11 @@
 for example ``... --python tests/run_blender.py -- -q tests/test_registration.py``.
 The exit code is pytest's.
 
-pytest must be importable from Blender's own Python (3.11 for Blender 4.2-5.0).
+pytest must be importable from Blender's own Python (3.13 for Blender 5.1-5.2, 3.11 for 4.2-5.0).
 Either install it there::
 
-    <blender dir>/<version>/python/bin/python3.11 -m ensurepip
-    <blender dir>/<version>/python/bin/python3.11 -m pip install pytest hypothesis
+    <blender dir>/<version>/python/bin/python3.X -m ensurepip
+    <blender dir>/<version>/python/bin/python3.X -m pip install pytest hypothesis
 
 or run ``bash tools/setup.sh`` first: if pytest is not importable, this script
 appends the repo's ``.venv`` site-packages to ``sys.path`` (after Blender's own
@@ -63,7 +63,7 @@ def main() -> int:
             import pytest
         except ImportError:
             print("run_blender.py: pytest is not importable from Blender's Python.\n"
-                  "Install it: <blender>/<version>/python/bin/python3.11 -m pip install pytest hypothesis\n"
+                  "Install it: <blender>/<version>/python/bin/python3.X -m pip install pytest hypothesis\n"
                   "or run `bash tools/setup.sh` so the repo's .venv can be used.", file=sys.stderr)
             return 2
 

@@ -397,3 +397,19 @@ def test_paper_jacobi_divergence_is_reported_like_the_cpu(thin_layers):
     assert rc.level_solves[-1].diverged and r.level_solves[-1].diverged
     assert r.iterations < opts.max_iterations and abs(r.iterations - rc.iterations) <= 16
     s.free()
+
+
+def test_storage_buffer_probe_names_what_this_blender_lacks():
+    """Blender 4.2-5.2 expose no storage buffer to Python; the kernels keep the texture path.
+
+    If a release adds both halves of the API, this fails on purpose: the probe
+    then says True, and the texture packing's limits can be lifted there.
+    """
+    import bpy
+    import gpu
+
+    ok, reason = gpu_shaders.storage_buffers()
+    has_api = hasattr(gpu.types, "GPUStorageBuf") and hasattr(gpu.types.GPUShaderCreateInfo, "storage_buf")
+    assert ok == has_api, reason
+    assert not ok, f"bpy {bpy.app.version_string} exposes storage buffers: add a storage-buffer path ({reason})"
+    assert "GPUStorageBuf" in reason and "textures carry the graph" in reason

@@ -2,15 +2,16 @@
 """Build the extension zip, validate it, and install it with Blender's real
 mechanism (``bpy.ops.extensions.package_install_files``), then disable it.
 
-Runs on the bpy pinned for tests (5.0.x).  To also run it on another Blender,
-set one variable, e.g.::
+Runs on the bpy pinned for tests (5.2 LTS, Python 3.13).  To also run it on
+another Blender, set one variable, e.g.::
 
     TRANSLUCENCY_BPY=4.5 .venv/bin/python -m pytest -q tests/test_install.py
 
 ``test_install_on_other_blender`` then creates ``.venv-bpy45`` (bpy 4.5 LTS,
-numpy and pytest only, via ``tools/setup.sh``) and runs this file there; the
-bundled wheels must then come from the extension, because that environment has
-no scipy, pytetwild or fast_simplification of its own.
+numpy and pytest only, via ``tools/setup.sh``, on the Python that release
+ships) and runs this file there; the bundled wheels must then come from the
+extension, because that environment has no scipy, pytetwild or
+fast_simplification of its own.  4.2, 4.5, 5.0, 5.1 and 5.2 are known series.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import zipfile
 from pathlib import Path
 
 import bpy
+import numpy as np
 import pytest
 
 from conftest import ROOT, addon_is_registered, factory_reset
@@ -79,6 +81,18 @@ def test_zip_validates_and_holds_only_the_extension(extension_zip):
     linux = summary["wheels"]["linux-x64"]
     for dist in BUNDLED:
         assert any(w.startswith(dist + "-") and "linux" in w for w in linux), (dist, linux)
+    # Every supported Blender's Python has its wheels: 3.11 (4.2-5.0) and 3.13 (5.1-5.2).
+    # Blender reads the versions from the wheel tags; an abi3 wheel serves every newer CPython.
+    assert summary["pythons"] == ["3.11", "3.13"]
+    for abi in ("cp311", "cp313"):
+        for dist in BUNDLED:
+            assert any(w.startswith(dist + "-") and (f"-{abi}-" in w or _abi3_serves(w, abi)) for w in linux), \
+                (dist, abi, linux)
+
+
+def _abi3_serves(wheel: str, abi: str) -> bool:
+    python_tag, abi_tag = wheel.split("-")[-3:-1]
+    return abi_tag == "abi3" and python_tag.startswith("cp") and int(python_tag[2:]) <= int(abi[2:])
 
 
 def _local_site_packages() -> Path:
@@ -138,6 +152,9 @@ def test_install_enable_disable(extension_zip, tmp_path):
         for line in proc.stdout.split():
             assert Path(line).is_relative_to(site), f"{line} is not from the extension's wheels"
 
+        # The installed extension bakes, solves and renders its AOV in this Blender.
+        _bake_solve_render(tmp_path)
+
         # Disable: every class and property is gone.
         assert bpy.ops.preferences.addon_disable(module=MODULE) == {'FINISHED'}
         assert MODULE not in bpy.context.preferences.addons
@@ -152,8 +169,39 @@ def test_install_enable_disable(extension_zip, tmp_path):
     assert not (Path(bpy.utils.user_resource('EXTENSIONS')) / "user_default" / "translucency").exists()
 
 
+def _bake_solve_render(tmp_path) -> None:
+    """Bake (Draft), solve and render the ``Translucency`` AOV with Cycles through the installed extension."""
+    scene = bpy.context.scene
+    scene.translucency.cache_directory = str(tmp_path / "cache") + os.sep
+    bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=2, radius=1.0)
+    obj = bpy.context.object
+    s = obj.translucency
+    s.quality, s.levels, s.use_mm_per_unit_override, s.mm_per_unit = 'DRAFT', 2, True, 10.0
+    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", 'POINT'))
+    lamp.data.energy, lamp.location = 1000.0, (3.0, 0.0, 2.0)
+    scene.collection.objects.link(lamp)
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    camera.location = (0.0, 0.0, 5.0)  # looks down -z at the sphere
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    assert bpy.ops.translucency.bake() == {'FINISHED'}
+    assert bpy.ops.translucency.solve() == {'FINISHED'}
+    assert bpy.ops.translucency.add_to_material() == {'FINISHED'}
+    render_pass = sys.modules[MODULE + ".ops.render_pass"]
+    scene.render.engine = 'CYCLES'
+    scene.cycles.device, scene.cycles.samples, scene.cycles.use_denoising = 'CPU', 2, False
+    scene.render.resolution_x = scene.render.resolution_y = 16
+    scene.render.resolution_percentage = 100
+    render_pass.configure_output(scene.render.image_settings, 'OPEN_EXR_MULTILAYER')
+    scene.render.filepath = str(tmp_path / "frame.exr")
+    bpy.ops.render.render(write_still=True)
+    rgb = render_pass.exr_pass(tmp_path / "frame.exr")[..., :3]
+    assert np.isfinite(rgb).all() and rgb.max() > 0.0, "the Translucency pass is black"
+    assert rgb[0, 0].max() == 0.0, "the pass is not zero off the object (the image corner)"
+
+
 def test_install_on_other_blender():
-    """TRANSLUCENCY_BPY=4.5 runs this file again in .venv-bpy45 (bpy 4.5 LTS)."""
+    """TRANSLUCENCY_BPY=4.5 runs this file again in .venv-bpy45 (bpy 4.5 LTS), likewise 4.2, 5.0, 5.1."""
     wanted = os.environ.get("TRANSLUCENCY_BPY", "").strip()
     if not wanted:
         pytest.skip("set TRANSLUCENCY_BPY=4.5 (or another bpy version) to also install into that Blender")

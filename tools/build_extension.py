@@ -3,10 +3,20 @@
 """Build the Translucency extension zip.
 
 1. Download the bundled wheels (pytetwild, fast_simplification, scipy; never
-   numpy, which Blender ships) for every platform PyPI has them for, with
-   ``pip download --only-binary=:all: --no-deps --python-version 3.11``.
-   The versions are the pins in ``requirements-test.txt``.  A platform that
-   lacks one of the wheels is skipped with a message; Linux x86-64 is required.
+   numpy, which Blender ships) for every platform PyPI has them for and for
+   every Python a supported Blender ships (``PYTHONS``: 3.11 for Blender
+   4.2-5.0, 3.13 for 5.1-5.2), with ``pip download --only-binary=:all:
+   --no-deps --python-version X.Y``.  The versions are the pins in
+   ``requirements-test.txt``.  A platform that lacks one of the wheels for
+   one of the Pythons is skipped with a message; Linux x86-64 is required.
+
+   One zip serves every supported Blender: Blender reads the Python versions
+   from the wheels' tags (``python_versions`` in the built package is their
+   union, so 5.2 no longer refuses it as "isn't compatible with (3.11)") and,
+   when it installs, unpacks only the wheels that match its own Python and
+   platform.  The extensions platform accepts such a package;
+   ``--split-platforms`` makes one per platform, each still serving both
+   Pythons.
 2. Check each wheel's ``Requires-Dist``: nothing may be needed besides numpy.
 3. Rewrite ``platforms`` and ``wheels`` in ``blender_manifest.toml``.
 4. Build the zip with Blender's own ``blender_ext.py build`` (it ships inside
@@ -45,8 +55,11 @@ MANIFEST = ROOT / "blender_manifest.toml"
 REQUIREMENTS = ROOT / "requirements-test.txt"
 WHEELS_DIR = ROOT / "wheels"
 
-PYTHON_VERSION = "3.11"  # Blender 4.2 LTS, 4.5 LTS and 5.0 all ship Python 3.11.
-ABI = "cp311"
+# The Python of each supported Blender series, and its CPython ABI tag.
+PYTHONS = (
+    ("3.11", "cp311"),  # Blender 4.2 LTS, 4.5 LTS, 5.0
+    ("3.13", "cp313"),  # Blender 5.1, 5.2 LTS
+)
 
 # Bundled distributions (import names differ only by dash/underscore).
 BUNDLED = ("pytetwild", "fast_simplification", "scipy")
@@ -110,12 +123,23 @@ def wheel_platform_tag(filename: str) -> str:
     return Path(filename).stem.split("-")[-1]
 
 
-def wheel_matches(filename: str, dist: str, version: str, tags: list[str]) -> bool:
-    """True if ``filename`` is a cp311 wheel of dist==version for one of the pip ``tags``."""
+def abi_matches(python_tag: str, abi_tag: str, abi: str) -> bool:
+    """A wheel with these tags runs on CPython ``abi`` (e.g. cp313): its own ABI, or the stable
+    ABI (abi3) of a CPython no newer than it."""
+    if abi in python_tag.split("."):
+        return True
+    if "abi3" not in abi_tag.split("."):
+        return False
+    target = int(abi[2:])
+    return any(t.startswith("cp") and t[2:].isdigit() and int(t[2:]) <= target for t in python_tag.split("."))
+
+
+def wheel_matches(filename: str, dist: str, version: str, tags: list[str], abi: str) -> bool:
+    """True if ``filename`` is a wheel of dist==version for CPython ``abi`` and one of the pip ``tags``."""
     parts = Path(filename).stem.split("-")
     if len(parts) < 5 or normalise(parts[0]) != dist or parts[1] != version:
         return False
-    if ABI not in parts[-3].split(".") and "abi3" not in parts[-2].split("."):
+    if not abi_matches(parts[-3], parts[-2], abi):
         return False
     wheel_tags = parts[-1].split(".")
     for tag in tags:
@@ -131,25 +155,26 @@ def wheel_matches(filename: str, dist: str, version: str, tags: list[str]) -> bo
     return False
 
 
-def find_cached(dist: str, version: str, tags: list[str]) -> Path | None:
+def find_cached(dist: str, version: str, tags: list[str], abi: str) -> Path | None:
     for path in sorted(WHEELS_DIR.glob("*.whl")):
-        if wheel_matches(path.name, dist, version, tags):
+        if wheel_matches(path.name, dist, version, tags, abi):
             return path
     return None
 
 
-def pip_download(dist: str, version: str, tags: list[str], dest: Path) -> tuple[Path | None, str]:
+def pip_download(dist: str, version: str, tags: list[str], dest: Path, python: str, abi: str
+                 ) -> tuple[Path | None, str]:
     """Download one wheel into ``dest``; return (path or None, pip's last error line)."""
     before = set(dest.glob("*.whl"))
     cmd = [sys.executable, "-m", "pip", "download", "--only-binary=:all:", "--no-deps",
-           "--disable-pip-version-check", "--quiet", "--python-version", PYTHON_VERSION,
-           "--implementation", "cp", "--abi", ABI, "-d", str(dest)]
+           "--disable-pip-version-check", "--quiet", "--python-version", python,
+           "--implementation", "cp", "--abi", abi, "-d", str(dest)]
     for tag in tags:
         cmd += ["--platform", tag]
     cmd.append(f"{dist}=={version}")
     proc = subprocess.run(cmd, capture_output=True, text=True)
     new = sorted(set(dest.glob("*.whl")) - before)
-    found = [p for p in dest.glob("*.whl") if wheel_matches(p.name, dist, version, tags)]
+    found = [p for p in dest.glob("*.whl") if wheel_matches(p.name, dist, version, tags, abi)]
     if proc.returncode == 0 and (new or found):
         return (new or found)[0], ""
     errors = [line for line in (proc.stderr or "").splitlines() if line.startswith("ERROR")]
@@ -178,34 +203,39 @@ def wheel_requirements(path: Path) -> list[str]:
 
 
 def collect_wheels(platforms: list[str], pins: dict[str, str], offline: bool) -> dict[str, dict[str, Path]]:
-    """{platform: {dist: wheel path}} for the platforms that have every wheel."""
+    """{platform: {"dist cpXY": wheel path}} for the platforms that have every wheel for every Python."""
     WHEELS_DIR.mkdir(exist_ok=True)
     result: dict[str, dict[str, Path]] = {}
     for platform in platforms:
         chosen: dict[str, Path] = {}
-        for dist in BUNDLED:
-            version = pins[dist]
-            path, error = None, "not in wheels/ (offline)"
-            for tags in PLATFORM_TAGS[platform]:  # reuse a downloaded wheel first
-                path = find_cached(dist, version, tags)
-                if path is not None:
-                    break
-            if path is None and not offline:
-                for tags in PLATFORM_TAGS[platform]:
-                    path, error = pip_download(dist, version, tags, WHEELS_DIR)
+        missing = ""
+        for python, abi in PYTHONS:
+            for dist in BUNDLED:
+                version = pins[dist]
+                path, error = None, "not in wheels/ (offline)"
+                for tags in PLATFORM_TAGS[platform]:  # reuse a downloaded wheel first
+                    path = find_cached(dist, version, tags, abi)
                     if path is not None:
                         break
-            if path is None:
-                log(f"  {platform:12s} {dist}=={version}: no wheel ({error})")
+                if path is None and not offline:
+                    for tags in PLATFORM_TAGS[platform]:
+                        path, error = pip_download(dist, version, tags, WHEELS_DIR, python, abi)
+                        if path is not None:
+                            break
+                if path is None:
+                    missing = f"{dist}=={version} for Python {python}"
+                    log(f"  {platform:12s} {missing}: no wheel ({error})")
+                    break
+                chosen[f"{dist} {abi}"] = path
+                log(f"  {platform:12s} {abi} {path.name} ({path.stat().st_size / 2**20:.1f} MiB)")
+            if missing:
                 break
-            chosen[dist] = path
-            log(f"  {platform:12s} {path.name} ({path.stat().st_size / 2**20:.1f} MiB)")
-        if len(chosen) == len(BUNDLED):
+        if not missing:
             result[platform] = chosen
         elif platform in REQUIRED_PLATFORMS:
-            raise BuildError(f"the {platform} wheels are required, but {dist}=={pins[dist]} has none")
+            raise BuildError(f"the {platform} wheels are required, but {missing} has none")
         else:
-            log(f"  {platform}: skipped (not every bundled wheel exists for it)")
+            log(f"  {platform}: skipped (no wheel of {missing})")
     return result
 
 
@@ -317,7 +347,7 @@ def build(platforms: list[str], output_dir: Path, offline: bool = False, split: 
     start = time.time()
     pins = read_pins()
     log(f"bundled wheels: {', '.join(f'{d}=={v}' for d, v in pins.items() if d in BUNDLED)} "
-        f"(cp311; numpy is not bundled, Blender ships it)")
+        f"(for {', '.join(abi for _py, abi in PYTHONS)}; numpy is not bundled, Blender ships it)")
     with build_lock():
         wheels = collect_wheels(platforms, pins, offline)
         check_requirements(wheels)
@@ -342,7 +372,8 @@ def build(platforms: list[str], output_dir: Path, offline: bool = False, split: 
         "zips": [str(p) for p in zips],
         "zip_sizes_mib": {p.name: round(p.stat().st_size / 2**20, 1) for p in zips},
         "platforms": list(wheels),
-        "wheels": {platform: sorted(p.name for p in per.values()) for platform, per in wheels.items()},
+        "wheels": {platform: sorted({p.name for p in per.values()}) for platform, per in wheels.items()},
+        "pythons": [py for py, _abi in PYTHONS],
         "skipped_platforms": [p for p in platforms if p not in wheels],
         "blender_ext": str(tool),
         "seconds": round(time.time() - start, 1),
