@@ -106,7 +106,10 @@ class BakeJob:
 
     # -- worker -----------------------------------------------------------------
     def progress(self, fraction: float, stage: str) -> bool:
-        self.fraction, self.stage = float(fraction), str(stage)
+        # A progress bar never steps back: stage weights summed in floating point can give a stage's
+        # end as 0.44 and the next stage's start as 0.43999999999999995.
+        fraction = max(float(fraction), self.fraction)
+        self.fraction, self.stage = fraction, str(stage)
         for listener in list(PROGRESS_LISTENERS):
             if listener(fraction, stage) is False:
                 self.cancel_requested = True

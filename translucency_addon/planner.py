@@ -149,14 +149,16 @@ def surface_thickness(bake) -> np.ndarray:
     """Local thickness (object units) at every surface node of the finest level.
 
     One ray per node along its inward normal to the baked mesh (the scene's
-    own BVH, :class:`.raycast.TriangleBVH`); a ray that leaves through no
-    triangle (an open mesh) counts as the bounding box's diagonal.  Geometry
-    only, so it is cached per bake key and scaled to mm by the caller.
+    own BVH, :class:`.raycast.TriangleBVH`).  A ray that meets no triangle
+    (a grazing ray at an edge or corner, or a hole in an open mesh) takes the
+    median of the rays that did: one lost ray must not make a thin part
+    thick.  Geometry only, so it is cached per bake key and scaled to mm by
+    the caller.
     """
     key = (bake.key, bake.finest.n_surface)
-    hit = _THICKNESS.get(key)
-    if hit is not None:
-        return hit
+    cached = _THICKNESS.get(key)
+    if cached is not None:
+        return cached
     from .raycast import TriangleBVH
 
     lv = bake.finest
@@ -165,7 +167,8 @@ def surface_thickness(bake) -> np.ndarray:
     n = np.asarray(lv.normal, dtype=np.float64)
     p = np.asarray(lv.surface_position, dtype=np.float64)
     t, tri, _, _ = TriangleBVH(V, bake.mesh_faces).intersect(p - 1e-5 * diag * n, -n, tmin=1e-6 * diag)
-    t = np.where(tri >= 0, t, diag)
+    hit = tri >= 0
+    t = np.where(hit, t, np.median(t[hit]) if hit.any() else diag)
     if len(_THICKNESS) > 64:
         _THICKNESS.clear()
     _THICKNESS[key] = t
@@ -325,7 +328,16 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
     for c in range(3):
         C = CHANNELS[c]
         negligible = ms_estimate[c] < NEGLIGIBLE * brightest
-        if invalid_frac[c] >= 1.0:
+        # where it is valid, diffusion returns too little to be worth a solve: single scattering takes it all
+        rest_negligible = (1.0 - invalid_frac[c]) * ms_estimate[c] < NEGLIGIBLE * brightest
+        if ss_available and 0.0 < invalid_frac[c] < 1.0 and rest_negligible and not negligible:
+            ms_ch.append(False)
+            cause = "optically thin" if thin_frac[c] > 0 else "low albedo"
+            ms_why.append(f"{C}: diffusion invalid ({cause}) where {where(c)}; single scattering replaces it everywhere "
+                          f"(the rest returns {_pct((1.0 - invalid_frac[c]) * ms_estimate[c] / brightest)} "
+                          "of the brightest channel)")
+            ss_replaces[c] = True
+        elif invalid_frac[c] >= 1.0:
             if ss_available:
                 ms_ch.append(False)
                 ms_why.append(f"{C}: diffusion invalid ({why_invalid(c)})")
