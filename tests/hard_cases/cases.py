@@ -71,6 +71,7 @@ from translucency_addon.diffusion import DiffusionSolver, SolveOptions  # noqa: 
 from translucency_addon.errors import CacheError, GraphTooLarge, MaterialError, MeshError  # noqa: E402
 from translucency_addon.fields import FieldSpec, evaluate_field  # noqa: E402
 from translucency_addon.lights import Environment, Light  # noqa: E402
+from translucency_addon.graph import graph_components  # noqa: E402,F401 - the engine's own, also used by test_hard_cases
 from translucency_addon.materials import Material, Medium, material_from_preset  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "meshes"
@@ -191,19 +192,6 @@ MESHES: dict[str, Callable] = {
     "rocker-arm": lambda: shared_mesh("rocker-arm"),
     "bunny": lambda: shared_mesh("stanford-bunny"),
 }
-
-
-def graph_components(level) -> np.ndarray:
-    """Connected-component label of every node of a QuadGraph level."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    n = level.n_nodes
-    i = np.repeat(np.arange(n), 4)
-    j = level.neighbors.ravel().astype(np.int64)
-    m = j >= 0
-    g = coo_matrix((np.ones(int(m.sum())), (i[m], j[m])), shape=(n, n))
-    return connected_components(g, directed=False)[1]
 
 
 def _medium(sa, ss, name):
