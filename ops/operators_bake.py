@@ -42,7 +42,7 @@ import time
 import bpy
 from bpy.props import BoolProperty, IntProperty
 
-from . import runtime, scene_inputs
+from . import cache_files, runtime, scene_inputs
 
 # Test seam: callables ``(fraction, stage) -> bool | None``; returning False cancels the bake.
 PROGRESS_LISTENERS: list = []
@@ -213,7 +213,7 @@ class BakeJob:
         bake = self.bake
         os.replace(self.tmp_path, self.final_path)
         s = obj.translucency
-        s.cache_filepath = runtime.stored_cache_path(self.final_path)
+        s.cache_filepath = cache_files.stored_cache_path(self.final_path)
         s.bake_key = bake.key
         s.bake_levels.clear()
         for lv in bake.levels:
@@ -315,8 +315,8 @@ def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
     ss = _ss_inputs(obj, depsgraph, V, key, mm) if s.use_single_scattering else None
     if ss is not None:
         key = ss.key
-    directory, note = runtime.cache_directory(scene)
-    final = os.path.join(directory, runtime.cache_file_name(obj.name, key))
+    directory, note = cache_files.cache_directory(scene)
+    final = os.path.join(directory, cache_files.cache_file_name(obj.name, key))
     notes = [w for w in (scale_warning, note) if w]
     return BakeJob(obj.name, V, F, settings, final, notes, ss=ss)
 
@@ -340,8 +340,8 @@ def prepare_ss_job(context, obj) -> BakeJob:
     from ..translucency_addon.single_scattering import graph_key
 
     ss = _ss_inputs(obj, depsgraph, base.mesh_vertices, graph_key(base), mm)
-    directory, note = runtime.cache_directory(scene)
-    final = os.path.join(directory, runtime.cache_file_name(obj.name, ss.key))
+    directory, note = cache_files.cache_directory(scene)
+    final = os.path.join(directory, cache_files.cache_file_name(obj.name, ss.key))
     notes = [w for w in (scale_warning, note) if w]
     return BakeJob(obj.name, base.mesh_vertices, base.mesh_faces, base.settings, final, notes, ss=ss, base_bake=base)
 

@@ -55,7 +55,8 @@ import numpy as np
 from bpy.app.handlers import persistent
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, PointerProperty
 
-ATTRIBUTE = "translucency_radiance"
+from .attributes import ATTRIBUTE_NAME as ATTRIBUTE  # the one spelling of the name
+
 DEPTH_BIAS = 2e-5  # fraction of clip-space w the overlay is moved towards the camera
 AUTO_PERCENTILE = 99.0
 SCENE_PROPERTY = "translucency_display"

@@ -37,8 +37,9 @@ import zlib
 import bpy
 from bpy.props import BoolProperty, FloatProperty
 
-ATTRIBUTE = "translucency_radiance"
-SS_ATTRIBUTE = "translucency_radiance_ss"
+from .attributes import ATTRIBUTE_NAME as ATTRIBUTE  # the one spelling of the names
+from .attributes import SS_ATTRIBUTE_NAME as SS_ATTRIBUTE
+
 AOV_NAME = "Translucency"
 SS_AOV_NAME = "Translucency_SS"
 ROLE = "translucency_role"

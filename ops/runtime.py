@@ -1,5 +1,12 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""Per-object runtime state and the solve -> attribute path.
+"""A frame's path for one object: scene inputs -> plan -> solve -> single scattering -> attribute -> panel.
+
+The modules around it, each called from here and never calling back:
+``scene_inputs`` (Blender lights, world, occluders, fields -> engine inputs),
+``state`` (per-object :class:`ObjectState`, counters, log), ``cache_files``
+(bake caches next to the .blend, loading, staleness), ``attributes`` (the
+radiance attributes), ``backend`` (the GPU/CPU solver), and the engine's
+planner and solvers.  Their public names are re-exported here.
 
 Public API (also used by the overlay and render-pass code):
 
@@ -47,26 +54,22 @@ needs a re-bake ("Bake Single Scattering").
 
 from __future__ import annotations
 
-import os
-import re
-import tempfile
 import threading
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import bpy
 import numpy as np
 
 from . import backend, scene_inputs
-
-ATTRIBUTE_NAME = "translucency_radiance"
-SS_ATTRIBUTE_NAME = "translucency_radiance_ss"
-ATTRIBUTE_DOMAIN = 'POINT'
-ATTRIBUTE_TYPE = 'FLOAT_COLOR'
-DEFAULT_CACHE_DIRECTORY = "//translucency_cache/"
-
-_LOCK = threading.RLock()
+from .attributes import (ATTRIBUTE_DOMAIN, ATTRIBUTE_NAME, ATTRIBUTE_TYPE, SS_ATTRIBUTE_NAME,  # noqa: F401
+                         attribute_ok, read_radiance, remove_attribute, write_radiance)
+from .cache_files import (DEFAULT_CACHE_DIRECTORY, cache_directory, cache_file_name, check_cache,  # noqa: F401
+                          ensure_state, resolve_cache_path, stored_cache_path, update_staleness)
+from .state import (_FAILED, _LOCK, _LOGGED, _STATES, CACHE_STATUS, COUNTERS, FRAME_EPOCH,  # noqa: F401
+                    GEOMETRY_EPOCH, OWN_WRITES, PLANS, ObjectState, baked_objects, clear, drop_state, get_state,
+                    install_state, invalidate_views, is_baked, log, prune)
 
 
 @dataclass
@@ -98,356 +101,6 @@ class SolveReport:
         if not parts:
             parts.append("diffusion turned off; nothing else to evaluate")
         return f"'{self.name}' " + "; ".join(parts)
-
-
-@dataclass
-class ObjectState:
-    """What one baked object keeps between solves (never a bpy reference)."""
-
-    name: str
-    key: str
-    cache_path: str
-    bake: object  # translucency_addon.bake.Bake as loaded (baked mm_per_unit)
-    solver: object | None = None
-    solver_sig: tuple | None = None
-    backend: str = ""
-    backend_message: str = ""
-    announced: bool = False
-    material: object | None = None
-    field_sig: object = None
-    field_values: list | None = None
-    solve_sig: tuple | None = None
-    view_sig: tuple | None = None
-    result: object | None = None
-    result_solver: object | None = None
-    render_solver: object | None = None  # CPU twin for solves off the main thread
-    render_result: object | None = None
-    render_solve_sig: tuple | None = None
-    bounce: object | None = None  # vertex radiance (along the normals) of the last interreflected solve
-    gpu_failed_in_render: bool = False
-    occluders: scene_inputs.OccluderCache = field(default_factory=scene_inputs.OccluderCache)
-    geometry_digest: str = ""
-    stale_message: str = ""
-    orig_map: tuple | None = None  # (digest, idx, w, positions, normals) for obj.data vertices
-    seconds: float = 0.0
-    residual: float = 0.0
-    iterations: int = 0
-    solves: int = 0
-    warnings: tuple = ()
-    # single scattering
-    ss: object | None = None  # translucency_addon.single_scattering.FrameEvaluator
-    ss_key: tuple | None = None
-    ss_backend: str = ""
-    ss_backend_message: str = ""
-    ss_seconds: float = 0.0
-    ss_stale: str = ""
-    ss_field_fp: tuple | None = None  # (field_sig, fingerprint)
-    ss_rgb: object | None = None  # last single-scattering radiance (n_vertices, 3)
-    plan: object | None = None  # translucency_addon.planner.Plan of the last solve
-
-    def free(self) -> None:
-        for solver in (self.solver, self.render_solver):
-            if solver is not None:
-                backend.free_solver(solver)
-        self.solver = self.render_solver = None
-        self.result = self.render_result = self.result_solver = None
-        if self.ss is not None:
-            try:
-                self.ss.free()
-            except Exception as ex:  # noqa: BLE001 - freeing must not break cleanup paths
-                print(f"Translucency: freeing the single-scattering data failed: {type(ex).__name__}: {ex}")
-        self.ss = self.ss_key = self.ss_rgb = None
-
-
-_STATES: dict[str, ObjectState] = {}
-_FAILED: dict[str, tuple] = {}  # name -> (inputs, message): a load that failed is not retried blindly
-_LOGGED: set = set()
-# Problems found with an object's cache (missing, truncated, stale), by object name; shown
-# by the panel.  Runtime only: a file load refills it, the .blend is never modified for it.
-CACHE_STATUS: dict[str, str] = {}
-# Counters for tests and diagnostics.
-COUNTERS = {"solves": 0, "radiance_only": 0, "loads": 0, "field_samples": 0, "writes": 0, "planner_skips": 0}
-PLANS: dict = {}  # object name -> the planner's last Plan (shown in the panel)
-# Object names whose mesh we just wrote (the handler ignores the update that causes).
-OWN_WRITES: set = set()
-# Bumped by the handlers when a mesh is edited (vertex-group weights are not hashed each time).
-GEOMETRY_EPOCH: dict[str, int] = {}
-FRAME_EPOCH = "\0frame"  # a GEOMETRY_EPOCH key no object can have: bumped on every frame change
-
-
-def log(message: str, once_key=None) -> None:
-    """Print to the console (the log of ``blender -b``); ``once_key``: only the first time."""
-    if once_key is not None:
-        if once_key in _LOGGED:
-            return
-        _LOGGED.add(once_key)
-    print(f"Translucency: {message}", flush=True)
-
-
-# ------------------------------------------------------------------ state bookkeeping
-
-
-def get_state(obj) -> ObjectState | None:
-    st = _STATES.get(obj.name)
-    if st is not None and st.key and st.key == obj.translucency.bake_key:
-        return st
-    return None
-
-
-def drop_state(name: str) -> None:
-    with _LOCK:
-        st = _STATES.pop(name, None)
-        _FAILED.pop(name, None)
-        if st is not None:
-            st.free()
-
-
-def clear() -> None:
-    """Forget every object's runtime state and free GPU memory (file load, unregister)."""
-    with _LOCK:
-        for name in list(_STATES):
-            drop_state(name)
-        _FAILED.clear()
-        _LOGGED.clear()
-        CACHE_STATUS.clear()
-        OWN_WRITES.clear()
-        GEOMETRY_EPOCH.clear()
-        PLANS.clear()
-
-
-def invalidate_views() -> None:
-    """After undo/redo the attribute may hold older values: rewrite it on the next check."""
-    with _LOCK:
-        for st in _STATES.values():
-            st.view_sig = None
-            st.geometry_digest = ""
-        GEOMETRY_EPOCH.update({k: v + 1 for k, v in GEOMETRY_EPOCH.items()})
-
-
-def prune(existing_names) -> None:
-    """Drop states of objects that no longer exist."""
-    names = set(existing_names)
-    for name in list(_STATES):
-        if name not in names:
-            drop_state(name)
-
-
-def install_state(obj, bake, cache_path: str) -> ObjectState:
-    """Register a freshly baked ``bake`` for ``obj`` (the bake operator's commit)."""
-    with _LOCK:
-        drop_state(obj.name)
-        CACHE_STATUS.pop(obj.name, None)
-        st = ObjectState(name=obj.name, key=bake.key, cache_path=cache_path, bake=bake)
-        _STATES[obj.name] = st
-        return st
-
-
-def is_baked(obj) -> bool:
-    return (obj is not None and obj.type == 'MESH' and hasattr(obj, "translucency")
-            and bool(obj.translucency.cache_filepath) and bool(obj.translucency.bake_key))
-
-
-def baked_objects(scene):
-    return [ob for ob in scene.objects if ob.type == 'MESH' and ob.translucency.enabled and is_baked(ob)]
-
-
-# ------------------------------------------------------------------ cache files
-
-
-def cache_directory(scene) -> tuple[str, str | None]:
-    """``(absolute directory, note)``.  A blend-relative directory of an unsaved
-    .blend resolves to a temporary folder, and ``note`` says so."""
-    directory = scene.translucency.cache_directory or DEFAULT_CACHE_DIRECTORY
-    if directory.startswith("//") and not bpy.data.filepath:
-        tmp = os.path.join(tempfile.gettempdir(), "translucency_cache")
-        return tmp, (f"the .blend file is not saved, so the cache was written to the temporary folder "
-                     f"{tmp}; save the .blend and bake again to keep the cache next to it")
-    return os.path.normpath(bpy.path.abspath(directory)), None
-
-
-def cache_file_name(obj_name: str, key: str) -> str:
-    safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", obj_name).strip("._") or "object"
-    return f"{safe}_{key[:16]}.npz"
-
-
-def stored_cache_path(abs_path: str) -> str:
-    """The path as stored in the .blend: blend-relative when the .blend is saved."""
-    if bpy.data.filepath:
-        try:
-            return bpy.path.relpath(abs_path)
-        except ValueError:  # another drive on Windows
-            return abs_path
-    return abs_path
-
-
-def resolve_cache_path(obj) -> str:
-    path = obj.translucency.cache_filepath
-    return os.path.normpath(bpy.path.abspath(path)) if path else ""
-
-
-def ensure_state(obj, retry: bool = False) -> ObjectState:
-    """The object's state, loading its bake from the cache file when needed.
-
-    Raises :class:`CacheError` (missing, truncated, stale, ...) with a message
-    naming the file.  A failed load is remembered and not retried until the
-    file, the key or ``retry`` changes.
-    """
-    from ..translucency_addon.cache import load_bake
-    from ..translucency_addon.errors import CacheError
-
-    with _LOCK:
-        st = get_state(obj)
-        if st is not None:
-            return st
-        drop_state(obj.name)
-        settings = obj.translucency
-        path = resolve_cache_path(obj)
-        if not path or not settings.bake_key:
-            raise CacheError(f"'{obj.name}' is not baked yet: press Bake in the Translucency panel")
-        try:
-            mtime = os.path.getmtime(path)
-        except OSError:
-            mtime = None
-        inputs = (path, settings.bake_key, mtime)
-        failed = _FAILED.get(obj.name)
-        if failed is not None and failed[0] == inputs and not retry:
-            raise CacheError(failed[1])
-        try:
-            bake = load_bake(path, expected_key=settings.bake_key)
-        except CacheError as ex:
-            _FAILED[obj.name] = (inputs, str(ex))
-            CACHE_STATUS[obj.name] = f"Cache problem: {ex}"
-            raise
-        COUNTERS["loads"] += 1
-        CACHE_STATUS.pop(obj.name, None)
-        st = ObjectState(name=obj.name, key=bake.key, cache_path=path, bake=bake)
-        _STATES[obj.name] = st
-        log(f"loaded the bake of '{obj.name}' from {path}")
-        return st
-
-
-def check_cache(obj, depsgraph=None) -> str:
-    """Look for the object's cache without loading it all; returns a status line.
-
-    Used after a file load: reports a missing, unreadable or stale cache.
-    """
-    from ..translucency_addon.cache import read_meta
-    from ..translucency_addon.errors import TranslucencyError
-
-    settings = obj.translucency
-    path = resolve_cache_path(obj)
-    if not path:
-        return "Not baked"
-    try:
-        meta = read_meta(path)
-    except TranslucencyError as ex:
-        return f"Cache problem: {ex}"
-    if settings.bake_key and meta.get("key") != settings.bake_key:
-        return (f"Stale cache: {path} holds another bake than this object's (key "
-                f"{str(meta.get('key'))[:12]} != {settings.bake_key[:12]}); re-bake")
-    if depsgraph is not None:
-        from ..translucency_addon.bake import BakeSettings
-
-        try:
-            baked = BakeSettings(**meta["settings"])
-            message = _staleness(obj, depsgraph, (meta.get("stats") or {}).get("graph_key") or meta["key"], baked)
-        except Exception as ex:  # noqa: BLE001 - a status line must not raise
-            message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
-        if message:
-            return f"Stale: {message}"
-    return f"Baked (cache found: {os.path.basename(path)})"
-
-
-def _staleness(obj, depsgraph, key: str, baked_settings) -> str:
-    """Why the bake no longer matches the object (empty when it still does).
-
-    ``key``: the QuadGraph key (``single_scattering.graph_key``: a bake holding
-    single scattering has a combined key of its own)."""
-    from dataclasses import replace
-
-    from ..translucency_addon.bake import mesh_key
-
-    V, F = scene_inputs.evaluated_triangles(obj, depsgraph)
-    if mesh_key(V, F, baked_settings) != key:
-        return "the mesh changed since it was baked (modifiers included); re-bake to update the graph"
-    s = obj.translucency
-    wanted = replace(baked_settings, quality=s.quality.lower(), levels=int(s.levels))
-    if (wanted.quality, wanted.levels) != (baked_settings.quality, baked_settings.levels):
-        return (f"the bake settings changed (baked: {baked_settings.quality}, {baked_settings.levels} levels); "
-                "re-bake to apply them")
-    return ""
-
-
-def update_staleness(obj, st: ObjectState, depsgraph) -> str:
-    """Re-check staleness when the evaluated geometry changed; cheap otherwise."""
-    positions = scene_inputs.evaluated_positions(obj, depsgraph)
-    digest = scene_inputs.array_digest(positions) + f"|{obj.translucency.quality}|{obj.translucency.levels}"
-    if digest != st.geometry_digest:
-        st.geometry_digest = digest
-        try:
-            from ..translucency_addon.single_scattering import graph_key
-
-            st.stale_message = _staleness(obj, depsgraph, graph_key(st.bake), st.bake.settings)
-        except Exception as ex:  # noqa: BLE001
-            st.stale_message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
-        if st.stale_message:
-            log(f"'{obj.name}': {st.stale_message}", once_key=("stale", obj.name, st.stale_message))
-    return st.stale_message
-
-
-# ------------------------------------------------------------------ attribute
-
-
-def write_radiance(obj, rgb: np.ndarray, name: str = ATTRIBUTE_NAME) -> None:
-    """Write (n, 3) radiance into ``obj.data``'s ``translucency_radiance`` attribute.
-
-    Only the attribute's values change: never the topology, never another
-    attribute.  A layer of the wrong type or domain under our name is replaced.
-    """
-    mesh = obj.data
-    n = len(mesh.vertices)
-    rgb = np.asarray(rgb, dtype=np.float32)
-    if rgb.shape != (n, 3):
-        raise ValueError(f"radiance has shape {rgb.shape}, the mesh has {n} vertices")
-    attr = mesh.attributes.get(name)
-    if attr is not None and (attr.domain != ATTRIBUTE_DOMAIN or attr.data_type != ATTRIBUTE_TYPE):
-        mesh.attributes.remove(attr)
-        attr = None
-    if attr is None:
-        attr = mesh.attributes.new(name, ATTRIBUTE_TYPE, ATTRIBUTE_DOMAIN)
-    rgba = np.ones((n, 4), dtype=np.float32)
-    rgba[:, :3] = np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0)
-    attr.data.foreach_set("color", rgba.ravel())
-    OWN_WRITES.add(obj.name)
-    COUNTERS["writes"] += 1
-    mesh.update_tag()
-
-
-def read_radiance(obj, name: str = ATTRIBUTE_NAME) -> np.ndarray | None:
-    """The attribute (default: the total radiance) as (n, 3) float32, or None."""
-    mesh = obj.data
-    attr = mesh.attributes.get(name) if mesh is not None else None
-    if attr is None or attr.domain != ATTRIBUTE_DOMAIN or attr.data_type != ATTRIBUTE_TYPE:
-        return None
-    rgba = np.empty(len(attr.data) * 4, dtype=np.float32)
-    attr.data.foreach_get("color", rgba)
-    return rgba.reshape(-1, 4)[:, :3].copy()
-
-
-def remove_attribute(obj, name: str = ATTRIBUTE_NAME) -> bool:
-    mesh = obj.data
-    attr = mesh.attributes.get(name) if mesh is not None else None
-    if attr is None:
-        return False
-    mesh.attributes.remove(attr)
-    mesh.update_tag()
-    return True
-
-
-def _attribute_ok(obj, name: str = ATTRIBUTE_NAME) -> bool:
-    attr = obj.data.attributes.get(name)
-    return (attr is not None and attr.domain == ATTRIBUTE_DOMAIN and attr.data_type == ATTRIBUTE_TYPE
-            and len(attr.data) == len(obj.data.vertices))
 
 
 # ------------------------------------------------------------------ solving
@@ -686,8 +339,8 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
         log(f"'{obj.name}': {w}", once_key=("warn", obj.name, w))
 
     def current() -> bool:
-        return (not force and view_sig == st.view_sig and _attribute_ok(obj)
-                and (not (use_ss and split) or _attribute_ok(obj, SS_ATTRIBUTE_NAME)))
+        return (not force and view_sig == st.view_sig and attribute_ok(obj)
+                and (not (use_ss and split) or attribute_ok(obj, SS_ATTRIBUTE_NAME)))
 
     def previous_for(s):
         """(last result, its signature) of solver ``s`` (the GPU/main one or the CPU twin)."""

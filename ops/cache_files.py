@@ -1,0 +1,160 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Bake cache files next to the .blend: where they live, loading them into the state, staleness.
+
+A render farm shares the folder: paths are stored blend-relative when the
+.blend is saved; an unsaved .blend uses the temporary folder and says so.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+
+import bpy
+
+from . import scene_inputs
+from .state import _FAILED, _LOCK, _STATES, CACHE_STATUS, COUNTERS, ObjectState, drop_state, get_state, log
+
+DEFAULT_CACHE_DIRECTORY = "//translucency_cache/"
+
+
+def cache_directory(scene) -> tuple[str, str | None]:
+    """``(absolute directory, note)``.  A blend-relative directory of an unsaved
+    .blend resolves to a temporary folder, and ``note`` says so."""
+    directory = scene.translucency.cache_directory or DEFAULT_CACHE_DIRECTORY
+    if directory.startswith("//") and not bpy.data.filepath:
+        tmp = os.path.join(tempfile.gettempdir(), "translucency_cache")
+        return tmp, (f"the .blend file is not saved, so the cache was written to the temporary folder "
+                     f"{tmp}; save the .blend and bake again to keep the cache next to it")
+    return os.path.normpath(bpy.path.abspath(directory)), None
+
+
+def cache_file_name(obj_name: str, key: str) -> str:
+    safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", obj_name).strip("._") or "object"
+    return f"{safe}_{key[:16]}.npz"
+
+
+def stored_cache_path(abs_path: str) -> str:
+    """The path as stored in the .blend: blend-relative when the .blend is saved."""
+    if bpy.data.filepath:
+        try:
+            return bpy.path.relpath(abs_path)
+        except ValueError:  # another drive on Windows
+            return abs_path
+    return abs_path
+
+
+def resolve_cache_path(obj) -> str:
+    path = obj.translucency.cache_filepath
+    return os.path.normpath(bpy.path.abspath(path)) if path else ""
+
+
+def ensure_state(obj, retry: bool = False) -> ObjectState:
+    """The object's state, loading its bake from the cache file when needed.
+
+    Raises :class:`CacheError` (missing, truncated, stale, ...) with a message
+    naming the file.  A failed load is remembered and not retried until the
+    file, the key or ``retry`` changes.
+    """
+    from ..translucency_addon.cache import load_bake
+    from ..translucency_addon.errors import CacheError
+
+    with _LOCK:
+        st = get_state(obj)
+        if st is not None:
+            return st
+        drop_state(obj.name)
+        settings = obj.translucency
+        path = resolve_cache_path(obj)
+        if not path or not settings.bake_key:
+            raise CacheError(f"'{obj.name}' is not baked yet: press Bake in the Translucency panel")
+        try:
+            mtime = os.path.getmtime(path)
+        except OSError:
+            mtime = None
+        inputs = (path, settings.bake_key, mtime)
+        failed = _FAILED.get(obj.name)
+        if failed is not None and failed[0] == inputs and not retry:
+            raise CacheError(failed[1])
+        try:
+            bake = load_bake(path, expected_key=settings.bake_key)
+        except CacheError as ex:
+            _FAILED[obj.name] = (inputs, str(ex))
+            CACHE_STATUS[obj.name] = f"Cache problem: {ex}"
+            raise
+        COUNTERS["loads"] += 1
+        CACHE_STATUS.pop(obj.name, None)
+        st = ObjectState(name=obj.name, key=bake.key, cache_path=path, bake=bake)
+        _STATES[obj.name] = st
+        log(f"loaded the bake of '{obj.name}' from {path}")
+        return st
+
+
+def check_cache(obj, depsgraph=None) -> str:
+    """Look for the object's cache without loading it all; returns a status line.
+
+    Used after a file load: reports a missing, unreadable or stale cache.
+    """
+    from ..translucency_addon.cache import read_meta
+    from ..translucency_addon.errors import TranslucencyError
+
+    settings = obj.translucency
+    path = resolve_cache_path(obj)
+    if not path:
+        return "Not baked"
+    try:
+        meta = read_meta(path)
+    except TranslucencyError as ex:
+        return f"Cache problem: {ex}"
+    if settings.bake_key and meta.get("key") != settings.bake_key:
+        return (f"Stale cache: {path} holds another bake than this object's (key "
+                f"{str(meta.get('key'))[:12]} != {settings.bake_key[:12]}); re-bake")
+    if depsgraph is not None:
+        from ..translucency_addon.bake import BakeSettings
+
+        try:
+            baked = BakeSettings(**meta["settings"])
+            message = _staleness(obj, depsgraph, (meta.get("stats") or {}).get("graph_key") or meta["key"], baked)
+        except Exception as ex:  # noqa: BLE001 - a status line must not raise
+            message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
+        if message:
+            return f"Stale: {message}"
+    return f"Baked (cache found: {os.path.basename(path)})"
+
+
+def _staleness(obj, depsgraph, key: str, baked_settings) -> str:
+    """Why the bake no longer matches the object (empty when it still does).
+
+    ``key``: the QuadGraph key (``single_scattering.graph_key``: a bake holding
+    single scattering has a combined key of its own)."""
+    from dataclasses import replace
+
+    from ..translucency_addon.bake import mesh_key
+
+    V, F = scene_inputs.evaluated_triangles(obj, depsgraph)
+    if mesh_key(V, F, baked_settings) != key:
+        return "the mesh changed since it was baked (modifiers included); re-bake to update the graph"
+    s = obj.translucency
+    wanted = replace(baked_settings, quality=s.quality.lower(), levels=int(s.levels))
+    if (wanted.quality, wanted.levels) != (baked_settings.quality, baked_settings.levels):
+        return (f"the bake settings changed (baked: {baked_settings.quality}, {baked_settings.levels} levels); "
+                "re-bake to apply them")
+    return ""
+
+
+def update_staleness(obj, st: ObjectState, depsgraph) -> str:
+    """Re-check staleness when the evaluated geometry changed; cheap otherwise."""
+    positions = scene_inputs.evaluated_positions(obj, depsgraph)
+    digest = scene_inputs.array_digest(positions) + f"|{obj.translucency.quality}|{obj.translucency.levels}"
+    if digest != st.geometry_digest:
+        st.geometry_digest = digest
+        try:
+            from ..translucency_addon.single_scattering import graph_key
+
+            st.stale_message = _staleness(obj, depsgraph, graph_key(st.bake), st.bake.settings)
+        except Exception as ex:  # noqa: BLE001
+            st.stale_message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
+        if st.stale_message:
+            log(f"'{obj.name}': {st.stale_message}", once_key=("stale", obj.name, st.stale_message))
+    return st.stale_message
