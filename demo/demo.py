@@ -302,7 +302,10 @@ def radiance_digest(bunny) -> tuple[float, float]:
 
 def save_pass_png(rp, exr_path: Path, png_path: Path) -> dict:
     """The Translucency pass alone, scaled so its 99th percentile is white, as a PNG."""
-    translucency = rp.exr_pass(exr_path, rp.AOV_NAME)[..., :3]
+    sys.path.insert(0, str(ROOT))
+    from tools.exr import exr_pass  # the repo's small EXR reader (not part of the extension)
+
+    translucency = exr_pass(exr_path, rp.AOV_NAME)[..., :3]
     lit = translucency.max(axis=2)
     scale = float(np.percentile(lit[lit > 0], 99.0)) if np.any(lit > 0) else 1.0
     display = np.clip(translucency / max(scale, 1e-12), 0.0, 1.0) ** (1.0 / 2.2)

@@ -1,8 +1,11 @@
 """Thin layer over Blender's ``gpu`` module: kernels, textures, dispatch, read-back.
 
-Rules (docs/architecture.md, ../shared/NOTES.md):
+Rules (docs/architecture.md):
 
-* ``gpu`` is imported inside functions only, never at import or register time.
+* ``gpu`` is imported inside functions only, never at import or register time:
+  in background mode every ``gpu`` call raises ``SystemError`` until the GPU
+  backend has started (a 1x1 Workbench render starts it, ``init_headless``),
+  and add-ons that touch it at register time break ``blender -b``.
 * Kernels are ``*.glsl`` files next to this module.  Each is compiled on first
   use (``common.glsl`` prepended) and cached for the session;
   :func:`free_shaders` drops the cache.
@@ -128,11 +131,6 @@ def shader(name: str):
     _SHADERS[name] = sh
     STATS["compiled"] += 1
     return sh
-
-
-def compile_all() -> None:
-    for name in KERNELS:
-        shader(name)
 
 
 def free_shaders() -> None:

@@ -12,17 +12,12 @@ class is unregistered (in reverse order).  Use them for application handlers,
 timers and draw handlers (``handlers`` adds its ``bpy.app.handlers`` there);
 ``on_unregister`` must remove everything ``on_register`` added.
 
-``overlay`` (viewport draw handler) and ``render_pass`` (the "Add to
-material" AOV operator) are optional here: they are in ``MODULES`` only when
-their files exist and import.
-
 Nothing here touches the ``gpu`` module or imports a bundled wheel (scipy,
 pytetwild, fast_simplification) at import or register time.
 """
 
 from __future__ import annotations
 
-import importlib
 import traceback
 
 import bpy
@@ -33,33 +28,15 @@ from . import (
     handlers,
     operators_bake,
     operators_solve,
+    overlay,
     panels,
     properties,
+    render_pass,
     runtime,  # noqa: F401
     scene_inputs,  # noqa: F401
 )
 
-
-def _optional(name: str):
-    """Import ``ops.<name>`` if its file exists; a broken module is reported, not fatal."""
-    try:
-        return importlib.import_module(f"{__name__}.{name}")
-    except ModuleNotFoundError as ex:
-        if ex.name == f"{__name__}.{name}":
-            return None  # the file does not exist (yet)
-        traceback.print_exc()
-        return None
-    except Exception:  # noqa: BLE001 - another engineer's module must not break registration
-        traceback.print_exc()
-        return None
-
-
-overlay = _optional("overlay")
-render_pass = _optional("render_pass")
-
-MODULES = tuple(m for m in (
-    properties, dependencies, operators_bake, operators_solve, overlay, render_pass, handlers, panels,
-) if m is not None)
+MODULES = (properties, dependencies, operators_bake, operators_solve, overlay, render_pass, handlers, panels)
 
 # (bpy type, attribute name, PropertyGroup class)
 POINTERS = (

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import threading
 
-BACKENDS = ("AUTO", "GPU", "CPU")
-
 
 def cpu_solver(bake, material, field_values, options):
     from ..translucency_addon.diffusion import DiffusionSolver

@@ -48,10 +48,6 @@ def missing(refresh: bool = False) -> list[tuple[str, str]]:
     return list(_missing_cache)
 
 
-def all_available(refresh: bool = False) -> bool:
-    return not missing(refresh)
-
-
 def clear_cache() -> None:
     global _missing_cache
     _missing_cache = None

@@ -48,6 +48,7 @@ on load_post, and there is never more than one.
 
 from __future__ import annotations
 
+import os
 import zlib
 
 import bpy
@@ -212,23 +213,11 @@ class _Entry:
         self.scale = scale
 
 
-_VERTEX_SOURCE = """
-void main()
-{
-  gl_Position = ModelViewProjectionMatrix * vec4(pos, 1.0);
-  gl_Position.z -= depth_bias * gl_Position.w;
-  v_radiance = radiance;
-}
-"""
-
-_FRAGMENT_SOURCE = """
-void main()
-{
-  vec3 x = max(v_radiance.rgb, vec3(0.0)) * gain;
-  vec3 display = (soft > 0.5) ? (vec3(1.0) - exp(-x)) : min(x, vec3(1.0));
-  FragColor = vec4(display, 1.0);
-}
-"""
+def _glsl(name: str) -> str:
+    """A stage of the overlay shader from ``gpu_shaders/`` (where every .glsl of the extension lives)."""
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "gpu_shaders", name)
+    with open(path, encoding="utf-8") as f:
+        return f.read()
 
 
 def get_shader():
@@ -248,8 +237,8 @@ def get_shader():
         info.push_constant('FLOAT', "gain")
         info.push_constant('FLOAT', "soft")
         info.fragment_out(0, 'VEC4', "FragColor")
-        info.vertex_source(_VERTEX_SOURCE)
-        info.fragment_source(_FRAGMENT_SOURCE)
+        info.vertex_source(_glsl("overlay_vert.glsl"))
+        info.fragment_source(_glsl("overlay_frag.glsl"))
         _shader = gpu.shader.create_from_info(info)
     return _shader
 

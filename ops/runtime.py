@@ -131,18 +131,6 @@ def _original_mapping(obj, st: ObjectState):
     return st.orig_map
 
 
-def _partial_current(solver, result, bake) -> np.ndarray:
-    fn = getattr(solver, "surface_partial_current", None)
-    if callable(fn):
-        return np.asarray(fn(result))
-    from ..translucency_addon.fresnel import diffuse_reflectance_internal
-    from ..translucency_addon.kernels import outgoing_partial_current
-
-    lv = bake.finest
-    return outgoing_partial_current(np.asarray(result.phi[-1])[lv.n_inner:], np.asarray(result.q[-1]),
-                                    diffuse_reflectance_internal(solver.eta))
-
-
 def _solve(st: ObjectState, solver, lights, environment, previous, occluders, channels):
     """One multiple-scattering solve, with the interreflection bounce when the bake has sky visibility.
 
@@ -168,20 +156,18 @@ def _vertex_map(obj, st: ObjectState):
 
 
 def radiance_for_mesh(obj, st: ObjectState, solver, result, view) -> np.ndarray:
-    """(len(obj.data.vertices), 3) outgoing radiance for the original mesh's vertices."""
-    from ..translucency_addon.diffusion import outgoing_radiance
+    """(len(obj.data.vertices), 3) outgoing radiance for the original mesh's vertices.
 
+    The baked (evaluated) mesh's own vertex map, or one to ``obj.data``'s vertices when a modifier
+    changed the vertex count; either way the solver's ``radiance_at`` (corrected eq. 4/7).
+    """
     bake = st.bake
     n_orig = len(obj.data.vertices)
     if n_orig == len(bake.mesh_vertices):
         dirs = scene_inputs.view_directions(view, np.asarray(bake.mesh_vertices))
         return np.asarray(solver.vertex_radiance(result, dirs))
     _, idx, w, V, N = _original_mapping(obj, st)
-    jplus = _partial_current(solver, result, bake)
-    j_v = np.einsum("vk,vkc->vc", w, jplus[idx])
-    dirs = scene_inputs.view_directions(view, V)
-    cos_o = np.ones(len(V)) if dirs is None else np.einsum("vj,vj->v", N, dirs)
-    return outgoing_radiance(j_v, cos_o, solver.eta)
+    return np.asarray(solver.radiance_at(result, idx, w, N, scene_inputs.view_directions(view, V)))
 
 
 def _cpu_twin(st: ObjectState, mm: float, material, scene):

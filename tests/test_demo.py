@@ -29,7 +29,7 @@ def test_demo_quick_writes_frames_and_translucency_pass(addon, tmp_path):
     log = proc.stdout + proc.stderr
     assert proc.returncode == 0, log[-4000:]
 
-    from translucency.ops.render_pass import exr_pass
+    from tools.exr import exr_pass
 
     passes = []
     for frame in (1, 40):

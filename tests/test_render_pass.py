@@ -11,6 +11,8 @@ import bpy
 import numpy as np
 import pytest
 
+from tools.exr import exr_pass, read_exr
+
 ATTRIBUTE = "translucency_radiance"
 SIZE = 32
 ROLE = "translucency_role"
@@ -284,17 +286,17 @@ def test_cycles_renders_the_translucency_pass(render_pass, tmp_path):
     bpy.context.view_layer.objects.active = obj
     bpy.ops.translucency.add_to_material()
     path = render_exr(render_pass, tmp_path / "cycles.exr", 'CYCLES')
-    check_pass(render_pass.exr_pass(path, "Translucency"))
-    alpha = render_pass.exr_pass(path, "Combined")[..., 3]
+    check_pass(exr_pass(path, "Translucency"))
+    alpha = exr_pass(path, "Combined")[..., 3]
     assert alpha[:SIZE // 4, -SIZE // 4:].max() > 0.9, "the cube is in the frame (top right)"
 
 
 def test_cycles_emission_option_brightens_the_beauty_pass(render_pass, tmp_path):
     sphere_scene()
     bpy.ops.translucency.add_to_material()
-    plain = render_pass.exr_pass(render_exr(render_pass, tmp_path / "plain.exr", 'CYCLES'), "Combined")
+    plain = exr_pass(render_exr(render_pass, tmp_path / "plain.exr", 'CYCLES'), "Combined")
     bpy.ops.translucency.add_to_material(use_emission=True)
-    lit = render_pass.exr_pass(render_exr(render_pass, tmp_path / "emission.exr", 'CYCLES'), "Combined")
+    lit = exr_pass(render_exr(render_pass, tmp_path / "emission.exr", 'CYCLES'), "Combined")
     inside, _ = masks()
     # No lights and no world: without emission the sphere is black, with it the radiance shows.
     assert plain[inside][:, :3].max() < 1e-3
@@ -306,7 +308,7 @@ def test_eevee_renders_the_translucency_pass(render_pass, tmp_path):
     sphere_scene()
     bpy.ops.translucency.add_to_material()
     path = render_exr(render_pass, tmp_path / "eevee.exr", render_pass.eevee_engine_id(), samples=1)
-    check_pass(render_pass.exr_pass(path, "Translucency"))
+    check_pass(exr_pass(path, "Translucency"))
 
 
 # --- the EXR reader -----------------------------------------------------------------------------
@@ -329,10 +331,10 @@ def cycles_codecs(render_pass, tmp_path):
 
 
 def test_exr_reader_agrees_across_codecs(render_pass, cycles_codecs):
-    reference = render_pass.read_exr(cycles_codecs['NONE'])
+    reference = read_exr(cycles_codecs['NONE'])
     assert {"ViewLayer.Translucency.R", "ViewLayer.Combined.A"} <= set(reference)
     for codec, path in cycles_codecs.items():
-        channels = render_pass.read_exr(path)
+        channels = read_exr(path)
         assert set(channels) == set(reference), codec
         for name in reference:
             np.testing.assert_array_equal(channels[name], reference[name], err_msg=f"{codec} {name}")
@@ -344,7 +346,7 @@ def test_exr_reader_agrees_with_mitsuba(render_pass, cycles_codecs):
     mi.set_variant('scalar_rgb')
     bitmap = mi.Bitmap(str(cycles_codecs['ZIP']))
     theirs = np.array(bitmap, np.float32)
-    ours = render_pass.exr_pass(cycles_codecs['ZIP'], "Combined")
+    ours = exr_pass(cycles_codecs['ZIP'], "Combined")
     assert theirs.shape == ours.shape
     np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-6)
 
@@ -353,7 +355,7 @@ def test_exr_reader_rejects_what_it_cannot_read(render_pass, tmp_path):
     bad = tmp_path / "bad.exr"
     bad.write_bytes(b"not an exr")
     with pytest.raises(ValueError):
-        render_pass.read_exr(bad)
+        read_exr(bad)
 
 
 # --- integration with the real bake, solve and frame handlers ---------------------------------
@@ -413,7 +415,7 @@ def test_solve_then_cycles_pass_follows_the_animated_light(render_pass, tmp_path
     for frame in (1, 10):
         scene.frame_set(frame)  # the add-on's frame handlers re-solve for the moved light
         path = render_exr(render_pass, tmp_path / f"frame_{frame}.exr", 'CYCLES')
-        passes[frame] = render_pass.exr_pass(path, "Translucency")
+        passes[frame] = exr_pass(path, "Translucency")
     right, left = lit_sides(passes[1])
     assert right > 2.0 * left, f"frame 1: light at +x, right {right} left {left}"
     right, left = lit_sides(passes[10])
@@ -426,5 +428,5 @@ def test_solve_then_eevee_pass_is_brighter_on_the_lit_side(render_pass, tmp_path
     baked_sphere_scene()
     bpy.ops.translucency.add_to_material()
     path = render_exr(render_pass, tmp_path / "eevee.exr", render_pass.eevee_engine_id(), samples=1)
-    right, left = lit_sides(render_pass.exr_pass(path, "Translucency"))
+    right, left = lit_sides(exr_pass(path, "Translucency"))
     assert right > 2.0 * left

@@ -74,11 +74,6 @@ def diffuse_reflectance_internal(eta: float) -> float:
     return float(1.0 - (1.0 - diffuse_reflectance_external(eta)) / (eta * eta))
 
 
-def diffuse_reflectance_polynomial(eta: float) -> float:
-    """Egan & Hilgeman's fit as quoted by Jensen et al. 2001 (cross-check only)."""
-    return -1.440 / eta**2 + 0.710 / eta + 0.668 + 0.0636 * eta
-
-
 def boundary_A(eta: float) -> float:
     """``A = (1 + F_dr) / (1 - F_dr)`` of Wang et al. eq. 2."""
     fdr = diffuse_reflectance_internal(eta)

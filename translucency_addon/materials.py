@@ -12,13 +12,13 @@ with g = 0):
 * reduced albedo          ``alpha' = sigma_s' / (sigma_a + sigma_s')``
 
 The extracted text of Wang et al. prints ``kappa = [3 mu + sigma_s']^-1``;
-that is a transcription error (``../shared/NOTES.md``), so we use the standard
-form above.
+that is a transcription error: the standard diffusion coefficient is the one
+above (Kang & Kim 2013 eq. 3 with g = 0; Jensen et al. 2001), so we use it.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -157,25 +157,7 @@ def diffusion_coefficient(sigma_a, sigma_s):
     return 1.0 / (3.0 * (np.asarray(sigma_a) + np.asarray(sigma_s)))
 
 
-def transport_coefficient(sigma_a, sigma_s):
-    """``sigma_tr = sqrt(3 sigma_a (sigma_a + sigma_s'))`` in 1/mm."""
-    sa = np.asarray(sigma_a)
-    return np.sqrt(3.0 * sa * (sa + np.asarray(sigma_s)))
-
-
 def reduced_albedo(sigma_a, sigma_s):
     sa = np.asarray(sigma_a)
     ss = np.asarray(sigma_s)
     return ss / (sa + ss)
-
-
-@dataclass
-class NodeCoefficients:
-    """Optical coefficients sampled at one level's nodes (inner first, then surface)."""
-
-    sigma_a: np.ndarray  # (N, 3) per mm
-    sigma_s: np.ndarray  # (N, 3) per mm
-    kappa: np.ndarray = field(init=False)  # (N, 3) mm
-
-    def __post_init__(self):
-        self.kappa = diffusion_coefficient(self.sigma_a, self.sigma_s)

@@ -60,14 +60,6 @@ def triangle_areas(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
 
 
-def triangle_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
-    """Unit normal of every triangle (zero for degenerate ones)."""
-    p = V[F]
-    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, ln, out=np.zeros_like(n), where=ln > 0)
-
-
 def vertex_normals(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     """Area-weighted vertex normals; unreferenced vertices get (0, 0, 1)."""
     p = V[F]

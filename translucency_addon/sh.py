@@ -114,12 +114,6 @@ def evaluate(coeffs: np.ndarray, dirs: np.ndarray) -> np.ndarray:
 _A = np.array([np.pi] + [2.0 * np.pi / 3.0] * 3 + [np.pi / 4.0] * 5)
 
 
-def irradiance_from_sh9(sh: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Irradiance E(n) = sum_lm A_l L_lm Y_lm(n) from order-2 radiance coefficients (9, 3)."""
-    Y = sh_basis(normals, 2)
-    return np.maximum(Y @ (_A[:, None] * np.asarray(sh)), 0.0)
-
-
 def transmission_kernel(eta: float, order: int = 2) -> np.ndarray:
     """Zonal kernel of q (eq. 3) for SH radiance: A_l = 2 pi int_0^1 mu F_t(mu) P_l(mu) dmu.
 
