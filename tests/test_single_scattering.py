@@ -355,6 +355,34 @@ def test_torus_shadow_is_visible(torus):
 # ------------------------------------------------------------ robustness
 
 
+LIGHT_KINDS = [
+    Light("point", intensity=0.1, position=(0, 30, 40)),
+    Light("spot", intensity=0.2, position=(0, 0, -40), direction=(0, 0, 1), spot_size=0.6),
+    Light("sun", irradiance=0.7, direction=(1, -1, 0.2), color=(1.0, 0.2, 0.1)),
+    Light("area", intensity=0.3, position=(40, 0, 0), direction=(-1, 0, 0)),
+]
+
+
+@pytest.mark.parametrize("kind", [light.kind for light in LIGHT_KINDS])
+def test_each_light_kind_matches_the_brute_force_reference(sphere, kind):
+    """Each light kind alone against the independent brute-force integral of eq. 3 (reference_vertices).
+
+    Measured rel. RMS: point 0.098, spot 0.097, sun 0.096, area 0.080 (TOL_SPHERE = 0.12).
+    """
+    light = next(l for l in LIGHT_KINDS if l.kind == kind)
+    L = sphere.render(sphere.data, lights=[light], env=None)
+    ref = sphere.reference(sphere.data.volume, lights=[light], env=None)
+    assert ref.max() > 0  # the light reaches the visible side
+    assert rel_rms(L, ref) < TOL_SPHERE, (kind, rel_rms(L, ref))
+
+
+def test_light_kinds_add_up(sphere):
+    """The four kinds together are the sum of each alone (eq. 3 is linear in the lights)."""
+    alone = sum(sphere.render(sphere.data, lights=[light], env=None) for light in LIGHT_KINDS)
+    together = sphere.render(sphere.data, lights=LIGHT_KINDS, env=None)
+    np.testing.assert_allclose(together, alone, rtol=1e-10, atol=1e-14 * together.max())
+
+
 def test_output_is_finite_and_non_negative_for_all_light_kinds(torus):
     lights = [
         Light("point", intensity=0.1, position=(0, 30, 40)),

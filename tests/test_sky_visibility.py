@@ -19,7 +19,7 @@ from translucency_addon.diffusion import DiffusionSolver, SolveOptions
 from translucency_addon.errors import CacheError
 from translucency_addon.lights import Environment
 from translucency_addon.materials import Material, Medium, material_from_preset
-from test_ops_bake import activate, cache_dir  # noqa: F401 (fixture)
+from test_ops_bake import activate, cache_dir, radiance  # noqa: F401 (fixture)
 
 UNIFORM = Environment((1.0, 1.0, 1.0))
 
@@ -153,3 +153,18 @@ def test_the_operator_bakes_sky_visibility_and_solves_with_the_bounce(blender, a
     assert st.bake.sky is not None and len(st.bake.sky.levels) == len(st.bake.levels)
     assert st.bounce is not None and st.bounce.shape == (len(st.bake.mesh_vertices), 3)
     assert np.all(np.isfinite(st.bounce)) and st.bounce.max() > 0
+
+    # The written radiance is the interreflected solve, not the first pass: compare with the engine
+    # solving the same bake, material and world itself, with and without the bounce.
+    from translucency.ops import scene_inputs
+    from translucency.translucency_addon.diffusion import DiffusionSolver, SolveOptions
+
+    written = radiance(obj)
+    env, _ = scene_inputs.world_environment(bpy.context.scene.world)
+    engine = DiffusionSolver(st.bake.with_scale(10.0), scene_inputs.build_material(s),
+                             options=SolveOptions(tol=1e-7, sky_occlusion=True))
+    with_bounce = engine.vertex_radiance(engine.solve_interreflected(environment=env, bounces=1)[0])
+    first_pass = engine.vertex_radiance(engine.solve(environment=env))
+    gap = np.abs(with_bounce - first_pass).max()
+    assert gap > 0.02 * with_bounce.max(), gap  # the bounce matters on a torus (its hole sees itself)
+    assert np.abs(written - with_bounce).max() < 0.1 * gap, (np.abs(written - with_bounce).max(), gap)

@@ -262,21 +262,42 @@ def test_grazing_light_adds_almost_nothing_to_the_grazed_face(grazing_light):
 def test_light_inside_is_not_a_surface_source(light_inside, thin_shell):
     """A light inside contributes nothing (with a warning); just outside it lights as usual;
     in the hollow of the shell it is outside the medium and lights the inner wall."""
-    from translucency_addon.diffusion import DiffusionSolver
+    from translucency_addon.diffusion import DiffusionSolver, SolveOptions
     from translucency_addon.lights import Light
 
     torus = next(s for s in light_inside if s.variant.startswith("torus"))
+    inside = torus.lights[0]
     solver = DiffusionSolver(torus.bake, torus.material)
     outside = Light("point", intensity=50.0, position=(1.0, 0.0, 0.6), name="above the tube")
     r = solver.solve([outside])
     assert solver.warnings == [] and r.warnings == []
-    assert solver.vertex_radiance(r).max() > 0
+    alone = solver.vertex_radiance(r)
+    assert alone.max() > 0
+    # the inside light adds exactly nothing, also next to a light that counts, and it is named
+    both = solver.solve([outside, inside])
+    assert len(both.warnings) == 1 and "'inside tube'" in both.warnings[0]
+    np.testing.assert_array_equal(solver.vertex_radiance(both), alone)
+    only_inside = solver.solve([inside])
+    assert np.all(solver.vertex_radiance(only_inside) == 0.0)
+    # In the shell's hollow the light is outside the medium: it lights the inner wall (surface
+    # nodes facing it) and no node that faces away, and what leaves is what came in less what
+    # the wall absorbed.
     shell = thin_shell[0]
-    solver = DiffusionSolver(shell.bake, shell.material)
+    solver = DiffusionSolver(shell.bake, shell.material, options=SolveOptions(solver="direct"))
     r = solver.solve([Light("point", intensity=50.0, position=(0.0, 0.0, 0.0), name="in the hollow")])
     assert solver.warnings == []
     L = solver.vertex_radiance(r)
-    assert np.all(np.isfinite(L)) and L.max() > 0
+    assert np.all(np.isfinite(L)) and L.min() > 0
+    lv = shell.bake.finest
+    facing = np.einsum("ij,ij->i", lv.normal, -lv.surface_position) > 0  # the normal points at the light
+    q = r.q[-1]
+    lit = q.max(axis=1) > 0
+    print("lit share of the nodes facing the light", lit[facing].mean(), "of the others", lit[~facing].mean())
+    assert facing.any() and lit[facing].mean() > 0.9  # a few are shadowed where the resampled walls cross
+    assert not lit[~facing].any()
+    pb = solver.power_balance(r)
+    assert np.all(pb["in"] > 0)
+    np.testing.assert_allclose(pb["out"] + pb["absorbed"], pb["in"], rtol=1e-6)
 
 
 def test_occluder_dims_the_light(occluded_light):
