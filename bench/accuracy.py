@@ -510,7 +510,7 @@ def main(argv=None):
     import matplotlib
 
     matplotlib.use("Agg")
-    from bench import accuracy_report as report
+    from bench import accuracy_text as report  # writes the plots and the text
 
     b = run(a.quick, a.refresh_references, tuple(a.sections), bake_cache=a.bake_cache)
     if a.quick:

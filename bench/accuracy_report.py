@@ -1,10 +1,9 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""Plots and the markdown report of ``bench/accuracy.py`` (docs/accuracy.md)."""
+"""Plots and tables of ``bench/accuracy.py`` (docs/accuracy.md); ``accuracy_text`` writes the text around them and imports this module, never the reverse."""
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 
@@ -333,33 +332,3 @@ def knob_table(b, knob, extra=()):
     head = ["scene", "setting", "nodes (finest)", "bake s", "first frame ms", "iterations per level",
             "(a) vs converged", "(b) vs path tracer"] + [e[0] for e in extra]
     return table(head, body)
-
-
-def write(b, out: Path, img_dir: Path, costs=None):
-    from bench import accuracy_text
-
-    out = Path(out)
-    img_dir = Path(img_dir)
-    img_dir.mkdir(parents=True, exist_ok=True)
-    rel = Path("images") if img_dir.parent == out.parent else Path(img_dir.name)
-    head_scene = "bunny_marble_sky" if "bunny_marble_sky" in b.scenes else next(iter(b.scenes))
-    figs = {}
-    figs["pareto"] = img_dir / "accuracy_pareto.png"
-    plot_pareto(b, head_scene, figs["pareto"])
-    figs["headline"] = img_dir / "accuracy_presets.png"
-    plot_headline(b, figs["headline"])
-    figs["images"] = img_dir / "accuracy_images.png"
-    plot_images(b, figs["images"])
-    figs["scanlines"] = img_dir / "accuracy_scanlines.png"
-    plot_scanlines(b, figs["scanlines"])
-    if rows(b, "K"):
-        figs["K"] = img_dir / "accuracy_k.png"
-        plot_K(b, figs["K"])
-    figs["kappa"] = img_dir / "accuracy_kappa_jump.png"
-    if not plot_kappa(b, figs["kappa"]):
-        figs.pop("kappa")
-    link = {k: (rel / v.name).as_posix() for k, v in figs.items()}
-    text = accuracy_text.render(b, link, costs, head_scene)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    return figs

@@ -4,7 +4,9 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+from bench import accuracy_report as report
 from bench.accuracy_core import SKY_DIRECTIONS
 from bench.accuracy_report import (headline_table, knob_table, ms, one, pct, reference_table, rows, scenes_table,
                                    sec, table)
@@ -469,3 +471,32 @@ def findings_model(b):
                   f"open {pct(c.get('err_ref_open'))})" if c else "") + ". What remains is spread over the "
                "open surface as well: the diffusion model itself (compare the convex sphere's row above).")
     return out
+
+
+def write(b, out: Path, img_dir: Path, costs=None):
+    """The plots (accuracy_report) and the text (render, here) of docs/accuracy.md."""
+    out = Path(out)
+    img_dir = Path(img_dir)
+    img_dir.mkdir(parents=True, exist_ok=True)
+    rel = Path("images") if img_dir.parent == out.parent else Path(img_dir.name)
+    head_scene = "bunny_marble_sky" if "bunny_marble_sky" in b.scenes else next(iter(b.scenes))
+    figs = {}
+    figs["pareto"] = img_dir / "accuracy_pareto.png"
+    report.plot_pareto(b, head_scene, figs["pareto"])
+    figs["headline"] = img_dir / "accuracy_presets.png"
+    report.plot_headline(b, figs["headline"])
+    figs["images"] = img_dir / "accuracy_images.png"
+    report.plot_images(b, figs["images"])
+    figs["scanlines"] = img_dir / "accuracy_scanlines.png"
+    report.plot_scanlines(b, figs["scanlines"])
+    if rows(b, "K"):
+        figs["K"] = img_dir / "accuracy_k.png"
+        report.plot_K(b, figs["K"])
+    figs["kappa"] = img_dir / "accuracy_kappa_jump.png"
+    if not report.plot_kappa(b, figs["kappa"]):
+        figs.pop("kappa")
+    link = {k: (rel / v.name).as_posix() for k, v in figs.items()}
+    text = render(b, link, costs, head_scene)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    return figs
