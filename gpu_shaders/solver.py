@@ -223,7 +223,9 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
             old_scale = g.q_scale
             g.upload_q(q[i], sq)
             self.uploads["q"] += 1
-            if warm_start is not None and i == n_lv - 1:
+            if not np.any(q[i]):  # no light on this level: the answer is exactly 0 (as on the CPU)
+                g.clear_x()
+            elif warm_start is not None and i == n_lv - 1:
                 self._warm(g, warm_start, old_scale, sq)
             elif prev is not None:
                 g.upsample_from(prev)

@@ -591,3 +591,18 @@ def test_blender_texture_limit_falls_back_to_the_cpu(blender, addon, cache_dir, 
     obj, L = _baked_and_solved()
     st = runtime.get_state(obj)
     assert st.backend == "CPU" and "32 x 32 with 2 layers" in st.backend_message, st.backend_message
+
+
+def test_a_level_without_light_solves_to_exactly_zero_whatever_the_warm_start():
+    """A light grazing the surface can light the coarse level's nodes and none of the finest's (the
+    fuzz found one: a spot on the unit sphere).  The finest level's answer is then exactly 0, not the
+    upsampled coarse solution the relative stopping test (|b| = 0) would accept."""
+    from translucency_addon.diffusion import DiffusionSolver, SolveOptions
+
+    b = hc.baked("sphere", 10.0)
+    solver = DiffusionSolver(b, hc.MARBLE, options=SolveOptions(solver="fast"))
+    q = [np.zeros((lv.n_surface, 3)) for lv in b.levels]
+    q[0][:5] = 1.0  # light on a few coarse surface nodes only
+    r = solver.solve(q=q)
+    assert np.abs(r.phi[0]).max() > 0
+    assert np.all(r.phi[-1] == 0.0)
