@@ -322,3 +322,21 @@ def test_nothing_runs_only_when_no_pass_returns_light():
     assert not plan.run and "no pass returns light" in plan.reason and "reduced albedo 0.10" in plan.reason, text
     assert "single scattering is the valid term" not in text and "not baked" in plan.reason
     assert "better: RGB: single scattering would be more accurate on 100 % of the surface" in text, text
+
+
+def test_thickness_belongs_to_the_bake_not_to_its_key():
+    """Two bakes of the same mesh and settings share a key but not their nodes (fTetWild varies):
+    each gets its own thickness.  (A cache keyed by the bake key gave one bake the other's thickness
+    and flagged a 3 cm marble sphere as thin in places.)"""
+    import dataclasses
+
+    from translucency_addon.planner import surface_thickness
+
+    b = baked("sphere", mm_per_unit=15.0)
+    lv = b.finest
+    half_lv = dataclasses.replace(lv, position=0.5 * lv.position)
+    half = dataclasses.replace(b, levels=b.levels[:-1] + [half_lv], mesh_vertices=0.5 * b.mesh_vertices)
+    assert half.key == b.key and half.finest.n_surface == lv.n_surface
+    t = surface_thickness(b)
+    np.testing.assert_allclose(surface_thickness(half), 0.5 * t, rtol=1e-6)
+    assert np.all(t * 15.0 > 10.0)  # every node of the 30 mm sphere is over 1 cm thick

@@ -149,29 +149,40 @@ def surface_thickness(bake) -> np.ndarray:
     """Local thickness (object units) at every surface node of the finest level.
 
     One ray per node along its inward normal to the baked mesh (the scene's
-    own BVH, :class:`.raycast.TriangleBVH`).  A ray that meets no triangle
+    own BVH, :class:`.raycast.TriangleBVH`), from where it enters the surface
+    to where it leaves again.  A ray that meets no triangle
     (a grazing ray at an edge or corner, or a hole in an open mesh) takes the
     median of the rays that did: one lost ray must not make a thin part
     thick.  Geometry only, so it is cached per bake key and scaled to mm by
     the caller.
     """
-    key = (bake.key, bake.finest.n_surface)
+    # Keyed by the level itself, not by the bake key: two bakes of the same mesh and settings share
+    # a key but not their nodes (fTetWild varies from run to run).
+    lv = bake.finest
+    key = (id(lv.position), lv.n_surface)
     cached = _THICKNESS.get(key)
-    if cached is not None:
-        return cached
+    if cached is not None and cached[0] is lv.position:
+        return cached[1]
     from .raycast import TriangleBVH
 
-    lv = bake.finest
     V = np.asarray(bake.mesh_vertices, dtype=np.float64)
     diag = float(np.linalg.norm(np.ptp(V, axis=0)))
     n = np.asarray(lv.normal, dtype=np.float64)
     p = np.asarray(lv.surface_position, dtype=np.float64)
-    t, tri, _, _ = TriangleBVH(V, bake.mesh_faces).intersect(p - 1e-5 * diag * n, -n, tmin=1e-6 * diag)
-    hit = tri >= 0
+    bvh = TriangleBVH(V, bake.mesh_faces)
+    # Enter from just outside and measure entry to exit: a node that sits a hair outside the mesh
+    # (placement round-off; seen at 3e-5 units on the unit sphere) would otherwise measure ~0.
+    eps = 1e-4 * diag
+    origin = p + eps * n
+    t_in, tri_in, _, _ = bvh.intersect(origin, -n, tmin=1e-7 * diag)
+    entry = origin - np.where(tri_in >= 0, t_in + 1e-6 * diag, eps)[:, None] * n
+    t_out, tri_out, _, _ = bvh.intersect(entry, -n, tmin=1e-7 * diag)
+    hit = (tri_in >= 0) & (tri_out >= 0)
+    t = np.where(hit, t_out + 1e-6 * diag, 0.0)
     t = np.where(hit, t, np.median(t[hit]) if hit.any() else diag)
     if len(_THICKNESS) > 64:
         _THICKNESS.clear()
-    _THICKNESS[key] = t
+    _THICKNESS[key] = (lv.position, t)  # the array is kept so its id cannot be reused while cached
     return t
 
 
@@ -200,7 +211,7 @@ def _weighted_percentile(x, w, q: float) -> float:
     return float(np.asarray(x)[order][min(np.searchsorted(cw, q / 100.0 * cw[-1]), len(x) - 1)])
 
 
-_THICKNESS: dict = {}  # (bake key, n_surface) -> per-node thickness in units (bakes are immutable)
+_THICKNESS: dict = {}  # (id of the finest level's positions, n_surface) -> (positions, thickness in units)
 
 
 def light_reaching(lights, environment, center, radius_units: float, mm_per_unit: float) -> tuple[np.ndarray, list]:

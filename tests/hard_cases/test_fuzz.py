@@ -22,13 +22,16 @@ prints its example as drawn (shrinking these solves can take many minutes).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from translucency_addon import primitives
-from translucency_addon.bake import BakeSettings, bake_mesh
+from translucency_addon import cache, primitives
+from translucency_addon.bake import BakeSettings, bake_mesh, mesh_key
+from translucency_addon.errors import CacheError
 from translucency_addon.fields import FieldSpec, evaluate_field
 from translucency_addon.lights import Environment, Light
 from translucency_addon.materials import Material, Medium
@@ -38,10 +41,26 @@ from . import cases as hc
 _BAKE = {}
 
 
+FUZZ_BAKE = Path(__file__).resolve().parents[1] / "data" / "fuzz_icosphere.npz"
+
+
 def small_bake():
+    """The fuzz's icosphere bake, stored in tests/data so every run solves the same graphs.
+
+    fTetWild does not give the same tetrahedra twice, so a bake made per run
+    changed the drawn examples' graphs and let marginal ones pass on one run and
+    fail on the next.  The stored bake is used while its key matches the mesh and
+    settings; otherwise (the bake format or settings changed) the test bakes
+    afresh and says so -- rewrite the file then with ``cache.save_bake``.
+    """
     if "b" not in _BAKE:
         V, F = primitives.icosphere(1.0, 2)
-        _BAKE["b"] = bake_mesh(V, F, BakeSettings(quality="draft", levels=2, refinements=0, base_triangles=400))
+        settings = BakeSettings(quality="draft", levels=2, refinements=0, base_triangles=400)
+        try:
+            _BAKE["b"] = cache.load_bake(FUZZ_BAKE, expected_key=mesh_key(V, F, settings))
+        except CacheError as ex:
+            print(f"fuzz: {FUZZ_BAKE.name} does not match ({ex}); baking afresh")
+            _BAKE["b"] = bake_mesh(V, F, settings)
     return _BAKE["b"]
 
 
