@@ -101,7 +101,7 @@ def storage_buffers() -> tuple[bool, str]:
     The kernels pack the QuadGraph into 2D textures (image load/store and
     samplers) because Blender 4.2-5.2 expose no storage buffer to Python:
     ``gpu.types`` has no ``GPUStorageBuf`` and ``GPUShaderCreateInfo`` no
-    ``storage_buf`` (checked in 4.2.23, 4.5.15, 5.0.1 and 5.2.3; Blender's
+    ``storage_buf`` (checked in 4.2.23, 4.5.15, 5.0.1, 5.1.2 and 5.2.3; Blender's
     main branch has a ``GPUStorageBuf`` type).  When a release has both, the
     texture limits and the multi-pass reduction could go; until then this
     says why the texture path runs.  Never raises; needs no GPU context.

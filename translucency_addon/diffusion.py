@@ -124,8 +124,8 @@ from .bake import Bake
 from .errors import MaterialError, TranslucencyError
 from .fresnel import diffuse_reflectance_internal
 from .graph import DiffusionGraph, check_graph, graph_components  # noqa: F401
-from .iterative import (SOLVER_FUNCTIONS, LevelSolve, relative_residual, solve_chebyshev,  # noqa: F401
-                        solve_direct, solve_jacobi)
+from .iterative import (SOLVER_FUNCTIONS, LevelSolve, outside_maximum_principle, relative_residual,  # noqa: F401
+                        solve_chebyshev, solve_direct, solve_jacobi)
 from .lights import environment_flux, incident_flux, shadow_visibility
 from .materials import Material
 from .radiance import clamp_scale, outgoing_radiance
@@ -350,6 +350,7 @@ class DiffusionSolver:
             solves = [LevelSolve(0, np.zeros(3), [0.0], 0.0) for _ in active]
         else:
             phi, solves = self.solve_systems(q, active, warm_start)
+            warnings += [s.note for s in solves if getattr(s, "note", "")]
             if len(self._channels) < 3:  # a backend that ignores the mask still honours it
                 off = [c for c in range(3) if not mask[c]]
                 for p in phi:
@@ -407,6 +408,14 @@ class DiffusionSolver:
             x0[:, ~np.any(b != 0, axis=0)] = 0.0
             tol = opts.tol if i == n_lv - 1 else (opts.coarse_tol or opts.tol)
             x, info = fn(system, b, x0, tol, opts.max_iterations, opts.check_every)
+            if fn is not solve_direct and outside_maximum_principle(system, b, x):
+                # A near-singular level (little absorption, a weak leak) can let the iteration wander
+                # along its slowest mode while the residual looks small; sparse LU settles it.
+                x, direct = solve_direct(system, b)
+                info = LevelSolve(info.iterations, direct.residual, info.history + direct.history,
+                                  info.seconds + direct.seconds,
+                                  note=f"level {i}: the {opts.solver} solve broke the maximum principle "
+                                       f"(residual {float(np.max(info.residual)):.2e}); solved directly instead")
             full = np.zeros((system.n, 3))
             full[:, cols] = x
             phi[i] = full

@@ -31,6 +31,7 @@ class LevelSolve:
     residual: np.ndarray  # (3,) final relative residual
     history: list  # relative residual (max over channels) at each check
     seconds: float
+    note: str = ""  # what went wrong and what was done instead (e.g. the direct fallback)
 
     @property
     def converged_to(self) -> float:
@@ -172,3 +173,24 @@ def solve_direct(system, b, *_args, **_kw) -> tuple[np.ndarray, LevelSolve]:
 
 
 SOLVER_FUNCTIONS = {"fast": solve_chebyshev, "paper": solve_jacobi, "jacobi": solve_jacobi, "direct": solve_direct}
+
+
+def outside_maximum_principle(system: LevelSystem, b: np.ndarray, x: np.ndarray, slack: float = 1e-3) -> bool:
+    """True if ``x`` breaks the discrete maximum principle of the FV system, i.e. cannot be its solution.
+
+    The FV matrix of :mod:`.assembly` is a symmetric M-matrix whose surface rows
+    are ``... = b_s`` with ``b_s = b_scale q_s``: its solution satisfies
+    ``0 <= phi <= max_s b_s / boundary_diag_s`` (= ``max 4 q / (1 - F_dr)``),
+    per channel.  An iterate outside those bounds by more than ``slack`` of the
+    bound (or not finite) has gone wrong, whatever its residual says.
+    """
+    if system.scheme != "fv" or system.boundary_diag is None:
+        return False
+    if not np.all(np.isfinite(x)):
+        return True
+    ni = system.level.n_inner
+    bound = (b[ni:] / system.boundary_diag).max(axis=0)
+    bound = np.maximum(bound, 0.0)
+    tiny = 1e-300
+    return bool(np.any(x.max(axis=0) > bound * (1.0 + slack) + tiny)
+                or np.any(x.min(axis=0) < -slack * bound - tiny))

@@ -606,3 +606,35 @@ def test_a_level_without_light_solves_to_exactly_zero_whatever_the_warm_start():
     r = solver.solve(q=q)
     assert np.abs(r.phi[0]).max() > 0
     assert np.all(r.phi[-1] == 0.0)
+
+
+def test_a_solve_that_breaks_the_maximum_principle_is_redone_directly():
+    """The FV solution lies in [0, max 4q/(1 - F_dr)]; an iterate outside is refused and the level is
+    solved by sparse LU, with a warning that says so (the derandomised fuzz found a near-singular
+    mix -- no absorption in one channel -- where Chebyshev wandered to 1e185 at a residual of 1e-5)."""
+    from translucency_addon import diffusion
+    from translucency_addon.diffusion import DiffusionSolver, SolveOptions
+    from translucency_addon.iterative import outside_maximum_principle
+
+    b = hc.baked("sphere", 10.0)
+    q = [np.full((lv.n_surface, 3), 1.0) for lv in b.levels]
+    good = DiffusionSolver(b, hc.MARBLE, options=SolveOptions(solver="direct")).solve(q=q)
+    solver = DiffusionSolver(b, hc.MARBLE, options=SolveOptions(solver="fast"))
+    system = solver.systems[-1]
+    rhs = system.rhs(q[-1])
+    assert not outside_maximum_principle(system, rhs, good.phi[-1])
+    assert outside_maximum_principle(system, rhs, good.phi[-1] * 2.0)
+    assert outside_maximum_principle(system, rhs, -good.phi[-1])
+
+    def wander(system, b, x0, tol, max_iter, check_every=8):  # a broken iteration: 1e185 at a small residual
+        x, info = diffusion.solve_chebyshev(system, b, x0, tol, max_iter, check_every)
+        return x + 1e185, info
+
+    original = diffusion.SOLVER_FUNCTIONS["fast"]
+    diffusion.SOLVER_FUNCTIONS["fast"] = wander
+    try:
+        r = solver.solve(q=q)
+    finally:
+        diffusion.SOLVER_FUNCTIONS["fast"] = original
+    np.testing.assert_allclose(r.phi[-1], good.phi[-1], rtol=1e-9)
+    assert any("broke the maximum principle" in w and "solved directly" in w for w in r.warnings), r.warnings
