@@ -194,3 +194,30 @@ def outside_maximum_principle(system: LevelSystem, b: np.ndarray, x: np.ndarray,
     tiny = 1e-300
     return bool(np.any(x.max(axis=0) > bound * (1.0 + slack) + tiny)
                 or np.any(x.min(axis=0) < -slack * bound - tiny))
+
+
+BALANCE_TOL = 1e-3  # the discrete energy balance an iterative FV solve must keep (fraction of the light in)
+
+
+def energy_imbalance(system: LevelSystem, q: np.ndarray, x: np.ndarray, fdr: float) -> float:
+    """``max_c |in - out - absorbed| / in`` of a level's FV solution (0 for the paper's scheme).
+
+    Summing the FV rows gives exactly ``sum_s a_s q_s = sum_s a_s (1 - F_dr) J+_s + sum_i w_i phi_i``
+    with the unclamped ``J+ = (phi_s - 2 q)/(2 (1 + F_dr))`` and ``w = A 1 - boundary term``
+    (:meth:`.assembly.LevelSystem.absorption_weights`, mm^2): a solution that misses it by more than
+    the solver tolerance allows has not converged, whatever its residual norm says.
+    """
+    if system.scheme != "fv" or system.boundary_diag is None:
+        return 0.0
+    ni = system.level.n_inner
+    w = system.__dict__.get("_absorption_w")
+    if w is None:  # absorption_weights() for this system's channels (a subset may hold fewer than 3)
+        w = system.apply(np.ones((system.n, system.diag.shape[1])))
+        w[ni:] -= system.boundary_diag
+        system.__dict__["_absorption_w"] = w
+    a = system.level.area * system.mm_per_unit**2
+    p_in = a @ q
+    jp = (x[ni:] - 2.0 * q) / (2.0 * (1.0 + fdr))
+    gap = np.abs(p_in - a @ ((1.0 - fdr) * jp) - np.einsum("nc,nc->c", w, x))
+    lit = p_in > 0
+    return float(np.max(gap[lit] / p_in[lit])) if lit.any() else 0.0

@@ -614,7 +614,7 @@ def test_a_solve_that_breaks_the_maximum_principle_is_redone_directly():
     mix -- no absorption in one channel -- where Chebyshev wandered to 1e185 at a residual of 1e-5)."""
     from translucency_addon import diffusion
     from translucency_addon.diffusion import DiffusionSolver, SolveOptions
-    from translucency_addon.iterative import outside_maximum_principle
+    from translucency_addon.iterative import BALANCE_TOL, energy_imbalance, outside_maximum_principle
 
     b = hc.baked("sphere", 10.0)
     q = [np.full((lv.n_surface, 3), 1.0) for lv in b.levels]
@@ -625,6 +625,9 @@ def test_a_solve_that_breaks_the_maximum_principle_is_redone_directly():
     assert not outside_maximum_principle(system, rhs, good.phi[-1])
     assert outside_maximum_principle(system, rhs, good.phi[-1] * 2.0)
     assert outside_maximum_principle(system, rhs, -good.phi[-1])
+    # the discrete energy balance: exact for the solution, broken by an unconverged one
+    assert energy_imbalance(system, q[-1], good.phi[-1], solver.fdr) < 1e-8
+    assert energy_imbalance(system, q[-1], 0.9 * good.phi[-1], solver.fdr) > BALANCE_TOL
 
     def wander(system, b, x0, tol, max_iter, check_every=8):  # a broken iteration: 1e185 at a small residual
         x, info = diffusion.solve_chebyshev(system, b, x0, tol, max_iter, check_every)
