@@ -16,6 +16,7 @@ import json
 import os
 import tempfile
 import zipfile
+import zlib
 
 import numpy as np
 
@@ -109,7 +110,7 @@ def _open(path):
         raise CacheError(f"bake cache {path!r} does not exist (re-bake the object)")
     try:
         return np.load(path, allow_pickle=False)
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+    except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as exc:
         raise CacheError(f"bake cache {path!r} is corrupt or truncated: {exc}") from exc
 
 
@@ -118,7 +119,7 @@ def _meta(z, path) -> dict:
         meta = _read_json(z["meta"])
     except KeyError as exc:
         raise CacheError(f"{path!r} is not a Translucency bake cache (no metadata)") from exc
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError, UnicodeDecodeError) as exc:
+    except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, UnicodeDecodeError) as exc:
         raise CacheError(f"bake cache {path!r} is corrupt or truncated: {exc}") from exc
     if meta.get("magic") != MAGIC:
         raise CacheError(f"{path!r} is not a Translucency bake cache")
@@ -141,7 +142,7 @@ def load_bake(path, expected_key: str | None = None) -> Bake:
             )
         try:
             arrays = {k: z[k] for k in z.files}
-        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as exc:
             raise CacheError(f"bake cache {os.fspath(path)!r} is corrupt or truncated: {exc}") from exc
     try:
         n = int(meta["n_levels"])
