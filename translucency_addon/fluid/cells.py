@@ -48,6 +48,7 @@ import numpy as np
 from .disk_faces import clipped_disk
 
 FACE_CHUNK = 32768  # faces per vectorised batch (memory: ~ chunk x neighbours x 200 bytes)
+KERNEL_BATCH = 2048  # faces per call of the (m, m, faces) clipping kernel
 TINY_AREA = 1e-12  # face areas below this fraction of R^2 are no face (lattice ties)
 
 
@@ -175,8 +176,9 @@ def _face_geometry(R, fi, fj, n, d, adj, dst, unit, dist):
     live = ~empty
     for m in np.unique(m_per[live]):
         rows = np.nonzero(live & (m_per == m))[0]
-        area[rows], omega[rows] = clipped_disk(r[rows], h[rows], R,
-                                               np.stack([nx[rows, :m], ny[rows, :m]], axis=-1), cc[rows, :m])
+        for s in range(0, len(rows), KERNEL_BATCH):  # temporaries of (m, m, batch) stay in cache
+            b = rows[s:s + KERNEL_BATCH]
+            area[b], omega[b] = clipped_disk(r[b], h[b], R, nx[b, :m].T, ny[b, :m].T, cc[b, :m].T)
     return area, omega
 
 

@@ -189,7 +189,11 @@ class FluidSolver:
         if surface is None:  # a point cloud: its particles, surface cells with their normals
             out_nrm = np.zeros((ps.n, 3))
             out_nrm[graph.cell[graph.surface_cell]] = graph.normal
-        idx, w = self._weights(out_pts, out_nrm, graph, surface is None)
+        idx, w, far = self._weights(out_pts, out_nrm, graph, surface is None)
+        if surface is not None and far.any():
+            warnings.append(f"{int(far.sum()):,} of {len(far):,} surface-mesh vertices have no surface cell within "
+                            f"{self.options.kernel_radii * self.radius:.4g} units on their side and take their "
+                            "nearest one: the mesh does not match the particles there")
         frame = FluidFrame(levels=[graph], mm_per_unit=self.mm_per_unit, mesh_vertices=out_pts,
                            mesh_normals=out_nrm, vertex_map=(idx, w), occluder=occ)
         seconds["occluder_and_map"] = time.perf_counter() - t
@@ -226,13 +230,13 @@ class FluidSolver:
         if not point_cloud:
             return surface_weights(pts, nrm, *args)
         has = np.linalg.norm(nrm, axis=1) > 0  # surface particles by their normal, inner ones by distance
-        k_idx, k_w = surface_weights(pts, None, *args)
+        k_idx, k_w, far = surface_weights(pts, None, *args)
         if has.any():
-            s_idx, s_w = surface_weights(pts[has], nrm[has], *args)
+            s_idx, s_w, far[has] = surface_weights(pts[has], nrm[has], *args)
             kk = max(k_idx.shape[1], s_idx.shape[1])
             k_idx, k_w = _pad(k_idx, kk), _pad(k_w, kk)
             k_idx[has], k_w[has] = _pad(s_idx, kk), _pad(s_w, kk)
-        return k_idx, k_w
+        return k_idx, k_w, far
 
     def _warm_start(self, state, ps, graph: FluidGraph, solver):
         """A SolveResult whose finest phi starts this frame: by particle id, else the nearest particle."""
@@ -283,6 +287,8 @@ class FluidSolver:
         L_c[graph.cell[graph.surface_cell]] = L_cell
         idx, w = solver.bake.vertex_map
         L_out = solver.radiance_at(result, idx, w, out_nrm, view_dirs)
+        if surface is None:  # particles without a cell in the graph (isolated, unlit) emit nothing
+            L_out[~np.isin(np.arange(ps.n), graph.cell)] = 0.0
 
         def to_input(a):
             full = np.zeros((n_in,) + a.shape[1:], dtype=a.dtype)

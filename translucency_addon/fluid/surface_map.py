@@ -49,14 +49,16 @@ def surface_weights(points, normals, surface_position, surface_normal, surface_a
     """Weights from surface nodes to ``points`` (see the module docstring).
 
     ``normals``: (n, 3) unit normals of the points, or None (distance only).
-    Returns ``(idx (n, k) int32, w (n, k) float)`` with rows summing to 1.
+    Returns ``(idx (n, k) int32, w (n, k) float, far (n,) bool)``: rows summing
+    to 1, and which points had no node within rho on their side (they took
+    their nearest node on their side).
     """
     from scipy.spatial import cKDTree
 
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     ns = len(surface_position)
     if ns == 0 or len(X) == 0:
-        return np.zeros((len(X), 1), np.int32), np.zeros((len(X), 1))
+        return np.zeros((len(X), 1), np.int32), np.zeros((len(X), 1)), np.ones(len(X), dtype=bool)
     tree = tree if tree is not None else cKDTree(surface_position)
     rho = kernel_radii * float(radius)
     k = min(MAX_NODES, ns)
@@ -78,7 +80,7 @@ def surface_weights(points, normals, surface_position, surface_normal, surface_a
                                      min(ns, 4 * MAX_NODES))[:, None]
         w[lost, 0] = 1.0
     w /= w.sum(axis=1, keepdims=True)
-    return idx.astype(np.int32), w
+    return idx.astype(np.int32), w, lost
 
 
 def _nearest_on_side(X, normals, tree, surface_normal, k):
