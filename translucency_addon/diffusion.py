@@ -264,8 +264,7 @@ class DiffusionSolver:
             lights = [light for light in lights if not any(light is x for x in inside)]
         vis = None
         if shadows and lights:
-            diag = float(np.linalg.norm(np.ptp(self.bake.mesh_vertices, axis=0)))
-            vis = shadow_visibility(self.shadow_bvh(occluders), offset=1e-4 * diag)
+            vis = shadow_visibility(self.shadow_bvh(occluders), offset=self.shadow_offset())
         out = [None] * len(self.bake.levels)
         for i in want:
             lv = self.bake.levels[i]
@@ -279,6 +278,11 @@ class DiffusionSolver:
             q_env = environment_flux(env, lv.normal, self.eta) if env is not None else None
             out[i] = q + sky.correct(i, lv.normal, self.eta, q_env, env, bounce)
         return out
+
+    def shadow_offset(self) -> float:
+        """How far along the normal (object units) shadow rays start: 1e-4 of the mesh's diagonal."""
+        diag = float(np.linalg.norm(np.ptp(self.bake.mesh_vertices, axis=0)))
+        return 1e-4 * diag
 
     def lights_inside(self, lights) -> list:
         """The point, spot and area lights whose position lies inside the object.

@@ -14,10 +14,12 @@ boundary condition, solvers and output as a QuadGraph level, unchanged:
   harmonic mean of :func:`..assembly.assemble`, not the paper's
   ``kappa(x_j)`` inside the sum (eqs. 11, 16-17), which is not a flux;
 * a cell on the free surface gets one **surface node** on its surface face,
-  linked in slot 0: normal ``n = S_vec / |S_vec|`` (``S_vec`` the surface
-  face's vector area, :mod:`.cells`), boundary area ``a_s = |S_vec|``, and
-  position ``p_i + d n`` with ``d = R |S_vec| / S_is``, the height of the
-  face's centroid above the particle (the link length).
+  linked in slot 0: boundary area ``a_s = |S_vec|`` (``S_vec`` the surface
+  face's vector area, :mod:`.cells`) and position ``p_i + d S_vec/|S_vec|``
+  with ``d = R |S_vec| / S_is``, the height of the face's centroid above the
+  particle (the link length).  Its normal, which only the light pass and the
+  output read, is ``S_vec/|S_vec|`` averaged over the surface nodes within
+  two radii on the same side (:func:`.surface_map.smooth_normals`).
 
 Why a surface node rather than a cell-level term: the diffusive-source
 condition (eq. 5) holds *on* the surface, where the assembly's fitted
@@ -49,6 +51,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .cells import TINY_AREA, VoronoiCells
+from .surface_map import smooth_normals
 
 THIN = 0.3  # |S_vec| / S_is below this: a surface face that wraps around its particle (thin parts)
 
@@ -165,6 +168,7 @@ def build_graph(cells: VoronoiCells) -> FluidGraph:
     d[s_inner, s_slot] = d[s_nodes, 0] = d_s
     A[s_inner, s_slot] = A[s_nodes, 0] = a_s
     pos = np.vstack([P[inner], P[scells] + d_s[:, None] * normal[scells]])
+    smooth = smooth_normals(pos[n_in:], normal[scells], a_s, R)
     stats = {
         "particles": int(N), "cells": int(n_in), "surface_nodes": int(n_s), "faces": int(fk.sum()),
         "faces_per_cell": float(2 * fk.sum() / max(n_in, 1)), "link_slots": K,
@@ -172,5 +176,5 @@ def build_graph(cells: VoronoiCells) -> FluidGraph:
         "curved_surface_area": float(S[scells].sum()), "voids": n_void, "isolated": n_iso, "unlit": n_dark,
     }
     return FluidGraph(n_inner=n_in, n_surface=n_s, position=pos, neighbors=nbr, edge_length=d, face_area=A,
-                      volume=cells.volume[inner].copy(), normal=normal[scells], area=a_s, cell=inner,
+                      volume=cells.volume[inner].copy(), normal=smooth, area=a_s, cell=inner,
                       surface_cell=s_inner, stats=stats, warnings=warnings)

@@ -5,11 +5,12 @@ tested against what the cells are made of: the union of the particles' balls.
 :class:`BallOccluder` voxelises that union once per frame (voxels half a
 radius wide, a voxel is solid when its centre lies within R of a particle:
 one stencil per particle, no per-voxel search) and marches every shadow ray
-through it in steps of a quarter radius, all rays at once.  Each ray skips
-its first radius: a surface node sits at the mean height of its particle's
-cap, inside the bumps of its neighbours' balls, and would otherwise shadow
-itself; a ray grazing the surface closer than that to its start is not
-shadowed by the fluid's own bumps (such light has cos ~ 0 anyway).
+through it in steps of a quarter radius, all rays at once.  The rays leave
+each surface node one radius out along its normal
+(:meth:`.solver.FluidDiffusionSolver.shadow_offset`): a surface node sits at
+the mean height of its particle's cap, among the bumps of its neighbours'
+balls, and a ray from there would shadow itself, or -- near the terminator --
+be blocked or not depending on the particles' jitter (flicker).
 
 The surface mesh the user renders (a Mantaflow mesh) is *not* used as the
 occluder: the surface nodes lie up to a radius below it, so their rays would
@@ -66,12 +67,12 @@ class BallOccluder:
         return solid
 
     def occluded(self, origins, directions, tmax, tmin: float = 0.0) -> np.ndarray:
-        """True where ``origin + t dir`` (unit ``dir``), ``max(tmin, R) < t < tmax``, enters the fluid
+        """True where ``origin + t dir`` (unit ``dir``), ``tmin < t < tmax``, enters the fluid
         or hits one of the other objects' triangles."""
         o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
         d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         tmax = np.broadcast_to(np.asarray(tmax, dtype=np.float64), (len(o),)).copy()
-        hit = self._march(o, d, np.maximum(tmin, self.radius), tmax)
+        hit = self._march(o, d, tmin, tmax)
         if self.triangles is not None and (~hit).any():
             rest = np.nonzero(~hit)[0]
             hit[rest] = self.triangles.occluded(o[rest], d[rest], tmax[rest], tmin=tmin)

@@ -74,8 +74,8 @@ class FluidFrame:
 
 
 class FluidDiffusionSolver(DiffusionSolver):
-    """The engine's diffusion solver on a :class:`FluidFrame`; only the light pass's occluder and
-    inside test are the fluid's (a union of balls instead of a triangle mesh)."""
+    """The engine's diffusion solver on a :class:`FluidFrame`; only the light pass's occluder, where its
+    shadow rays start and the inside test of lights are the fluid's (a union of balls, not a mesh)."""
 
     def shadow_bvh(self, occluders=None):
         from ..raycast import TriangleBVH
@@ -88,6 +88,10 @@ class FluidDiffusionSolver(DiffusionSolver):
         both.__dict__.update(occ.__dict__)
         both.triangles = tri
         return both
+
+    def shadow_offset(self) -> float:
+        """Shadow rays leave a surface node one particle radius out along its normal (:mod:`.occluder`)."""
+        return self.bake.occluder.radius
 
     def lights_inside(self, lights) -> list:
         """Point, spot and area lights within a radius of a particle (inside the fluid)."""
