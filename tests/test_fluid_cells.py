@@ -147,15 +147,19 @@ def test_surface_cells_of_a_lattice_block_face_outward_with_their_flat_area():
     """A 6^3 block, R = 1: the 152 outer cells are the surface; a cell in the middle of a side has its
     surface face's vector area along the side's normal with length 1 (the flat projection)."""
     P = lattice(6)
-    graph = build_graph(build_cells(P, 1.0))
+    cells = build_cells(P, 1.0)
+    graph = build_graph(cells)
     check_graph(graph, "fluid")
     assert graph.n_inner == 216 and graph.n_surface == 216 - 64
     side = np.nonzero((P[:, 2] == 5) & interior(P[:, :2], 0.5, 4.5))[0]
+    assert np.allclose(cells.surface_vector[side], [0, 0, 1], atol=EXACT)
     s = np.isin(graph.cell[graph.surface_cell], side)
-    assert s.sum() == 16
-    assert np.allclose(graph.normal[s], [0, 0, 1]) and np.allclose(graph.area[s], 1.0)
+    assert s.sum() == 16 and np.allclose(graph.area[s], 1.0)
     h = graph.edge_length[graph.n_inner:, 0][s]
     assert np.all((h > 0.5) & (h < 1.0))  # the mean height of the cap above the particle
+    # the smoothed normal (light pass, output) of the four central cells, whose neighbours within 2R are flat
+    centre = np.isin(graph.cell[graph.surface_cell], side[interior(P[side, :2], 1.5, 3.5)])
+    assert centre.sum() == 4 and np.allclose(graph.normal[centre], [0, 0, 1])
 
 
 def test_suggested_radius_closes_the_interior():
