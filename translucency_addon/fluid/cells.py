@@ -101,7 +101,7 @@ def build_cells(points: np.ndarray, radius: float, chunk: int = FACE_CHUNK) -> V
     R = float(radius)
     tree, pi, pj = neighbour_pairs(P, R)
     t1 = time.perf_counter()
-    # Directed links i -> k: unit direction and length.
+    # Directed links i -> k: unit direction and length; one more, a sentinel, pads the adjacency.
     src = np.concatenate([pi, pj])
     dst = np.concatenate([pj, pi])
     order = np.argsort(src, kind="stable")
@@ -109,20 +109,22 @@ def build_cells(points: np.ndarray, radius: float, chunk: int = FACE_CHUNK) -> V
     delta = P[dst] - P[src]
     dist = np.sqrt(np.einsum("ij,ij->i", delta, delta))
     unit = delta / dist[:, None]
+    L = len(src)
     counts = np.bincount(src, minlength=N)
-    K = int(counts.max()) if len(src) else 0
+    K = int(counts.max()) if L else 0
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    slot = np.arange(len(src)) - start[src]
-    adj = np.full((N, max(K, 1)), -1, dtype=np.int64)  # directed-link index per (cell, slot)
-    adj[src, slot] = np.arange(len(src))
+    slot = np.arange(L) - start[src]
+    adj = np.full((max(K, 1), N), L, dtype=np.int64)  # (slot, cell) -> directed link, L = none
+    adj[slot, src] = np.arange(L)
+    links = _Links(ux=np.append(unit[:, 0], 0.0), uy=np.append(unit[:, 1], 0.0), uz=np.append(unit[:, 2], 0.0),
+                   dist=np.append(dist, np.inf), adj=adj)
     # One face per undirected pair: the links with src < dst.
     faces = np.nonzero(src < dst)[0]
     area = np.zeros(len(faces))
     omega = np.zeros(len(faces))
     for s in range(0, len(faces), chunk):
         f = faces[s:s + chunk]
-        area[s:s + chunk], omega[s:s + chunk] = _face_geometry(R, src[f], dst[f], unit[f], dist[f],
-                                                               adj, dst, unit, dist)
+        area[s:s + chunk], omega[s:s + chunk] = _face_geometry(R, src[f], unit[f], dist[f], links)
     t2 = time.perf_counter()
     fi, fj, fd, fn = src[faces], dst[faces], dist[faces], unit[faces]
     sum_omega = np.bincount(fi, omega, N) + np.bincount(fj, omega, N)
@@ -139,46 +141,55 @@ def build_cells(points: np.ndarray, radius: float, chunk: int = FACE_CHUNK) -> V
                         tree=tree, seconds={"neighbours": t1 - t0, "faces": t2 - t1, "cells": t3 - t2})
 
 
-def _face_geometry(R, fi, fj, n, d, adj, dst, unit, dist):
-    """Area and solid angle of the faces (fi, fj): the disk cut by the common neighbours' planes.
+@dataclass
+class _Links:
+    """Directed links in structure-of-arrays form, with a sentinel (direction 0, length inf) at the end."""
+
+    ux: np.ndarray
+    uy: np.ndarray
+    uz: np.ndarray
+    dist: np.ndarray
+    adj: np.ndarray  # (K, N): link index of slot k of cell i, the sentinel where there is none
+
+
+def _face_geometry(R, fi, n, d, links: _Links):
+    """Area and solid angle of the faces (fi, j): the disk cut by the planes of i's other neighbours.
 
     In the face's frame (origin at the midpoint, basis e1, e2), the plane
     between i and a neighbour k is the line ``a u + b v + c <= 0`` with
     ``(a, b)`` the projection of n_ik and ``c = (d_ij cos(n_ij, n_ik) - d_ik) / 2``.
+    Arrays are (K, F): neighbour slot first, so that reductions over a
+    face's lines run along the first axis.  The link to j itself and the
+    sentinel are parallel to the face with ``c <= 0``: they cut nothing.
     """
     F = len(fi)
     h = 0.5 * d
     r = np.sqrt(np.maximum(R * R - h * h, 0.0))
     e1, e2 = _plane_basis(n)
-    links = adj[fi]  # (F, K) links i -> k
-    valid = links >= 0
-    lk = np.where(valid, links, 0)
-    valid &= dst[lk] != fj[:, None]
-    basis = np.stack([e1, e2, n], axis=2)  # (F, 3, 3), columns e1, e2, n
-    proj = np.matmul(unit[lk], basis)  # (F, K, 3): a, b, cos
-    a, b = proj[..., 0], proj[..., 1]
-    c = 0.5 * (d[:, None] * proj[..., 2] - dist[lk])
+    lk = links.adj[:, fi]  # (K, F)
+    ux, uy, uz = links.ux[lk], links.uy[lk], links.uz[lk]
+    a = e1[:, 0] * ux + e1[:, 1] * uy + e1[:, 2] * uz
+    b = e2[:, 0] * ux + e2[:, 1] * uy + e2[:, 2] * uz
+    cos = n[:, 0] * ux + n[:, 1] * uy + n[:, 2] * uz
+    c = 0.5 * (d * cos - links.dist[lk])
     ell = np.sqrt(a * a + b * b)
     flat = ell < 1e-12  # plane_ik parallel to the face: all or nothing
-    cn = c / np.where(flat, 1.0, ell)
-    rr = r[:, None]
-    empty = (valid & ((flat & (c > 0)) | (~flat & (cn >= rr)))).any(axis=1)
-    cut = valid & ~flat & (np.abs(cn) < rr) & ~empty[:, None]
-    m_per = cut.sum(axis=1)
-    mmax = int(m_per.max()) if F else 0
-    sel = np.argsort(~cut, axis=1, kind="stable")[:, :mmax]  # the cutting lines first
-    inv = 1.0 / np.where(flat, 1.0, ell)
-    nx = np.take_along_axis(a * inv, sel, 1)
-    ny = np.take_along_axis(b * inv, sel, 1)
-    cc = np.take_along_axis(cn, sel, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cn = c / ell
+    empty = ((flat & (c > 1e-12 * R)) | (~flat & (cn >= r))).any(axis=0)
+    cut = ~flat & (np.abs(cn) < r) & ~empty
+    m_per = cut.sum(axis=0)
     area = np.zeros(F)
     omega = np.zeros(F)
     live = ~empty
     for m in np.unique(m_per[live]):
         rows = np.nonzero(live & (m_per == m))[0]
         for s in range(0, len(rows), KERNEL_BATCH):  # temporaries of (m, m, batch) stay in cache
-            b = rows[s:s + KERNEL_BATCH]
-            area[b], omega[b] = clipped_disk(r[b], h[b], R, nx[b, :m].T, ny[b, :m].T, cc[b, :m].T)
+            bf = rows[s:s + KERNEL_BATCH]
+            k = np.nonzero(cut[:, bf].T)[1].reshape(len(bf), m).T  # (m, batch): the cutting lines' slots
+            sel = (k, bf[None, :])
+            inv = 1.0 / ell[sel]
+            area[bf], omega[bf] = clipped_disk(r[bf], h[bf], R, a[sel] * inv, b[sel] * inv, cn[sel])
     return area, omega
 
 
