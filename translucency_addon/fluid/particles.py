@@ -73,7 +73,7 @@ def particle_spacing(points: np.ndarray, tree=None) -> float:
         from scipy.spatial import cKDTree
 
         tree = cKDTree(P)
-    sample = P if len(P) <= 20000 else P[np.random.default_rng(0).choice(len(P), 20000, replace=False)]
+    sample = P if len(P) <= 4000 else P[np.random.default_rng(0).choice(len(P), 4000, replace=False)]
     d, _ = tree.query(sample, k=k + 1)
     return float(np.median(d[:, k]) * (4.0 * np.pi / (3.0 * k)) ** (1.0 / 3.0))
 
