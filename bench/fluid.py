@@ -90,7 +90,7 @@ def summarise(one: dict) -> dict:
     out = {}
     for key in ("cells", "light pass", "warm solve", "output", "total"):
         out[key] = float(np.median([_stages(f["seconds"])[key] for f in warm])) * 1e3
-    for key in ("particles", "cells_neighbours", "cells_faces", "cells_cells", "graph", "occluder_and_map",
+    for key in ("particles", "cells_neighbours", "cells_faces", "cells_cells", "graph", "occluder", "map",
                 "assemble", "solve", "light", "output"):
         out["sub:" + key] = float(np.median([f["seconds"].get(key, 0.0) for f in warm])) * 1e3
     out["sweeps_cold"] = one["frames"][0]["sweeps"]
@@ -100,13 +100,12 @@ def summarise(one: dict) -> dict:
 
 
 def _stages(sec: dict) -> dict:
-    """The four stages of a frame from FluidSolver's seconds (the occluder and surface map are built with
-    the light pass's inputs; they count to the light pass and the output by their parts)."""
+    """The four stages of a frame from FluidSolver's seconds."""
     return {
         "cells": sec["particles"] + sec["cells"] + sec["graph"],
-        "light pass": sec["light"] + 0.5 * sec["occluder_and_map"],
+        "light pass": sec["occluder"] + sec["light"],
         "warm solve": sec["assemble"] + sec["solve"],
-        "output": sec["output"] + 0.5 * sec["occluder_and_map"],
+        "output": sec["map"] + sec["output"],
         "total": sec["total"],
     }
 
@@ -133,10 +132,10 @@ def profile(results, sums) -> str:
     r, s = results[k], sums[k]
     parts = [("input checks", "sub:particles"), ("neighbour pairs (cKDTree)", "sub:cells_neighbours"),
              ("exact faces (disk clipping)", "sub:cells_faces"), ("cell sums", "sub:cells_cells"),
-             ("contract graph + smoothed normals", "sub:graph"), ("occluder voxels + surface map weights",
-                                                                 "sub:occluder_and_map"),
-             ("assembly", "sub:assemble"), ("light pass (eq. 3, shadow rays)", "sub:light"),
-             ("Chebyshev solve + guard", "sub:solve"), ("output (eq. 4/7 at vertices)", "sub:output")]
+             ("contract graph + smoothed normals", "sub:graph"), ("occluder voxels", "sub:occluder"),
+             ("light pass (eq. 3, shadow rays)", "sub:light"), ("assembly", "sub:assemble"),
+             ("Chebyshev solve + guard", "sub:solve"), ("surface map weights", "sub:map"),
+             ("output (eq. 4/7 at vertices)", "sub:output")]
     tot = sum(s[key] for _, key in parts)
     lines = [f"Where the time goes at {r['n']:,} particles (median of the warm frames):", "",
              "| part | ms | share |", "|---|---|---|"]

@@ -230,3 +230,13 @@ def test_coincident_particles_share_a_cell():
     res = _solve(P)
     assert "3 particles coincide" in " ".join(res.warnings)
     assert np.allclose(res.phi[-3:], res.phi[:3])
+
+
+def test_a_broken_surface_mesh_is_refused():
+    from translucency_addon.errors import MeshError
+
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    with pytest.raises(MeshError, match="finite"):
+        _solve(lattice(4), surface=(np.where(V == 1, np.nan, V), np.array([[0, 1, 2]])))
+    with pytest.raises(MeshError, match="indices outside its 3 vertices"):
+        _solve(lattice(4), surface=(V, np.array([[0, 1, 3]])))

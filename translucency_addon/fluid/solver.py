@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..diffusion import DiffusionSolver, SolveOptions, SolveResult
-from ..errors import MaterialError
+from ..errors import MaterialError, MeshError
 from ..meshio import DEFAULT_MEMORY_BUDGET_BYTES, vertex_normals
 from ..radiance import outgoing_radiance
 from ..spectral import gershgorin_upper
@@ -173,7 +173,9 @@ class FluidSolver:
         n_in = len(np.asarray(points))
         warnings = list(ps.warnings)
         seconds = {"particles": time.perf_counter() - t0}
-        out_pts, out_nrm, F_out = self._outputs(surface, surface_normals, ps)
+        out_pts, out_nrm = self._outputs(surface, surface_normals)
+        if out_pts is None:
+            out_pts = ps.points
         if ps.n == 0:
             warnings.append("no particles: nothing to solve, radiance 0")
             return self._zero(n_in, out_pts, surface is not None, seconds, warnings, t0)
@@ -190,6 +192,8 @@ class FluidSolver:
             return self._zero(n_in, out_pts, surface is not None, seconds, warnings, t0, graph, ps)
         t = time.perf_counter()
         occ = BallOccluder(ps.points, ps.radius, tree=cells.tree)
+        seconds["occluder"] = time.perf_counter() - t
+        t = time.perf_counter()
         if surface is None:  # a point cloud: its particles, surface cells with their normals
             out_nrm = np.zeros((ps.n, 3))
             out_nrm[graph.cell[graph.surface_cell]] = graph.normal
@@ -200,7 +204,7 @@ class FluidSolver:
                             "nearest one: the mesh does not match the particles there")
         frame = FluidFrame(levels=[graph], mm_per_unit=self.mm_per_unit, mesh_vertices=out_pts,
                            mesh_normals=out_nrm, vertex_map=(idx, w), occluder=occ)
-        seconds["occluder_and_map"] = time.perf_counter() - t
+        seconds["map"] = time.perf_counter() - t
         t = time.perf_counter()
         fv = None if ps.field_values is None else np.concatenate(
             [ps.field_values[graph.cell], ps.field_values[graph.cell[graph.surface_cell]]])
@@ -220,14 +224,22 @@ class FluidSolver:
         return out
 
     # -- parts ---------------------------------------------------------------------------------------
-    def _outputs(self, surface, surface_normals, ps):
+    def _outputs(self, surface, surface_normals):
+        """The output points and their normals: the surface mesh's vertices, or (None) the particles."""
         if surface is None:
-            return ps.points, None, None
-        V, F = surface
-        V = np.asarray(V, dtype=np.float64)
-        F = np.asarray(F, dtype=np.int64)
-        n = vertex_normals(V, F) if surface_normals is None else np.asarray(surface_normals, dtype=np.float64)
-        return V, n, F
+            return None, None
+        V, F = (np.asarray(a) for a in surface)
+        if V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V)):
+            raise MeshError(f"the fluid's surface mesh needs finite (n, 3) vertices, got {V.shape}")
+        if F.ndim != 2 or F.shape[1] != 3 or (F.size and (F.min() < 0 or F.max() >= len(V))):
+            raise MeshError(f"the fluid's surface mesh has faces {F.shape} with indices outside its {len(V)} vertices")
+        V = V.astype(np.float64)
+        if surface_normals is None:
+            return V, vertex_normals(V, F.astype(np.int64))
+        n = np.asarray(surface_normals, dtype=np.float64)
+        if n.shape != V.shape:
+            raise MeshError(f"surface normals {n.shape} do not match the mesh's vertices {V.shape}")
+        return V, n
 
     def _weights(self, pts, nrm, graph, point_cloud):
         args = (graph.surface_position, graph.normal, graph.area, self.radius, self.options.kernel_radii)
