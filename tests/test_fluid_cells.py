@@ -221,7 +221,7 @@ def test_bad_radius_is_refused_with_numbers(R, match):
 
 
 def test_too_many_particles_for_memory_is_refused_before_allocating():
-    with pytest.raises(ParticleError, match=r"1,000,000 particles need about 5.6 GiB .*budget 1.0 GiB"):
+    with pytest.raises(ParticleError, match=r"1,000,000 particles need about 7.5 GiB .*budget 1.0 GiB"):
         prepare_particles(np.broadcast_to(np.zeros(3), (1_000_000, 3)), 1.0, memory_budget=2**30)
 
 

@@ -27,9 +27,10 @@ The paper instead counts live samples after a cut-off (64 per cell volume,
 36 per face), an estimate with errors of several percent per cell that jump
 as particles move; here every quantity is exact and continuous in the
 particle positions, which keeps frame-to-frame flicker out of the geometry.
-``tests/test_fluid_cells.py`` checks it against a regular lattice (cubes of
-volume s^3, faces s^2), two and three overlapping balls (closed forms) and a
-voxel count of the union of balls.
+``tests/test_fluid_cells.py`` checks it against cubic and FCC lattices (cubes
+and rhombic dodecahedra, to 1e-9), two overlapping balls (closed forms) and a
+brute-force count of the nearest particle at sample points (volumes, the
+union of balls, face areas).
 
 Neighbours come from ``scipy.spatial.cKDTree.query_pairs(2R)``.  A full 3D
 Voronoi diagram (``scipy.spatial.Voronoi``/``Delaunay``, qhull) was measured

@@ -32,8 +32,8 @@ coincident lines with the same orientation only the first keeps its segment,
 and of two exclusions ending at the same angle only the first opens an arc.
 
 Written by hand because no library in the engine's dependencies clips disks
-exactly (scipy's qhull Voronoi diagram was 7-30x slower than the whole frame
-budget on 16k particles, see ``cells.py``), and it runs vectorised over all
+exactly (scipy's qhull Delaunay/Voronoi took 8-22x the whole frame budget on
+16k particles, see ``cells.py``), and it runs vectorised over all
 faces with the same number of lines at once.
 """
 

@@ -32,7 +32,7 @@ from ..errors import ParticleError
 from ..meshio import DEFAULT_MEMORY_BUDGET_BYTES
 
 MAX_RADIUS_SPACING = 4.0  # radius / spacing beyond which cells would have hundreds of neighbours
-BYTES_PER_PARTICLE = 6_000  # peak bytes per particle over a frame (pairs, faces, graph, system), measured ~4 kB
+BYTES_PER_PARTICLE = 8_000  # peak bytes per particle over a frame (pairs, faces, graph, system): 7.4 kB measured at 262k (bench_fluid.md)
 DUPLICATE = 1e-9  # particles closer than this many radii share a cell
 PLANAR = 1e-6  # thickness / extent below which the particles lie in a plane
 SPACING_NEIGHBOURS = 12  # neighbours counted for the spacing (density) estimate
