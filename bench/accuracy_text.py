@@ -497,6 +497,11 @@ def write(b, out: Path, img_dir: Path, costs=None):
         figs.pop("kappa")
     link = {k: (rel / v.name).as_posix() for k, v in figs.items()}
     text = render(b, link, costs, head_scene)
+    from bench.fluid_reference import markdown_section  # particle fluids (issue 14), from its stored result
+
+    fluid = markdown_section()
+    if fluid:
+        text = text.rstrip("\n") + "\n\n" + fluid
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
     return figs

@@ -4,6 +4,10 @@
                                       [--levels N] [--mm-per-unit X] [--sky-directions 64]
                                       [--single-scattering [--material marble] [--ss-quality preview]
                                        [--ss-dirs 128] [--ss-samples 20000] [--ss-order 4]]
+    python -m translucency_addon fluid POINTS.npy -o PHI.npz --radius R --mm-per-unit S
+                                      (--material NAME | --sigma-a R,G,B --sigma-s R,G,B --eta X)
+                                      [--env R,G,B] [--sun DX,DY,DZ:E] [--point X,Y,Z:W]
+                                      [--surface MESH.obj --surface-out L.npy] [--stats STATS.json]
     python -m translucency_addon solve CACHE.npz -o OUT.npy
                                       [--material marble | --sigma-a R,G,B --sigma-s R,G,B --eta X]
                                       [--env R,G,B] [--sun DX,DY,DZ:E] [--point X,Y,Z:W]
@@ -113,6 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="leave out the single-scattering term even when the cache holds it")
     s.add_argument("--ss-output", default=None, help="also write the single-scattering term alone (.npy)")
 
+    _fluid_parser(sub)
+
     p = sub.add_parser("plan", help="print which passes the planner would run for a baked mesh")
     p.add_argument("cache")
     p.add_argument("--material", default="marble")
@@ -121,6 +127,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--point", type=_point, action="append", default=[])
     p.add_argument("--mm-per-unit", type=float, default=None)
     return ap
+
+
+def _fluid_parser(sub) -> None:
+    """The ``fluid`` subcommand (particle fluids, Kang & Kim 2013; ``fluid/cli.py``)."""
+    f = sub.add_parser("fluid", help="solve a particle fluid frame by frame (Voronoi-fluid cells)")
+    f.add_argument("points", help="(N, 3) or (F, N, 3) float array (.npy) of particle positions, object units")
+    f.add_argument("-o", "--output", required=True, help="per-cell phi, V, surface flag and radiance (.npz)")
+    f.add_argument("--radius", type=float, required=True, help="particle radius, object units")
+    f.add_argument("--mm-per-unit", type=float, required=True, help="millimetres per object unit")
+    _material_args(f, "")
+    f.add_argument("--env", type=_rgb, default=None, help="uniform environment radiance R,G,B")
+    f.add_argument("--sun", type=_sun, action="append", default=[], help="sun DX,DY,DZ:E (W/m^2)")
+    f.add_argument("--point", type=_point, action="append", default=[], help="point light X,Y,Z:W (W)")
+    f.add_argument("--surface", default=None, help="surface mesh (.obj, object units) to carry radiance onto")
+    f.add_argument("--surface-out", default=None, help="per-vertex RGB radiance on --surface (.npy)")
+    f.add_argument("--tol", type=float, default=1e-4, help="relative residual tolerance (default 1e-4)")
+    f.add_argument("--no-shadows", action="store_true", help="ignore occlusion of point and sun lights")
+    f.add_argument("--stats", default=None, help="cell counts, seconds per stage, sweeps per frame (.json)")
+
+
+def cmd_fluid(a) -> int:
+    from .fluid.cli import run_fluid
+
+    return run_fluid(a, material_from_args(a), *lights_from_args(a), field_spec=lambda P: field_spec_from_args(a, P))
 
 
 def _material_args(parser, prefix: str) -> None:
@@ -319,7 +349,7 @@ def cmd_plan(a) -> int:
 def main(argv=None) -> int:
     a = build_parser().parse_args(argv)
     try:
-        return {"bake": cmd_bake, "solve": cmd_solve, "plan": cmd_plan}[a.command](a)
+        return {"bake": cmd_bake, "solve": cmd_solve, "plan": cmd_plan, "fluid": cmd_fluid}[a.command](a)
     except TranslucencyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

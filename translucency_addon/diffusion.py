@@ -120,10 +120,9 @@ import numpy as np
 from . import kernels
 # Re-exported names (F401): the parts' public API, importable from here as before the split.
 from .assembly import SCHEMES, LevelSystem, _fitted_link, assemble, node_coefficients, sparse_matrix  # noqa: F401
-from .bake import Bake
 from .errors import MaterialError, TranslucencyError
 from .fresnel import diffuse_reflectance_internal
-from .graph import DiffusionGraph, check_graph, graph_components  # noqa: F401
+from .graph import DiffusionGraph, SolverInput, check_graph, graph_components  # noqa: F401
 from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, energy_imbalance,  # noqa: F401
                         outside_maximum_principle, relative_residual,
                         solve_chebyshev, solve_direct, solve_jacobi)
@@ -179,10 +178,14 @@ class DiffusionSolver:
         L = solver.vertex_radiance(result)                        # (n_vertices, 3)
 
     Changing the material re-samples kappa and mu at the nodes
-    (:meth:`set_material`) without a re-bake.
+    (:meth:`set_material`) without a re-bake.  ``bake`` is anything of the
+    :class:`.graph.SolverInput` protocol: a :class:`.bake.Bake`, or one frame
+    of a particle fluid (:class:`.fluid.FluidFrame`, solved by the subclass
+    :class:`.fluid.FluidDiffusionSolver`).
     """
 
-    def __init__(self, bake: Bake, material: Material, field_values=None, options: SolveOptions | None = None):
+    def __init__(self, bake: SolverInput, material: Material, field_values=None,
+                 options: SolveOptions | None = None):
         self.bake = bake
         self.options = options or SolveOptions()
         if self.options.solver not in SOLVERS:
@@ -261,8 +264,7 @@ class DiffusionSolver:
             lights = [light for light in lights if not any(light is x for x in inside)]
         vis = None
         if shadows and lights:
-            diag = float(np.linalg.norm(np.ptp(self.bake.mesh_vertices, axis=0)))
-            vis = shadow_visibility(self.shadow_bvh(occluders), offset=1e-4 * diag)
+            vis = shadow_visibility(self.shadow_bvh(occluders), offset=self.shadow_offset())
         out = [None] * len(self.bake.levels)
         for i in want:
             lv = self.bake.levels[i]
@@ -276,6 +278,11 @@ class DiffusionSolver:
             q_env = environment_flux(env, lv.normal, self.eta) if env is not None else None
             out[i] = q + sky.correct(i, lv.normal, self.eta, q_env, env, bounce)
         return out
+
+    def shadow_offset(self) -> float:
+        """How far along the normal (object units) shadow rays start: 1e-4 of the mesh's diagonal."""
+        diag = float(np.linalg.norm(np.ptp(self.bake.mesh_vertices, axis=0)))
+        return 1e-4 * diag
 
     def lights_inside(self, lights) -> list:
         """The point, spot and area lights whose position lies inside the object.

@@ -14,6 +14,10 @@ class MeshError(TranslucencyError):
     """The input mesh cannot be baked (NaN, too few vertices, no volume, too large)."""
 
 
+class ParticleError(TranslucencyError):
+    """A particle set cannot become Voronoi-fluid cells (bad radius, all in a plane, too many, broken data)."""
+
+
 class MaterialError(TranslucencyError):
     """Optical coefficients are missing, NaN, negative or absurd."""
 

@@ -30,6 +30,11 @@ interpolation of eq. 10, ``(idx, w)`` arrays per pair of consecutive levels
 
 :func:`check_graph` verifies the contract (shapes, index ranges, symmetric
 links, positive geometry) and names the first thing that breaks it.
+
+:class:`SolverInput` is what the multi-level driver
+(:class:`.diffusion.DiffusionSolver`) reads of the object it solves: a baked
+QuadGraph (:class:`.bake.Bake`) or one frame of a particle fluid
+(:class:`.fluid.FluidFrame`, a single level).
 """
 
 from __future__ import annotations
@@ -59,6 +64,28 @@ class DiffusionGraph(Protocol):
 
     @property
     def surface_position(self) -> np.ndarray: ...
+
+
+class SolverInput(Protocol):
+    """What :class:`.diffusion.DiffusionSolver` reads of a bake (or of any other set of graphs).
+
+    ``levels`` coarse to fine (graphs of the contract above), ``shepard`` the
+    eq. 10 transfers between consecutive levels (empty for one level),
+    ``mm_per_unit``, the surface the light pass and the output use --
+    ``mesh_vertices``/``mesh_faces`` (shadow rays and the inside test of
+    lights, unless the solver overrides ``shadow_bvh``/``lights_inside``),
+    ``mesh_normals`` and ``vertex_map`` (``vertex_radiance``) -- and ``sky``
+    (sky visibility or None).
+    """
+
+    levels: list
+    shepard: list
+    mm_per_unit: float
+    mesh_vertices: np.ndarray
+    mesh_faces: np.ndarray
+    mesh_normals: np.ndarray
+    vertex_map: tuple
+    sky: object
 
 
 def check_graph(graph: DiffusionGraph, name: str = "graph") -> None:

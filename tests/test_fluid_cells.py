@@ -1,0 +1,242 @@
+"""Voronoi-fluid cells (Kang & Kim 2013 sec. 4.1, 5.1; issue 14): exact geometry, partition, bad input.
+
+Every expected value here comes from outside the code under test: closed
+forms (cubic and FCC lattices, two overlapping balls, a disk cut by lines) or
+a brute-force count of which particle is nearest to sample points.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from translucency_addon.errors import ParticleError
+from translucency_addon.fluid import FluidSolver, build_cells, build_graph, prepare_particles, suggest_radius
+from translucency_addon.fluid.disk_faces import clipped_disk
+from translucency_addon.graph import check_graph
+from translucency_addon.lights import Environment
+from translucency_addon.materials import material_from_preset
+
+# The bound for lattices: exact up to rounding (measured ~1e-15 relative).
+EXACT = 1e-9
+
+
+def lattice(n, s=1.0):
+    g = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    return g.astype(np.float64) * s
+
+
+def fcc(n, a=1.0):
+    base = lattice(n, a)
+    shifts = np.array([[0, 0, 0], [0.5, 0.5, 0], [0.5, 0, 0.5], [0, 0.5, 0.5]]) * a
+    return (base[:, None, :] + shifts[None]).reshape(-1, 3)
+
+
+def interior(P, lo, hi):
+    return np.all((P > lo) & (P < hi), axis=1)
+
+
+@pytest.mark.parametrize("R", [0.87, 1.0, 1.4])
+def test_cubic_lattice_cells_are_unit_cubes(R):
+    """Interior cells of a cubic lattice (spacing 1) are unit cubes once R >= sqrt(3)/2: V = 1, the six
+    face neighbours share faces of area 1, the diagonal neighbours share none, nothing is free surface."""
+    P = lattice(6)
+    cells = build_cells(P, R)
+    inner = interior(P, 0.5, 4.5)
+    assert np.abs(cells.volume[inner] - 1.0).max() < EXACT
+    assert cells.sphere_area[inner].max() < EXACT
+    both = inner[cells.face_i] & inner[cells.face_j]
+    assert np.abs(cells.face_area[both] - 1.0).max() < EXACT
+    assert np.allclose(cells.face_distance[both], 1.0)  # only face neighbours keep a face
+    assert np.all(cells.n_faces[inner] == 6)
+
+
+def test_fcc_lattice_cells_are_rhombic_dodecahedra():
+    """FCC (cube a = 1): Voronoi cells are rhombic dodecahedra, V = a^3/4, 12 faces of area sqrt(2) a^2/8
+    (the cells have 4-valent vertices, where several cutting lines meet)."""
+    P = fcc(5)
+    cells = build_cells(P, 0.6)  # farthest vertex at a/2
+    inner = interior(P, 0.9, 3.6)
+    assert inner.sum() > 50
+    assert np.abs(cells.volume[inner] - 0.25).max() < EXACT
+    both = inner[cells.face_i] & inner[cells.face_j]
+    assert np.abs(cells.face_area[both] - np.sqrt(2) / 8).max() < EXACT
+    assert np.all(cells.n_faces[inner] == 12)
+
+
+def test_two_balls_closed_form():
+    R, d = 1.0, 1.2
+    h = d / 2
+    cells = build_cells(np.array([[0.0, 0, 0], [d, 0, 0]]), R)
+    cap = np.pi * (R - h) ** 2 * (2 * R + h) / 3
+    assert np.allclose(cells.volume, 4 / 3 * np.pi * R**3 - cap, rtol=EXACT)
+    assert np.allclose(cells.face_area, np.pi * (R * R - h * h), rtol=EXACT)
+    assert np.allclose(cells.sphere_area, 2 * np.pi * R * (R + h), rtol=EXACT)
+    assert np.allclose(cells.surface_vector, [[-np.pi * (R * R - h * h), 0, 0], [np.pi * (R * R - h * h), 0, 0]])
+
+
+def test_clipped_disk_against_closed_forms():
+    """A square of half-side a inside the disk: area 4 a^2, solid angle 4 asin(a^2/(a^2 + h^2)); half a disk;
+    repeated lines count once."""
+    R, h = 1.0, 0.5
+    r = np.sqrt(R * R - h * h)
+    for a in (0.4, r / np.sqrt(2)):  # inside, and corners exactly on the circle
+        nx = np.array([1.0, -1, 0, 0, 1, 0])[:, None]
+        ny = np.array([0.0, 0, 1, -1, 0, 1])[:, None]
+        area, om = clipped_disk(np.array([r]), np.array([h]), R, nx, ny, np.full((6, 1), -a))
+        assert abs(area[0] - 4 * a * a) < 1e-12 and abs(om[0] - 4 * np.arcsin(a * a / (a * a + h * h))) < 1e-12
+    area, om = clipped_disk(np.array([r]), np.array([h]), R, np.ones((1, 1)), np.zeros((1, 1)), np.zeros((1, 1)))
+    assert abs(area[0] - np.pi * r * r / 2) < 1e-12 and abs(om[0] - np.pi * (1 - h / R)) < 1e-12
+
+
+def _jittered(n, jitter, seed):
+    rng = np.random.default_rng(seed)
+    P = lattice(n)
+    return P + rng.uniform(-jitter, jitter, P.shape)
+
+
+def test_cells_partition_the_union_of_balls_and_match_a_nearest_particle_count():
+    """Sample points: each in the fluid (within R of a particle) belongs to its nearest particle.  The
+    fraction of samples per cell estimates V_i; the sum estimates the union of balls."""
+    from scipy.spatial import cKDTree
+
+    P = _jittered(4, 0.25, 0)
+    R = 0.95
+    cells = build_cells(P, R)
+    rng = np.random.default_rng(1)
+    lo, hi = P.min(axis=0) - R, P.max(axis=0) + R
+    n = 1_500_000
+    X = lo + (hi - lo) * rng.random((n, 3))
+    dist, who = cKDTree(P).query(X)
+    inside = dist <= R
+    box = float(np.prod(hi - lo))
+    union = box * inside.mean()
+    se = box * np.sqrt(inside.mean() * (1 - inside.mean()) / n)
+    assert abs(cells.volume.sum() - union) < 4 * se, (cells.volume.sum(), union, se)  # the partition
+    per = box * np.bincount(who[inside], minlength=len(P)) / n
+    se_cell = box * np.sqrt(per / box / n)
+    assert np.all(np.abs(cells.volume - per) < 5 * se_cell + 1e-3), np.abs(cells.volume - per).max()
+
+
+def test_face_areas_match_a_brute_force_count_on_the_bisecting_plane():
+    """Points on the plane between i and j that lie within R and have no nearer particle than i and j."""
+    from scipy.spatial import cKDTree
+
+    P = _jittered(4, 0.3, 2)
+    R = 1.0
+    cells = build_cells(P, R)
+    tree = cKDTree(P)
+    rng = np.random.default_rng(3)
+    picks = rng.choice(len(cells.face_i), 12, replace=False)
+    for f in picks:
+        i, j = cells.face_i[f], cells.face_j[f]
+        n = (P[j] - P[i]) / np.linalg.norm(P[j] - P[i])
+        e1 = np.cross(n, [0.3, 0.5, 0.8])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        g = (np.arange(600) + 0.5) / 600 * 2 * R - R
+        U, W = np.meshgrid(g, g)
+        X = 0.5 * (P[i] + P[j]) + U.reshape(-1, 1) * e1 + W.reshape(-1, 1) * e2
+        d2, who = tree.query(X, k=2)
+        ok = (np.linalg.norm(X - P[i], axis=1) <= R) & np.isin(who[:, 0], (i, j)) & np.isin(who[:, 1], (i, j))
+        est = ok.sum() * (2 * R / 600) ** 2
+        assert abs(cells.face_area[f] - est) < 0.01 * R * R + 0.01 * est, (f, cells.face_area[f], est)
+
+
+def test_surface_cells_of_a_lattice_block_face_outward_with_their_flat_area():
+    """A 6^3 block, R = 1: the 152 outer cells are the surface; a cell in the middle of a side has its
+    surface face's vector area along the side's normal with length 1 (the flat projection)."""
+    P = lattice(6)
+    cells = build_cells(P, 1.0)
+    graph = build_graph(cells)
+    check_graph(graph, "fluid")
+    assert graph.n_inner == 216 and graph.n_surface == 216 - 64
+    side = np.nonzero((P[:, 2] == 5) & interior(P[:, :2], 0.5, 4.5))[0]
+    assert np.allclose(cells.surface_vector[side], [0, 0, 1], atol=EXACT)
+    s = np.isin(graph.cell[graph.surface_cell], side)
+    assert s.sum() == 16 and np.allclose(graph.area[s], 1.0)
+    h = graph.edge_length[graph.n_inner:, 0][s]
+    assert np.all((h > 0.5) & (h < 1.0))  # the mean height of the cap above the particle
+    # the smoothed normal (light pass, output) of the four central cells, whose neighbours within 2R are flat
+    centre = np.isin(graph.cell[graph.surface_cell], side[interior(P[side, :2], 1.5, 3.5)])
+    assert centre.sum() == 4 and np.allclose(graph.normal[centre], [0, 0, 1])
+
+
+def test_suggested_radius_closes_the_interior():
+    """At suggest_radius() a lattice jittered by 10 % has no interior voids; at 0.8x it has, and says so."""
+    P = _jittered(8, 0.1, 4)
+    R = suggest_radius(P)
+    assert 0.9 < R < 1.2
+    g = build_graph(build_cells(P, R))
+    assert g.stats["voids"] == 0 and g.n_surface == 8**3 - 6**3
+    g = build_graph(build_cells(P, 0.8 * R))
+    assert g.stats["voids"] > 0 and "voids" in g.warnings[0]
+    assert g.n_surface == 8**3 - 6**3  # the void faces are not mistaken for the free surface
+
+
+# -- bad input: a clear message with numbers, or a zero result where zero is right ------------------------
+
+def _solve(P, R=1.0, **kw):
+    return FluidSolver(material_from_preset("skimmilk"), R, 1.0).solve(P, environment=Environment((1, 1, 1)), **kw)
+
+
+def test_no_particles_is_a_zero_result():
+    res = _solve(np.zeros((0, 3)))
+    assert res.phi.shape == (0, 3) and "no particles" in res.warnings[-1]
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    res = _solve(np.zeros((0, 3)), surface=(V, np.array([[0, 1, 2]])))
+    assert res.vertex_radiance.shape == (3, 3) and not res.vertex_radiance.any()
+
+
+def test_one_particle_and_isolated_particles_get_zero_radiance_with_a_warning():
+    res = _solve(np.array([[0.0, 0, 0]]))
+    assert not res.point_radiance.any() and "no neighbour" in " ".join(res.warnings)
+    P = np.vstack([lattice(4), [[20.0, 20, 20], [-20.0, 5, 5]]])
+    res = _solve(P)
+    assert "2 of 66 particles have no neighbour" in " ".join(res.warnings)
+    assert not res.point_radiance[-2:].any() and res.point_radiance[:64].min() > 0
+
+
+def test_nan_positions_are_left_out_with_their_count():
+    P = lattice(4)
+    P[[3, 7]] = np.nan
+    res = _solve(P)
+    assert "2 of 64 particles have NaN or Inf positions" in res.warnings[0]
+    assert not res.phi[[3, 7]].any() and res.phi[0].min() > 0
+    with pytest.raises(ParticleError, match="all 5 particles have NaN"):
+        _solve(np.full((5, 3), np.nan))
+
+
+def test_particles_in_a_plane_are_refused():
+    P = lattice(5)
+    with pytest.raises(ParticleError, match="all 25 particles lie in one plane"):
+        _solve(P[P[:, 2] == 0])
+
+
+@pytest.mark.parametrize("R, match", [(0.0, "positive"), (-1.0, "positive"), (np.nan, "positive"),
+                                      (50.0, "larger than the whole fluid"), (5.0, "times the particle spacing")])
+def test_bad_radius_is_refused_with_numbers(R, match):
+    with pytest.raises(ParticleError, match=match):
+        _solve(lattice(12), R)
+
+
+def test_too_many_particles_for_memory_is_refused_before_allocating():
+    with pytest.raises(ParticleError, match=r"1,000,000 particles need about 7.5 GiB .*budget 1.0 GiB"):
+        prepare_particles(np.broadcast_to(np.zeros(3), (1_000_000, 3)), 1.0, memory_budget=2**30)
+
+
+def test_coincident_particles_share_a_cell():
+    P = np.vstack([lattice(4), lattice(4)[:3]])
+    res = _solve(P)
+    assert "3 particles coincide" in " ".join(res.warnings)
+    assert np.allclose(res.phi[-3:], res.phi[:3])
+
+
+def test_a_broken_surface_mesh_is_refused():
+    from translucency_addon.errors import MeshError
+
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    with pytest.raises(MeshError, match="finite"):
+        _solve(lattice(4), surface=(np.where(V == 1, np.nan, V), np.array([[0, 1, 2]])))
+    with pytest.raises(MeshError, match="indices outside its 3 vertices"):
+        _solve(lattice(4), surface=(V, np.array([[0, 1, 3]])))

@@ -1,0 +1,180 @@
+r"""One frame's Voronoi-fluid cells as a graph of the solver's contract (:mod:`..graph`).
+
+Kang & Kim (2013) put the boundary on the surface cell itself (eqs. 12-15,
+17): a surface cell's row gets the surface face's flux ``S`` beside the
+neighbour fluxes.  The contract (``graph.DiffusionGraph``) models a boundary
+as a *surface node* linked to one inner node instead, and that is what this
+module builds, so that the fluid goes through the very same assembly,
+boundary condition, solvers and output as a QuadGraph level, unchanged:
+
+* every cell is an **inner node** at its particle, with volume ``V_i`` and one
+  link per neighbour face: length ``d_ij`` (the particles' distance; the face
+  is perpendicular to it, so the two-point flux ``kappa_ij S_ij / d_ij`` is
+  consistent), area ``S_ij``.  The face coefficient is the conservative
+  harmonic mean of :func:`..assembly.assemble`, not the paper's
+  ``kappa(x_j)`` inside the sum (eqs. 11, 16-17), which is not a flux;
+* a cell on the free surface gets one **surface node** on its surface face,
+  linked in slot 0: boundary area ``a_s = |S_vec|`` (``S_vec`` the surface
+  face's vector area, :mod:`.cells`) and position ``p_i + d S_vec/|S_vec|``
+  with ``d = R |S_vec| / S_is``, the height of the face's centroid above the
+  particle (the link length).  Its normal, which only the light pass and the
+  output read, is ``S_vec/|S_vec|`` averaged over the surface nodes within
+  two radii on the same side (:func:`.surface_map.smooth_normals`).
+
+Why a surface node rather than a cell-level term: the diffusive-source
+condition (eq. 5) holds *on* the surface, where the assembly's fitted
+surface link resolves the boundary layer over the distance d, and the output
+(eq. 6, corrected) reads phi there.  The paper reads phi at the particle,
+half a cell inside, which over-estimates J+ by the gradient times d.
+
+Why ``|S_vec|`` and not the curved area ``S_is``: the union of balls is bumpy
+on the particle scale; light from a uniform sky or a sun falls on the
+*projected* area of a locally flat surface (bumps shade each other), so a
+flat layer of a cubic lattice gets exactly s^2 per cell.  Where the surface
+curves on the particle scale (a filament or a sheet one particle thick, a
+droplet) the projection loses area and such parts receive less light; the
+statistics and a warning report how much.
+
+Left out, with a warning each (their radiance is zero):
+
+* surface faces of **interior voids** -- when the radius is below a cell's
+  circumradius the balls leave small holes inside; a surface face counts only
+  if the point one radius beyond it lies outside the fluid;
+* **cells with no neighbours** and pieces with no surface node (no light can
+  enter them; with zero absorption their system would be singular).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .cells import TINY_AREA, VoronoiCells
+from .surface_map import smooth_normals
+
+THIN = 0.3  # |S_vec| / S_is below this: a surface face that wraps around its particle (thin parts)
+
+
+@dataclass
+class FluidGraph:
+    """A frame's cells in the contract's layout: inner nodes (cells) first, then surface nodes."""
+
+    n_inner: int
+    n_surface: int
+    position: np.ndarray  # (N, 3)
+    neighbors: np.ndarray  # (N, K) int32, -1 where there is none
+    edge_length: np.ndarray  # (N, K)
+    face_area: np.ndarray  # (N, K)
+    volume: np.ndarray  # (n_inner,)
+    normal: np.ndarray  # (n_surface, 3)
+    area: np.ndarray  # (n_surface,)
+    cell: np.ndarray  # (n_inner,) cell (particle of the ParticleSet) of each inner node
+    surface_cell: np.ndarray  # (n_surface,) inner node each surface node closes
+    stats: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+
+    @property
+    def n_nodes(self) -> int:
+        return self.n_inner + self.n_surface
+
+    @property
+    def surface_position(self) -> np.ndarray:
+        return self.position[self.n_inner:]
+
+
+def build_graph(cells: VoronoiCells) -> FluidGraph:
+    """The contract graph of ``cells`` (see the module docstring)."""
+    P, R, N = cells.points, cells.radius, cells.n_cells
+    warnings = []
+    S = cells.sphere_area
+    vec = cells.surface_vector
+    vlen = np.linalg.norm(vec, axis=1)
+    surf = (S > TINY_AREA * R * R) & (vlen > TINY_AREA * R * R)
+    normal = np.where(surf[:, None], vec / np.where(vlen > 0, vlen, 1.0)[:, None], 0.0)
+    height = np.where(surf, R * vlen / np.where(S > 0, S, 1.0), 0.0)
+    n_void = 0
+    if surf.any():
+        idx = np.nonzero(surf)[0]
+        probe = P[idx] + (height[idx] + R)[:, None] * normal[idx]
+        dist, _ = cells.tree.query(probe, k=1, distance_upper_bound=R)
+        void = dist < R * (1.0 - 1e-9)
+        n_void = int(void.sum())
+        surf[idx[void]] = False
+    if n_void:
+        warnings.append(f"{n_void:,} surface faces enclose interior voids (the radius {R:.4g} leaves holes between "
+                        "the balls) and get no light; a radius near the particle spacing closes them")
+    # Pieces (faces' connected components) that have no surface node receive no light: leave them out.
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    g = coo_matrix((np.ones(len(cells.face_i)), (cells.face_i, cells.face_j)), shape=(N, N))
+    n_comp, label = connected_components(g, directed=False)
+    lit = np.zeros(n_comp, dtype=bool)
+    lit[label[surf]] = True
+    keep = lit[label]
+    nf = cells.n_faces
+    n_iso = int((nf == 0).sum())
+    if n_iso:
+        warnings.append(f"{n_iso:,} of {N:,} particles have no neighbour within twice the radius ({2 * R:.4g}): "
+                        "isolated droplets, which diffusion cannot resolve; their radiance is 0 (use a radius "
+                        "near the particle spacing, or more particles)")
+    n_dark = int((~keep & (nf > 0)).sum())
+    if n_dark:
+        warnings.append(f"{n_dark:,} cells lie in pieces without a free surface face and get no light")
+    thin = surf & (vlen < THIN * S)
+    if thin.any():
+        lost = 1.0 - float(vlen[thin].sum() / S[thin].sum())
+        warnings.append(f"{int(thin.sum()):,} surface cells are one particle thick (filaments, thin sheets, "
+                        f"droplets): their surface faces wrap around the particle and {lost:.0%} of their area is "
+                        "lost to the flat projection; they receive less light")
+    surf &= keep
+    inner = np.nonzero(keep)[0]
+    node_of = np.full(N, -1, dtype=np.int64)
+    node_of[inner] = np.arange(len(inner))
+    n_in = len(inner)
+    scells = np.nonzero(surf)[0]
+    n_s = len(scells)
+    # Directed face links between kept cells, ranked per source for the slots.
+    fk = keep[cells.face_i] & keep[cells.face_j]
+    a = node_of[cells.face_i[fk]]
+    b = node_of[cells.face_j[fk]]
+    src = np.concatenate([a, b])
+    dst = np.concatenate([b, a])
+    length = np.tile(cells.face_distance[fk], 2)
+    farea = np.tile(cells.face_area[fk], 2)
+    order = np.lexsort((dst, src))
+    src, dst, length, farea = src[order], dst[order], length[order], farea[order]
+    count = np.bincount(src, minlength=n_in)
+    first = np.concatenate([[0], np.cumsum(count)[:-1]]) if n_in else np.zeros(0, np.int64)
+    slot = np.arange(len(src)) - first[src]
+    has_s = np.zeros(n_in, dtype=bool)
+    has_s[node_of[scells]] = True
+    K = int(max((count + has_s).max(initial=0), 1))
+    n = n_in + n_s
+    nbr = np.full((n, K), -1, dtype=np.int32)
+    d = np.zeros((n, K))
+    A = np.zeros((n, K))
+    nbr[src, slot] = dst
+    d[src, slot] = length
+    A[src, slot] = farea
+    s_nodes = n_in + np.arange(n_s)
+    s_inner = node_of[scells]
+    s_slot = count[s_inner]
+    nbr[s_inner, s_slot] = s_nodes
+    nbr[s_nodes, 0] = s_inner
+    a_s = vlen[scells]
+    d_s = height[scells]
+    d[s_inner, s_slot] = d[s_nodes, 0] = d_s
+    A[s_inner, s_slot] = A[s_nodes, 0] = a_s
+    pos = np.vstack([P[inner], P[scells] + d_s[:, None] * normal[scells]])
+    smooth = smooth_normals(pos[n_in:], normal[scells], a_s, R)
+    stats = {
+        "particles": int(N), "cells": int(n_in), "surface_nodes": int(n_s), "faces": int(fk.sum()),
+        "faces_per_cell": float(2 * fk.sum() / max(n_in, 1)), "link_slots": K,
+        "fluid_volume": float(cells.volume.sum()), "surface_area": float(a_s.sum()),
+        "curved_surface_area": float(S[scells].sum()), "voids": n_void, "isolated": n_iso, "unlit": n_dark,
+    }
+    return FluidGraph(n_inner=n_in, n_surface=n_s, position=pos, neighbors=nbr, edge_length=d, face_area=A,
+                      volume=cells.volume[inner].copy(), normal=smooth, area=a_s, cell=inner,
+                      surface_cell=s_inner, stats=stats, warnings=warnings)
