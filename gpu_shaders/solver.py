@@ -18,15 +18,21 @@ the CPU path:
   most 3 times);
   Jacobi stops early if it diverges (residual above 1e3 times max(1, the
   initial one), or not finite), as ``diffusion.solve_jacobi`` does.
+* the solution checks after each level: the default ("fast") solver's level is read back and
+  passed to ``DiffusionSolver.checked_level``, the step the CPU path takes too (discrete maximum
+  principle, energy balance); a level that fails is redone by sparse LU on the CPU and uploaded as
+  the level's iterate, so the finer levels and the output start from it;
 * multi-level warm start: coarse to fine with eq. 10 between levels; a
   ``warm_start`` result starts the finest level directly -- from the
   texture still on the GPU when it is this solver's latest result, else from
   its ``phi[-1]`` (uploaded).
 
 Per frame only q is uploaded; after :meth:`set_material` only the
-coefficients.  Read back: the few numbers of each convergence test, the
-finest level's surface values (always), full phi per level only with
-``readback="phi"``, and the vertex radiance in :meth:`vertex_radiance`.
+coefficients.  Read back: the few numbers of each convergence test, each
+level's phi for the solution checks (the default solver; Jacobi is not
+checked), the finest level's surface values (always), and the vertex
+radiance in :meth:`vertex_radiance`; ``readback="phi"`` also keeps every
+level's phi in the result.
 """
 
 from __future__ import annotations
@@ -187,7 +193,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         if self.options.solver == "direct":
             return res
         return GPUSolveResult(phi=res.phi, q=res.q, level_solves=res.level_solves, seconds=res.seconds,
-                              scheme=res.scheme, phi_surface=self.last_surface, precision=self.precision,
+                              scheme=res.scheme, warnings=res.warnings, phi_surface=self.last_surface, precision=self.precision,
                               generation=self._resident_generation, solver_id=id(self))
 
     def can_warm_start(self, warm_start) -> bool:
@@ -238,8 +244,15 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
                 info = self._chebyshev(g, system, bn, tol, opts.max_iterations, opts.check_every)
             else:
                 info = self._jacobi(g, bn, tol, opts.max_iterations, opts.check_every)
+            x = g.read(g.x_current).astype(np.float64) / sq if self.readback == "phi" or self.guards_solutions \
+                else None
+            if self.guards_solutions:  # the shared checks, on the level read back; a redo goes back to the GPU
+                checked, info = self.checked_level(i, system, q[i], system.rhs(q[i]), x, info)
+                if checked is not x:
+                    g.set_x(checked * sq)
+                    x = checked
             if self.readback == "phi":
-                phi[i] = g.read(g.x_current).astype(np.float64) / sq
+                phi[i] = x
             info.seconds = time.perf_counter() - t0
             solves.append(info)
             prev = g
