@@ -107,7 +107,7 @@ It works on any graph of the contract in :mod:`.graph`; the parts are
 * :mod:`.iterative` -- Jacobi, Chebyshev, sparse LU on one level;
 * :mod:`.radiance` -- J+, its power-preserving clamp, ``outgoing_radiance``.
 
-Their names are re-exported here, so ``from .diffusion import assemble`` keeps working.
+Import each part's names from its own module; this one defines only the driver.
 """
 
 from __future__ import annotations
@@ -118,20 +118,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import kernels
-# Re-exported names (F401): the parts' public API, importable from here as before the split.
-from .assembly import SCHEMES, LevelSystem, _fitted_link, assemble, node_coefficients, sparse_matrix  # noqa: F401
+from .assembly import assemble, node_coefficients
 from .bake import Bake
 from .errors import MaterialError, TranslucencyError
 from .fresnel import diffuse_reflectance_internal
-from .graph import DiffusionGraph, check_graph, graph_components  # noqa: F401
-from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, energy_imbalance,  # noqa: F401
-                        outside_maximum_principle, relative_residual,
-                        solve_chebyshev, solve_direct, solve_jacobi)
+from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, energy_imbalance, outside_maximum_principle,
+                        solve_direct)
 from .lights import environment_flux, incident_flux, shadow_visibility
 from .materials import Material
 from .radiance import clamp_scale, outgoing_radiance
-from .spectral import (DEFLATION_GAP, Deflation, deflation, gershgorin_upper, lanczos_bottom,  # noqa: F401
-                       lanczos_lower, spectral_bounds)
 
 SOLVERS = ("fast", "paper", "direct", "jacobi")
 
