@@ -530,17 +530,17 @@ def test_blender_solve_refuses_bad_materials(variant, values, match, blender, ad
 def test_blender_solve_refuses_a_bad_cache(variant, blender, addon, cache_dir, memo_bakes):
     import bpy
 
-    from translucency.ops import runtime
+    from translucency.ops import cache_files, state
 
     obj, L = _baked_and_solved()
-    path = runtime.resolve_cache_path(obj)
+    path = cache_files.resolve_cache_path(obj)
     regex = hc.damage_cache(path, path, variant)
-    runtime.clear()  # as after reopening the .blend: the bake must come from the file
+    state.clear()  # as after reopening the .blend: the bake must come from the file
     before = scene_digest(cache_dir)
     with pytest.raises(RuntimeError, match=r"Cannot solve 'Blob': .*(" + regex + ")"):
         bpy.ops.translucency.solve()
     assert scene_digest(cache_dir) == before
-    assert runtime.CACHE_STATUS["Blob"].startswith("Cache problem")
+    assert state.CACHE_STATUS["Blob"].startswith("Cache problem")
 
 
 def test_blender_no_lights_and_light_inside_give_exact_zero(blender, addon, cache_dir, memo_bakes):
@@ -584,13 +584,13 @@ def test_blender_texture_limit_falls_back_to_the_cpu(blender, addon, cache_dir, 
     import bpy
     import gpu
 
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     monkeypatch.setattr(gpu.capabilities, "max_texture_size_get", lambda: 32)
     monkeypatch.setattr(gpu.capabilities, "max_texture_layers_get", lambda: 2)
     bpy.context.scene.translucency.solver_backend = 'AUTO'
     obj, L = _baked_and_solved()
-    st = runtime.get_state(obj)
+    st = state.get_state(obj)
     assert st.backend == "CPU" and "32 x 32 with 2 layers" in st.backend_message, st.backend_message
 
 
