@@ -35,6 +35,7 @@ def test_marble_plan_is_shown_and_single_scattering_is_contained(blender, cache_
     assert "multiple scattering [RGB]" in text
     assert "contained in the diffusion term" in text
     assert status.solve_status(obj).ss_backend == ""  # the single-scattering pass did not run
+    assert "not baked" not in status.solve_status(obj).ss_message  # it is baked: the planner chose
     # forcing every pass runs it
     obj.translucency.pass_planning = 'ALL'
     assert bpy.ops.translucency.solve() == {'FINISHED'}
