@@ -69,7 +69,8 @@ def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "f
                                 f"'{threading.current_thread().name}', a render job), where the GPU context is "
                                 "not current: using the CPU")
     if failed_in_render:
-        return Placement("CPU", f"{failed_in_render}; the CPU solves this object for the rest of this render")
+        return Placement("CPU", f"{failed_in_render}; renders of this object stay on the CPU solver (the viewport "
+                                "keeps the GPU)")
     if built:
         return Placement("GPU")
     if kind == "diffusion" and solver == "direct":
@@ -138,9 +139,15 @@ def make_integrator(data, prefer: str = "AUTO", *, off_main: bool | None = None)
     return CPUIntegrator(data), "CPU", where.reason
 
 
-def after_gpu_failure(ex: BaseException, *, rendering: bool) -> Placement:
-    """A GPU solve raised while solving: the CPU from now on, or, in a render (where a missing GPU
-    context is the usual cause), for this render's frames only (``placement(failed_in_render=...)``)."""
+def after_gpu_failure(ex: BaseException, *, rendering: bool, on_gpu: bool = True) -> Placement | None:
+    """A solve raised while solving: where to retry it, or None to let the error through.
+
+    Only a GPU solve falls back (a CPU failure is reported as it is): to the CPU from now on, or,
+    in a render (where a missing GPU context is the usual cause), for this render's frames only
+    (``placement(failed_in_render=...)``).
+    """
+    if not on_gpu:
+        return None
     return Placement("CPU", f"the GPU solve failed ({type(ex).__name__}: {ex}); using the CPU solver"
                             + (" for renders" if rendering else ""))
 

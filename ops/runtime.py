@@ -266,9 +266,11 @@ def _diffuse(st: state.ObjectState, frame: FrameInputs, solver, solve_sig, force
         except TranslucencyError:
             raise
         except Exception as ex:  # noqa: BLE001 - a GPU failure (e.g. no GPU context during a render)
-            if attempt or solver is not st.solver or st.backend == "CPU":
+            where = backend.after_gpu_failure(ex, rendering=frame.rendering,
+                                              on_gpu=solver is st.solver and st.backend != "CPU")
+            if attempt or where is None:
                 raise
-            solver = _after_gpu_failure(st, frame, ex)
+            solver = _retry_on_the_cpu(st, frame, where)
     if solved:
         if solver is st.render_solver:
             st.render_result, st.render_solve_sig = result, solve_sig
@@ -282,9 +284,8 @@ def _diffuse(st: state.ObjectState, frame: FrameInputs, solver, solve_sig, force
     return Diffusion(rgb, solver, solved, seconds, result)
 
 
-def _after_gpu_failure(st: state.ObjectState, frame: FrameInputs, ex: BaseException):
-    """The solver to retry on after the GPU solver raised (the policy is :func:`.backend.after_gpu_failure`)."""
-    where = backend.after_gpu_failure(ex, rendering=frame.rendering)
+def _retry_on_the_cpu(st: state.ObjectState, frame: FrameInputs, where):
+    """The CPU solver to retry on after the GPU solver raised, as :func:`.backend.after_gpu_failure` placed it."""
     state.log(f"'{st.name}': {where.reason}")
     if frame.rendering:
         st.gpu_failed_in_render = where.reason

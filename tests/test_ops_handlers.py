@@ -197,6 +197,42 @@ def test_render_frames_of_an_animated_light(blender, addon, cache_dir, memo_bake
     live.flush()
 
 
+@pytest.mark.gpu
+def test_a_gpu_failure_in_a_render_moves_renders_to_the_cpu(gpu_context, blender, addon, cache_dir, memo_bakes,
+                                                             tmp_path, monkeypatch, capfd):
+    """``backend.after_gpu_failure`` in a render: that frame is solved by the CPU twin, later renders
+    stay there (``placement(failed_in_render=...)``), the object's own solver stays on the GPU, and
+    the log says why."""
+    from translucency.gpu_shaders.solver import GPUDiffusionSolver
+    from translucency.ops import runtime, state
+
+    scene, obj, light = _animated_light_scene(tmp_path)
+    scene.translucency.solver_backend = 'GPU'
+    scene.translucency.live_update = False  # frame_set must not solve in the viewport first
+    runtime.solve_object(obj, scene, force=True)
+    assert state.get_state(obj).backend == "GPU"
+
+    def fail(self, *_args, **_kw):
+        raise SystemError("simulated: no GPU context in the render")
+
+    monkeypatch.setattr(GPUDiffusionSolver, "solve", fail)
+    with _Written(obj) as written:
+        for frame in (1, 10, 1):  # frame 1 reuses the viewport's GPU solution; frame 10 fails on the GPU
+            scene.frame_set(frame)
+            bpy.ops.render.render(write_still=True)
+    (f1, gpu1), (f10, cpu10), (f1_again, cpu1) = written.frames
+    assert (f1, f10, f1_again) == (1, 10, 1)
+    assert np.all(np.isfinite(cpu10)) and cpu10[:, 0].sum() != pytest.approx(gpu1[:, 0].sum(), rel=0.05)
+    np.testing.assert_allclose(cpu1, gpu1, rtol=1e-3, atol=1e-6)  # the CPU twin's frame 1 is the GPU's
+    st = state.get_state(obj)
+    assert st.backend == "GPU" and type(st.solver) is not type(st.render_solver)  # the viewport keeps the GPU
+    assert st.gpu_failed_in_render.startswith("the GPU solve failed (SystemError: simulated")
+    out = capfd.readouterr().out
+    assert "the GPU solve failed (SystemError: simulated: no GPU context in the render); using the CPU solver " \
+           "for renders" in out
+    assert "renders of this object stay on the CPU solver" in out  # the third render, placed by the policy
+
+
 def test_animation_render_solves_every_frame(blender, addon, cache_dir, memo_bakes, tmp_path):
     from translucency.ops import state
 

@@ -336,12 +336,42 @@ def test_one_policy_places_every_pass_and_says_why(blender, addon, monkeypatch):
     assert backend.placement("GPU", kind="single scattering", off_main=False).gpu  # asked for: no preference
     failed = backend.after_gpu_failure(SystemError("no GPU context"), rendering=True)
     assert not failed.gpu and "SystemError: no GPU context" in failed.reason and "for renders" in failed.reason
+    assert backend.after_gpu_failure(ValueError("a bug"), rendering=False, on_gpu=False) is None  # not a fallback
     again = backend.placement("AUTO", off_main=False, failed_in_render=failed.reason, built=True)
-    assert not again.gpu and "rest of this render" in again.reason
+    assert not again.gpu and "renders of this object stay on the CPU" in again.reason
     assert backend.placement("AUTO", off_main=False, built=True).gpu
     monkeypatch.setattr(gpu_shaders, "available", lambda: (False, "simulated: no compute shaders"))
     assert "simulated: no compute shaders" in backend.placement("AUTO", off_main=False).reason
     assert backend.placement("AUTO", off_main=False, built=True).gpu  # a built solver is not re-checked per frame
+
+
+@pytest.mark.gpu
+def test_a_gpu_solve_that_raises_is_redone_on_the_cpu_and_says_why(gpu_context, blender, addon, cache_dir,
+                                                                   memo_bakes, monkeypatch):
+    """The retry rule (``backend.after_gpu_failure``): outside a render the object moves to the CPU
+    solver for good, the same frame is solved there, and the panel and the log say why."""
+    from translucency.gpu_shaders.solver import GPUDiffusionSolver
+    from translucency.ops import state, status
+
+    obj = _baked()
+    add_light()
+    activate(obj)
+    scene = bpy.context.scene.translucency
+    scene.solver_backend = 'CPU'
+    assert bpy.ops.translucency.solve() == {'FINISHED'}
+    cpu = radiance(obj)
+    scene.solver_backend = 'GPU'
+
+    def fail(self, *_args, **_kw):
+        raise SystemError("simulated: the GPU context went away")
+
+    monkeypatch.setattr(GPUDiffusionSolver, "solve", fail)
+    assert bpy.ops.translucency.solve() == {'FINISHED'}
+    st = state.get_state(obj)
+    assert st.backend == "CPU" and type(st.solver).__name__ == "DiffusionSolver"
+    assert "the GPU solve failed (SystemError: simulated: the GPU context went away)" in st.backend_message
+    assert "GPU solve failed" in status.solve_status(obj).message
+    np.testing.assert_allclose(radiance(obj), cpu, rtol=1e-6)  # the same frame, solved on the CPU
 
 
 def test_panel_shows_stats_actions_and_hooks(blender, addon, ui, cache_dir, memo_bakes, monkeypatch):
