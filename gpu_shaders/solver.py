@@ -193,7 +193,8 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         if self.options.solver == "direct":
             return res
         return GPUSolveResult(phi=res.phi, q=res.q, level_solves=res.level_solves, seconds=res.seconds,
-                              scheme=res.scheme, warnings=res.warnings, phi_surface=self.last_surface, precision=self.precision,
+                              scheme=res.scheme, warnings=res.warnings, phi_surface=self.last_surface,
+                              precision=self.precision,
                               generation=self._resident_generation, solver_id=id(self))
 
     def can_warm_start(self, warm_start) -> bool:

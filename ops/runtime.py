@@ -156,12 +156,17 @@ def _options(frame: FrameInputs):
     return SolveOptions(solver="fast", tol=frame.tolerance)
 
 
+def _solver_sig(frame: FrameInputs) -> tuple:
+    """What the object's solver is built for: the scale, the Solver setting and the tolerance."""
+    return (round(frame.mm, 9), frame.prefer, frame.tolerance)
+
+
 def _prepare_solver(st: state.ObjectState, frame: FrameInputs):
     """The solver this frame's diffusion runs on: the object's own (made or re-made when the scale, the
     Solver setting or the tolerance changed; told about a material or field change), or its CPU twin
     where :func:`.backend.placement` keeps the GPU out (off the main thread, after a GPU failure in
     this render)."""
-    solver_sig = (round(frame.mm, 9), frame.prefer, frame.tolerance)
+    solver_sig = _solver_sig(frame)
     if st.solver is None or st.solver_sig != solver_sig:
         _free_solvers(st)
         solver, name, message = backend.make_solver(st.bake.with_scale(frame.mm), frame.material, frame.field_values,
@@ -176,7 +181,8 @@ def _prepare_solver(st: state.ObjectState, frame: FrameInputs):
             st.render_solver.set_material(frame.material, frame.field_values)
         st.material, st.solver_field = frame.material, frame.field_values
     if not st.announced:
-        state.log(f"'{st.name}' solves on the {st.backend}" + (f" ({st.backend_message})" if st.backend_message else ""))
+        state.log(f"'{st.name}' solves on the {st.backend}"
+                  + (f" ({st.backend_message})" if st.backend_message else ""))
         st.announced = True
     if st.backend == "CPU":
         return st.solver
@@ -214,7 +220,7 @@ def _signatures(st: state.ObjectState, frame: FrameInputs) -> tuple:
         # it lights (planner.light_reaching: range, spot cone, area facing).
         reaching = set(frame.plan.facts.get("lights_reaching", ()))
         lights_sig = tuple(light for light in frame.lights if light.name in reaching)
-        solve_sig = ((round(frame.mm, 9), frame.prefer, frame.tolerance), frame.material, frame.field_sig,
+        solve_sig = (_solver_sig(frame), frame.material, frame.field_sig,
                      lights_sig, frame.env_sig, frame.occ_sig, frame.ms_channels)
     ss_sig = (frame.want_ss, frame.use_ss, frame.split)
     if frame.use_ss:

@@ -389,7 +389,8 @@ def test_free_bake(blender, addon, cache_dir, memo_bakes):
     s = obj.translucency
     assert s.cache_filepath == "" and s.bake_key == "" and len(s.status.bake_levels) == 0
     assert s.status.bake_status == "Not baked" and s.status.bake_stats == ""
-    assert (s.status.bake_memory, s.status.bake_seconds, s.status.bake_vertices, s.status.bake_warnings) == (0.0, 0.0, 0, "")
+    cleared = (s.status.bake_memory, s.status.bake_seconds, s.status.bake_vertices, s.status.bake_warnings)
+    assert cleared == (0.0, 0.0, 0, "")
     assert radiance(obj) is None and state.get_state(obj) is None and "Blob" not in state._STATES
     assert os.path.exists(path)  # the file stays unless asked (undo may need it)
 
