@@ -99,20 +99,20 @@ def main(argv=None):
     t_bake = time.perf_counter() - t0
     if res != {'FINISHED'}:
         raise SystemExit(f"bake returned {res}")
-    from translucency.ops import runtime
+    from translucency.ops import attributes, runtime, state
 
     t0 = time.perf_counter()
     runtime.solve_scene(scene, bpy.context.evaluated_depsgraph_get(), use_camera=True, force=True)
     t_solve = time.perf_counter() - t0
-    L = runtime.read_radiance(obj)
+    L = attributes.read_radiance(obj)
     if L is None:
         raise SystemExit("no translucency_radiance attribute after the solve")
     from bench.accuracy_core import SUPERSAMPLE
 
     ras = rasterize(spec.V, spec.F, L.astype(np.float64), spec.camera, spec.resolution, supersample=SUPERSAMPLE)
-    st = runtime.get_state(obj)
+    st = state.get_state(obj)
     levels = [[int(lv.n_surface), int(lv.n_inner)] for lv in st.bake.levels] if st and st.bake else []
-    meta = {"quality": quality, "bake_s": t_bake, "solve_s": t_solve, "backend": str(s.solve_backend),
+    meta = {"quality": quality, "bake_s": t_bake, "solve_s": t_solve, "backend": str(st.backend if st else ""),
             "levels": levels,
             "path": "bpy.ops.translucency.bake + ops.runtime.solve_scene(use_camera=True) + attribute"}
     np.savez_compressed(out, image=ras.image, mask=ras.mask, vertex=L, meta=json.dumps(meta))

@@ -195,7 +195,7 @@ def timed_solve(solver, q, warm=None, repeat: int = 2):
 def bench_graph(name: str, args) -> dict:
     import gpu_shaders
     from gpu_shaders.solver import GPUDiffusionSolver
-    from translucency_addon import diffusion, lights, materials
+    from translucency_addon import diffusion, lights, materials, spectral
 
     bk, bake_s = get_bake(name, args.cache_dir)
     fin = bk.finest
@@ -212,7 +212,7 @@ def bench_graph(name: str, args) -> dict:
     q = cpu.incident([sun])
     q2 = cpu.incident([sun2])
     for s in cpu.systems:
-        diffusion.spectral_bounds(s)  # per material, not per frame: outside the timings
+        spectral.spectral_bounds(s)  # per material, not per frame: outside the timings
 
     row = {"graph": name, "nodes": fin.n_nodes, "levels": len(bk.levels), "all_nodes": sum(lv.n_nodes for lv in bk.levels)}
     system = cpu.systems[-1]

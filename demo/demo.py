@@ -278,9 +278,9 @@ def bake_and_solve_with_operators(bunny):
     t0 = time.perf_counter()
     result = bpy.ops.translucency.bake()
     if result != {'FINISHED'}:
-        raise SystemExit(f"demo: translucency.bake returned {result}: {bunny.translucency.bake_status}")
-    log(f"baked in {time.perf_counter() - t0:.1f} s ({bunny.translucency.bake_status}; "
-        f"{bunny.translucency.bake_stats})")
+        raise SystemExit(f"demo: translucency.bake returned {result}: {bunny.translucency.status.bake_status}")
+    log(f"baked in {time.perf_counter() - t0:.1f} s ({bunny.translucency.status.bake_status}; "
+        f"{bunny.translucency.status.bake_stats})")
     t0 = time.perf_counter()
     result = bpy.ops.translucency.solve()
     if result != {'FINISHED'}:

@@ -1,7 +1,9 @@
 """GPU backend of the diffusion solve: GLSL compute kernels run through Blender's ``gpu`` module.
 
 Nothing here imports ``gpu`` at import time (``blender -b`` and add-on
-registration must not touch it).  The API the Blender side uses::
+registration must not touch it).  The API (the add-on's ``ops.backend``
+decides GPU or CPU and asks with ``prefer="GPU"``; scripts and benches may
+let ``prefer="AUTO"`` fall back here)::
 
     from .gpu_shaders import available, make_solver, free_all
 

@@ -57,7 +57,7 @@ class GPULevel:
 
     # ---------------------------------------------------------------- uploads
     def upload_coefficients(self, off, diag, b_scale) -> pack.PackedCoefficients:
-        """The matrix of a ``diffusion.LevelSystem`` (after a material edit)."""
+        """The matrix of an ``assembly.LevelSystem`` (after a material edit)."""
         pc = pack.pack_coefficients(self.layout, off, diag, b_scale, self.precision)
         self.tex_coef = {
             "off_r": float_texture(pc.off[0], fmt=self.fmt),

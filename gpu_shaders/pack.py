@@ -249,10 +249,10 @@ class PackedCoefficients:
 
 def pack_coefficients(layout: Layout, off: np.ndarray, diag: np.ndarray, b_scale: np.ndarray,
                       precision: str = "fp32") -> PackedCoefficients:
-    """The matrix (kernel form of ``diffusion.LevelSystem``) as textures.
+    """The matrix (kernel form of ``assembly.LevelSystem``) as textures.
 
     ``b_scale`` must be the same for the three channels (it is for both of
-    ``diffusion.assemble``'s schemes); it is stored once per node in ext.a.
+    ``assembly.assemble``'s schemes); it is stored once per node in ext.a.
     """
     N = layout.n_nodes
     off = np.asarray(off, dtype=np.float64).reshape(N, 4, 3)

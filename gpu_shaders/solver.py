@@ -6,7 +6,7 @@ GPU; assembly, material sampling, the light pass and the CPU output stay in
 the CPU path:
 
 * ``options.solver == "fast"``: Chebyshev semi-iteration with the Jacobi
-  preconditioner and the bounds of ``diffusion.spectral_bounds`` (in fp16 the
+  preconditioner and the bounds of ``spectral.spectral_bounds`` (in fp16 the
   upper bound is raised to the Gershgorin bound of the *stored* matrix if
   that is larger, so rounding can never push an eigenvalue out of the
   interval); ``"paper"``/``"jacobi"``: Jacobi sweeps (eqs. 8-9 on the
@@ -17,16 +17,22 @@ the CPU path:
   and if fp32 drift left it above tol the iteration restarts from it, at
   most 3 times);
   Jacobi stops early if it diverges (residual above 1e3 times max(1, the
-  initial one), or not finite), as ``diffusion.solve_jacobi`` does.
+  initial one), or not finite), as ``iterative.solve_jacobi`` does.
+* the solution checks after each level: the default ("fast") solver's level is read back and
+  passed to ``DiffusionSolver.checked_level``, the step the CPU path takes too (discrete maximum
+  principle, energy balance); a level that fails is redone by sparse LU on the CPU and uploaded as
+  the level's iterate, so the finer levels and the output start from it;
 * multi-level warm start: coarse to fine with eq. 10 between levels; a
   ``warm_start`` result starts the finest level directly -- from the
   texture still on the GPU when it is this solver's latest result, else from
   its ``phi[-1]`` (uploaded).
 
 Per frame only q is uploaded; after :meth:`set_material` only the
-coefficients.  Read back: the few numbers of each convergence test, the
-finest level's surface values (always), full phi per level only with
-``readback="phi"``, and the vertex radiance in :meth:`vertex_radiance`.
+coefficients.  Read back: the few numbers of each convergence test, each
+level's phi for the solution checks (the default solver; Jacobi is not
+checked), the finest level's surface values (always), and the vertex
+radiance in :meth:`vertex_radiance`; ``readback="phi"`` also keeps every
+level's phi in the result.
 """
 
 from __future__ import annotations
@@ -39,7 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import device, pack, runtime
-from ._engine import diffusion, errors, kernels
+from ._engine import diffusion, errors, iterative, kernels, spectral
 
 READBACKS = ("surface", "phi", "none")
 _LIVE = weakref.WeakSet()  # every GPU solver, for free_all()
@@ -187,7 +193,8 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         if self.options.solver == "direct":
             return res
         return GPUSolveResult(phi=res.phi, q=res.q, level_solves=res.level_solves, seconds=res.seconds,
-                              scheme=res.scheme, phi_surface=self.last_surface, precision=self.precision,
+                              scheme=res.scheme, warnings=res.warnings, phi_surface=self.last_surface,
+                              precision=self.precision,
                               generation=self._resident_generation, solver_id=id(self))
 
     def can_warm_start(self, warm_start) -> bool:
@@ -238,8 +245,15 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
                 info = self._chebyshev(g, system, bn, tol, opts.max_iterations, opts.check_every)
             else:
                 info = self._jacobi(g, bn, tol, opts.max_iterations, opts.check_every)
+            x = g.read(g.x_current).astype(np.float64) / sq if self.readback == "phi" or self.guards_solutions \
+                else None
+            if self.guards_solutions:  # the shared checks, on the level read back; a redo goes back to the GPU
+                checked, info = self.checked_level(i, system, q[i], system.rhs(q[i]), x, info)
+                if checked is not x:
+                    g.set_x(checked * sq)
+                    x = checked
             if self.readback == "phi":
-                phi[i] = g.read(g.x_current).astype(np.float64) / sq
+                phi[i] = x
             info.seconds = time.perf_counter() - t0
             solves.append(info)
             prev = g
@@ -266,8 +280,8 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
             g.clear_x()  # a result without phi that is no longer resident: start from zero
 
     def _chebyshev(self, g: device.GPULevel, system, bn, tol, max_iter, check_every,
-                   replacements: int = 3) -> diffusion.LevelSolve:
-        """Chebyshev as diffusion.solve_chebyshev, plus residual replacement.
+                   replacements: int = 3) -> iterative.LevelSolve:
+        """Chebyshev as iterative.solve_chebyshev, plus residual replacement.
 
         When the recursive residual meets ``tol`` the true residual b - A x is
         computed; in fp32 the recursive one can drift below it, and then the
@@ -275,7 +289,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         times, and only while that helps), so the reported residual is the
         true one and meets ``tol`` wherever fp32 can reach it.
         """
-        lam_min, lam_max = diffusion.spectral_bounds(system)
+        lam_min, lam_max = spectral.spectral_bounds(system)
         if self.precision == "fp16":
             lam_max = np.maximum(lam_max, g.coef.gershgorin)
         theta = 0.5 * (lam_max + lam_min)
@@ -307,9 +321,9 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
             restarts += 1
             if restarts > replacements or not res.max() < 0.5 * previous.max():
                 break
-        return diffusion.LevelSolve(it, res, hist, 0.0)
+        return iterative.LevelSolve(it, res, hist, 0.0)
 
-    def _jacobi(self, g: device.GPULevel, bn, tol, max_iter, check_every) -> diffusion.LevelSolve:
+    def _jacobi(self, g: device.GPULevel, bn, tol, max_iter, check_every) -> iterative.LevelSolve:
         g.residual()
         res = np.sqrt(g.norm2(g.r)) / bn
         hist = [float(res.max())]
@@ -323,8 +337,8 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
             res = np.sqrt(g.norm2(g.r)) / bn
             hist.append(float(res.max()))
             if not np.all(np.isfinite(res)) or res.max() > 1e3 * first:
-                break  # diverging (the paper's scheme under kappa contrast), as diffusion.solve_jacobi
-        return diffusion.LevelSolve(it, res, hist, 0.0)
+                break  # diverging (the paper's scheme under kappa contrast), as iterative.solve_jacobi
+        return iterative.LevelSolve(it, res, hist, 0.0)
 
     # ------------------------------------------------------------ output
     def is_resident(self, result) -> bool:

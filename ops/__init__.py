@@ -22,8 +22,7 @@ import traceback
 
 import bpy
 
-from . import (
-    backend,  # noqa: F401 - imported for ``ops.backend``; it registers nothing
+from . import (  # the modules that register something; they import the rest (docs/architecture.md, the house)
     dependencies,
     handlers,
     operators_bake,
@@ -32,8 +31,6 @@ from . import (
     panels,
     properties,
     render_pass,
-    runtime,  # noqa: F401
-    scene_inputs,  # noqa: F401
 )
 
 MODULES = (properties, dependencies, operators_bake, operators_solve, overlay, render_pass, handlers, panels)

@@ -1,18 +1,95 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""Choose the diffusion solver: GPU compute shaders when possible, otherwise the CPU.
+"""Where each pass runs, GPU or CPU: the add-on's one fallback policy.
 
-:func:`make_solver` asks ``gpu_shaders.make_solver`` (imported lazily, so a
-missing or broken GPU layer never breaks registration) and falls back to the
-engine's CPU :class:`DiffusionSolver` when ``gpu_shaders`` is missing, has no
-``make_solver``, or raises.  It always returns ``(solver, backend, message)``:
-``backend`` is ``"GPU"`` or ``"CPU"`` and ``message`` says why the GPU was not
-used (empty when nothing needs saying).  :func:`free_solver` releases GPU
-memory (``solver.free()``) when the solver has any.
+Every GPU-to-CPU decision of the Blender side is taken here, and each says
+why, with names and numbers:
+
+* :func:`placement`: before anything is built -- the scene's Solver setting,
+  the thread (Blender's GPU context belongs to the main thread; a render job
+  runs elsewhere), the solver kind (sparse LU has no GPU form), an earlier
+  GPU failure in this render, the GPU layer importing, a GPU context with
+  compute shaders (``gpu_shaders.available``) and, for the single-scattering
+  ray pass in "Auto", a software rasteriser (where numpy is faster).
+* :func:`make_solver` / :func:`make_integrator`: the diffusion solver and the
+  single-scattering integrator for a placement.  The GPU layer is asked
+  strictly (``prefer="GPU"``: build it or raise, never fall back itself); a
+  refusal (a level over the texture limits, a kernel that does not compile)
+  becomes the CPU, with the GPU layer's reason.
+* :func:`after_gpu_failure`: a GPU solve that raised while solving: the CPU
+  from now on, or, during a render, the CPU for renders only.
+
+The one fallback left below this module is the single-scattering
+integrator's per call (``gpu_shaders.single_scattering.AutoIntegrator``):
+a call made where no GPU context is current runs its numpy twin and says so.
 """
 
 from __future__ import annotations
 
 import threading
+from dataclasses import dataclass
+
+PREFERENCES = ("AUTO", "GPU", "CPU")
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where a pass runs and why: ``backend`` is ``"GPU"`` or ``"CPU"``; ``reason`` says why not
+    the GPU ('' when the GPU is used or the CPU was chosen in the settings)."""
+
+    backend: str
+    reason: str = ""
+
+    @property
+    def gpu(self) -> bool:
+        return self.backend == "GPU"
+
+
+def off_main_thread() -> bool:
+    return threading.current_thread() is not threading.main_thread()
+
+
+def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "fast", off_main: bool | None = None,
+              failed_in_render: str = "", built: bool = False) -> Placement:
+    """Where a pass of ``kind`` (``"diffusion"`` or ``"single scattering"``) may run.
+
+    ``prefer``: the scene's Solver setting (AUTO, GPU, CPU); ``solver``: the
+    diffusion solver's name; ``off_main``: solving off Blender's main thread
+    (default: the current thread's); ``failed_in_render``: why an earlier GPU
+    solve of this object failed in a render ('' when none did); ``built``: the
+    GPU solver exists already (a frame asks whether it may use it), so only
+    the rules that change from frame to frame apply (thread, render failure).
+    """
+    prefer = (prefer or "AUTO").upper()
+    if prefer == "CPU":
+        return Placement("CPU")
+    if off_main is None:
+        off_main = off_main_thread()
+    if off_main:
+        return Placement("CPU", f"{kind} runs off Blender's main thread (thread "
+                                f"'{threading.current_thread().name}', a render job), where the GPU context is "
+                                "not current: using the CPU")
+    if failed_in_render:
+        return Placement("CPU", f"{failed_in_render}; renders of this object stay on the CPU solver (the viewport "
+                                "keeps the GPU)")
+    if built:
+        return Placement("GPU")
+    if kind == "diffusion" and solver == "direct":
+        return Placement("CPU", "the direct solver (sparse LU) has no GPU version: using the CPU")
+    try:
+        from .. import gpu_shaders
+
+        ok, why = gpu_shaders.available()
+    except Exception as ex:  # noqa: BLE001 - a missing or broken GPU layer
+        return Placement("CPU", f"the {kind} GPU layer is not available ({type(ex).__name__}: {ex}); using the CPU")
+    if not ok:
+        return Placement("CPU", f"the GPU cannot run {kind} ({why}); using the CPU")
+    if kind == "single scattering" and prefer == "AUTO":
+        from ..gpu_shaders.single_scattering import SOFTWARE_RENDERERS
+
+        if any(name in why.lower() for name in SOFTWARE_RENDERERS):
+            return Placement("CPU", f"the GPU ({why}) is a software rasteriser, on which the single-scattering "
+                                    "ray pass is faster in numpy; using numpy")
+    return Placement("GPU", why)
 
 
 def cpu_solver(bake, material, field_values, options):
@@ -21,37 +98,58 @@ def cpu_solver(bake, material, field_values, options):
     return DiffusionSolver(bake, material, field_values, options)
 
 
-def make_solver(bake, material, field_values, options, prefer: str = "AUTO"):
-    """``(solver, backend_name, message)`` for one baked object.
-
-    ``prefer``: ``"AUTO"`` (GPU if available), ``"GPU"`` (same, but the
-    fallback message is louder) or ``"CPU"``.  Off the main thread (a render
-    job's thread) the GPU is never used: Blender's GPU context belongs to the
-    main thread.
-    """
+def make_solver(bake, material, field_values, options, prefer: str = "AUTO", *, off_main: bool | None = None):
+    """``(solver, backend, message)`` for one baked object: ``backend`` is ``"GPU"`` or ``"CPU"`` and
+    ``message`` says why the GPU was not used, or on which GPU it runs.  Material errors are raised
+    whatever the backend (the CPU would refuse the same material)."""
     from ..translucency_addon.errors import MaterialError
 
-    prefer = (prefer or "AUTO").upper()
-    message = ""
-    if prefer != "CPU" and threading.current_thread() is not threading.main_thread():
-        message = "solving off Blender's main thread (render job): using the CPU solver"
-    elif prefer != "CPU":
+    where = placement(prefer, solver=options.solver, off_main=off_main)
+    if where.gpu:
         try:
             from .. import gpu_shaders
 
-            gpu_make = gpu_shaders.make_solver
-        except Exception as ex:  # noqa: BLE001 - missing or broken GPU layer: fall back
-            message = f"GPU solver not available ({type(ex).__name__}: {ex}); using the CPU solver"
-        else:
-            try:
-                solver, name, gpu_message = gpu_make(bake, material, field_values, options, prefer=prefer)
-            except MaterialError:
-                raise  # the CPU solver would refuse the same material: report it as it is
-            except Exception as ex:  # noqa: BLE001 - any GPU failure falls back to the CPU
-                message = f"GPU solver failed ({type(ex).__name__}: {ex}); using the CPU solver"
-            else:
-                return solver, str(name or "GPU").upper(), str(gpu_message or "")
-    return cpu_solver(bake, material, field_values, options), "CPU", message
+            solver, _name, message = gpu_shaders.make_solver(bake, material, field_values, options, prefer="GPU")
+            return solver, "GPU", str(message or "")
+        except MaterialError:
+            raise
+        except Exception as ex:  # noqa: BLE001 - too large for the textures, a kernel that does not compile
+            where = Placement("CPU", f"the GPU solver cannot run ({type(ex).__name__}: {ex}); using the CPU solver")
+    return cpu_solver(bake, material, field_values, options), "CPU", where.reason
+
+
+def make_integrator(data, prefer: str = "AUTO", *, off_main: bool | None = None):
+    """``(integrator, backend, message)`` for the single-scattering ray pass of one bake.
+
+    On the GPU it is the kernel's dispatcher inside an ``AutoIntegrator``, which runs a call made
+    where no GPU context is current (a render handler) in numpy; elsewhere the numpy twin.
+    """
+    from ..translucency_addon.single_scattering import CPUIntegrator
+
+    where = placement(prefer, kind="single scattering", off_main=off_main)
+    if where.gpu:
+        try:
+            from ..gpu_shaders import single_scattering as gss
+
+            integrator, _name, message = gss.make_integrator(data, "GPU")
+            return gss.AutoIntegrator(data, integrator, ""), "GPU", message
+        except Exception as ex:  # noqa: BLE001 - too large for the textures, a kernel that does not compile
+            where = Placement("CPU", f"the single-scattering GPU kernel cannot run ({type(ex).__name__}: {ex}); "
+                                     "using numpy")
+    return CPUIntegrator(data), "CPU", where.reason
+
+
+def after_gpu_failure(ex: BaseException, *, rendering: bool, on_gpu: bool = True) -> Placement | None:
+    """A solve raised while solving: where to retry it, or None to let the error through.
+
+    Only a GPU solve falls back (a CPU failure is reported as it is): to the CPU from now on, or,
+    in a render (where a missing GPU context is the usual cause), for this render's frames only
+    (``placement(failed_in_render=...)``).
+    """
+    if not on_gpu:
+        return None
+    return Placement("CPU", f"the GPU solve failed ({type(ex).__name__}: {ex}); using the CPU solver"
+                            + (" for renders" if rendering else ""))
 
 
 def free_solver(solver) -> None:

@@ -42,7 +42,8 @@ import time
 import bpy
 from bpy.props import BoolProperty, IntProperty
 
-from . import cache_files, runtime, scene_inputs
+from . import attributes, cache_files, runtime, scene_inputs, state, status
+from .status import SS_STAGE_NAMES
 
 # Test seam: callables ``(fraction, stage) -> bool | None``; returning False cancels the bake.
 PROGRESS_LISTENERS: list = []
@@ -52,12 +53,6 @@ TETWILD_NOTE = ("fTetWild's tetrahedralization is one uninterruptible step: if i
 _RUNNING: dict[str, "BakeJob"] = {}  # object name -> job (one bake per object at a time)
 
 
-def _format_count(n: int) -> str:
-    return f"{n:,}"
-
-
-SS_STAGE_NAMES = {"voxelise": "voxelise", "ddod": "optical depth", "div": "divergence", "pds": "Poisson-disk samples",
-                  "rbf": "RBF fit", "sh": "spherical harmonics", "grid": "sample grid"}
 SS_SHARE = 0.4  # share of the progress bar the single-scattering stages take in a full bake
 
 
@@ -213,54 +208,23 @@ class BakeJob:
         bake = self.bake
         os.replace(self.tmp_path, self.final_path)
         s = obj.translucency
-        s.cache_filepath = cache_files.stored_cache_path(self.final_path)
+        s.cache_filepath = cache_files.stored_cache_path(self.final_path)  # the link to the cache: settings
         s.bake_key = bake.key
-        s.bake_levels.clear()
-        for lv in bake.levels:
-            item = s.bake_levels.add()
-            item.n_surface = int(lv.n_surface)
-            item.n_inner = int(lv.n_inner)
-        s.bake_memory = bake.graph_bytes() / 2**20
-        graph_seconds = float(self.seconds - self.ss_seconds) if self.base_bake is None else s.bake_seconds
-        s.bake_seconds = graph_seconds
-        s.bake_vertices = int(len(bake.mesh_vertices))
-        mesh_stats = bake.stats.get("mesh", {})
-        warnings = list(mesh_stats.get("warnings", [])) + self.notes
-        s.bake_warnings = "\n".join(warnings)
-        s.bake_stats = (
-            "N_s " + " / ".join(_format_count(lv.n_surface) for lv in bake.levels)
-            + "; N_i " + " / ".join(_format_count(lv.n_inner) for lv in bake.levels)
-            + f"; {s.bake_memory:.1f} MiB; {graph_seconds:.1f} s"
-        )
-        ss = bake.single_scattering
-        if ss is not None:
-            t = ss.stats.get("time", {})
-            s.ss_samples_baked = int(ss.n_samples)
-            s.ss_bake_seconds = float(self.ss_seconds)
-            s.ss_bake_stats = (f"{ss.n_samples:,} samples, {ss.n_dirs} directions, SH order {ss.order}, voxels "
-                               + "x".join(str(v) for v in ss.stats.get("voxels", [])) + f"; {self.ss_seconds:.1f} s ("
-                               + ", ".join(f"{SS_STAGE_NAMES.get(k, k)} {v:.1f}" for k, v in t.items()) + ")")
-            mfp = ss.stats.get("mean_free_path_voxels")
-            if mfp is not None and mfp < 0.5:
-                warnings.append(f"single scattering: the mean free path is {mfp:.2f} voxel; the voxels cannot "
-                                "resolve it, so the term comes out too dark (raise SS Quality or check the scale)")
-                s.bake_warnings = "\n".join(warnings)
-        else:
-            s.ss_samples_baked = 0
-            s.ss_bake_seconds = 0.0
-            s.ss_bake_stats = ""
-        s.ss_message = ""
-        s.bake_status = "Baked"
-        s.solve_message = ""
+        graph_seconds = float(self.seconds - self.ss_seconds) if self.base_bake is None else s.status.bake_seconds
+        warnings = status.set_bake_status(obj, bake, graph_seconds=graph_seconds, ss_seconds=self.ss_seconds,
+                                          notes=self.notes)
         s.enabled = True
-        runtime.install_state(obj, bake, self.final_path)
-        runtime.log(f"baked '{obj.name}' -> {self.final_path}\n{format_stats(bake)}"
-                    + (f"\nsingle scattering: {s.ss_bake_stats}" if ss is not None else ""))
+        state.install_state(obj, bake, self.final_path)
+        ss = bake.single_scattering
+        done = s.status
+        state.log(f"baked '{obj.name}' -> {self.final_path}\n{format_stats(bake)}"
+                  + (f"\nsingle scattering: {done.ss_bake_stats}" if ss is not None else ""))
         if self.base_bake is not None:
-            messages = [('INFO', f"Baked single scattering of '{obj.name}' in {self.seconds:.1f} s: {s.ss_bake_stats}")]
+            messages = [('INFO', f"Baked single scattering of '{obj.name}' in {self.seconds:.1f} s: "
+                                 f"{done.ss_bake_stats}")]
         else:
-            messages = [('INFO', f"Baked '{obj.name}' in {self.seconds:.1f} s: {s.bake_stats}"
-                         + (f"; single scattering: {s.ss_bake_stats}" if ss is not None else ""))]
+            messages = [('INFO', f"Baked '{obj.name}' in {self.seconds:.1f} s: {done.bake_stats}"
+                         + (f"; single scattering: {done.ss_bake_stats}" if ss is not None else ""))]
         messages += [('WARNING', f"'{obj.name}': {w}") for w in warnings]
         try:
             report = runtime.solve_object(obj, context.scene, context.evaluated_depsgraph_get(), force=True)
@@ -328,10 +292,10 @@ def prepare_ss_job(context, obj) -> BakeJob:
     _check_object(obj)
     scene = context.scene
     depsgraph = context.evaluated_depsgraph_get()
-    if not runtime.is_baked(obj):
+    if not state.is_baked(obj):
         raise CacheError(f"'{obj.name}' has no QuadGraph bake yet: press Bake (it bakes single scattering too)")
-    st = runtime.ensure_state(obj, retry=True)
-    runtime.update_staleness(obj, st, depsgraph)
+    st = cache_files.ensure_state(obj, retry=True)
+    cache_files.update_staleness(obj, st, depsgraph)
     if st.stale_message:
         raise CacheError(f"the QuadGraph of '{obj.name}' is stale ({st.stale_message}); press Bake, which bakes "
                          "both")
@@ -494,7 +458,7 @@ class TRANSLUCENCY_OT_bake_single_scattering(_ModalBake, bpy.types.Operator):
     @classmethod
     def poll(cls, context):
         obj = context.active_object
-        return obj is not None and obj.type == 'MESH' and runtime.is_baked(obj)
+        return obj is not None and obj.type == 'MESH' and state.is_baked(obj)
 
     def _prepare(self, context, obj) -> BakeJob:
         return prepare_ss_job(context, obj)
@@ -521,31 +485,14 @@ class TRANSLUCENCY_OT_free_bake(bpy.types.Operator):
     def execute(self, context):
         obj = context.active_object
         s = obj.translucency
-        path = runtime.resolve_cache_path(obj)
-        runtime.drop_state(obj.name)
-        removed_attr = runtime.remove_attribute(obj)
-        removed_attr = runtime.remove_attribute(obj, runtime.SS_ATTRIBUTE_NAME) or removed_attr
+        path = cache_files.resolve_cache_path(obj)
+        state.drop_state(obj.name)
+        removed_attr = attributes.remove_attribute(obj)
+        removed_attr = attributes.remove_attribute(obj, attributes.SS_ATTRIBUTE_NAME) or removed_attr
         had_bake = bool(s.cache_filepath or s.bake_key)
         s.cache_filepath = ""
         s.bake_key = ""
-        s.bake_levels.clear()
-        s.bake_memory = 0.0
-        s.bake_seconds = 0.0
-        s.bake_vertices = 0
-        s.bake_warnings = ""
-        s.bake_stats = ""
-        s.bake_status = "Not baked"
-        s.solve_seconds = 0.0
-        s.solve_residual = 0.0
-        s.solve_iterations = 0
-        s.solve_backend = ""
-        s.solve_message = ""
-        s.ss_bake_stats = ""
-        s.ss_bake_seconds = 0.0
-        s.ss_samples_baked = 0
-        s.ss_solve_seconds = 0.0
-        s.ss_backend = ""
-        s.ss_message = ""
+        status.clear_bake_status(obj)
         deleted = False
         if self.delete_cache_file and path and os.path.isfile(path):
             os.remove(path)

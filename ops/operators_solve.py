@@ -16,7 +16,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty
 
-from . import runtime
+from . import runtime, state
 
 
 class TRANSLUCENCY_OT_solve(bpy.types.Operator):
@@ -47,7 +47,7 @@ class TRANSLUCENCY_OT_solve(bpy.types.Operator):
 
         scene = context.scene
         if self.all_objects:
-            objects = runtime.baked_objects(scene)
+            objects = state.baked_objects(scene)
         else:
             objects = [context.active_object]
         if not objects:
@@ -66,7 +66,7 @@ class TRANSLUCENCY_OT_solve(bpy.types.Operator):
             if report is None:  # object in Edit Mode
                 self.report({'WARNING'}, f"'{obj.name}' is in Edit Mode: switch to Object Mode to solve it")
                 continue
-            st = runtime.get_state(obj)
+            st = state.get_state(obj)
             self.report({'WARNING'} if report.skipped else {'INFO'}, report.describe())
             if st is not None and st.backend_message and not getattr(st, "_message_reported", False):
                 self.report({'INFO'}, f"'{obj.name}': {st.backend_message}")

@@ -7,20 +7,22 @@ nothing else, so a broken wheel never breaks the UI.
 
 Sections: bake settings, the terms (multiple scattering, single scattering
 with its bake settings and Split Pass), Bake / Free Bake / Bake Single
-Scattering, bake status and statistics (N_s and N_i per level, graph memory,
-bake time, single-scattering samples and time per stage, warnings, cache
-problems found after a file load), material, heterogeneity field, Solve with the last solve
-time, iterations, residual, backend and fallback message, the
-single-scattering time and backend and why it needs a re-bake, the cache file, then
-the hooks of the optional modules (``overlay.draw_settings`` and
-``render_pass.draw_settings``, see :func:`_draw_hooks`) and the scene settings.
+Scattering, bake status and statistics (the saved ``translucency.status``: N_s
+and N_i per level, graph memory, bake time, single-scattering samples and time
+per stage, warnings; cache problems found after a file load), material,
+heterogeneity field, Solve with the last solve time, iterations, residual,
+backend and fallback message, the single-scattering time and backend and why
+it needs a re-bake (``status.solve_status``: runtime state, never saved), the
+cache file, then the hooks of the optional modules (``overlay.draw_settings``
+and ``render_pass.draw_settings``, see :func:`_draw_hooks`) and the scene
+settings.
 """
 
 from __future__ import annotations
 
 import bpy
 
-from . import dependencies
+from . import dependencies, state, status
 
 
 def _draw_missing_dependencies(layout, problems) -> None:
@@ -99,27 +101,23 @@ def _draw_object_settings(layout, obj, context=None) -> None:
             row = box.row()
             row.enabled = bool(settings.bake_key)
             row.operator("translucency.bake_single_scattering", icon='LIGHT_SUN')
-    box.label(text=f"Status: {settings.bake_status}")
-    try:
-        from .runtime import CACHE_STATUS
-
-        problem = CACHE_STATUS.get(obj.name)
-    except Exception:  # noqa: BLE001
-        problem = None
+    baked = settings.status
+    box.label(text=f"Status: {baked.bake_status}")
+    problem = state.CACHE_STATUS.get(obj.name)
     if problem:
         _draw_multiline(box, problem, icon='ERROR')
-    if len(settings.bake_levels):
+    if len(baked.bake_levels):
         grid = box.column(align=True)
         grid.label(text="Level     N_s (surface)     N_i (inner)")
-        for i, lv in enumerate(settings.bake_levels):
+        for i, lv in enumerate(baked.bake_levels):
             grid.label(text=f"{i}            {lv.n_surface:,}            {lv.n_inner:,}")
-        box.label(text=f"Graph memory {settings.bake_memory:.1f} MiB, bake time {settings.bake_seconds:.1f} s")
-    elif settings.bake_stats:
-        box.label(text=settings.bake_stats)
-    if settings.ss_samples_baked:
-        _draw_multiline(box, "Single scattering: " + settings.ss_bake_stats, icon='LIGHT_SUN')
-    if settings.bake_warnings:
-        _draw_multiline(box, settings.bake_warnings, icon='ERROR')
+        box.label(text=f"Graph memory {baked.bake_memory:.1f} MiB, bake time {baked.bake_seconds:.1f} s")
+    elif baked.bake_stats:
+        box.label(text=baked.bake_stats)
+    if baked.ss_samples_baked:
+        _draw_multiline(box, "Single scattering: " + baked.ss_bake_stats, icon='LIGHT_SUN')
+    if baked.bake_warnings:
+        _draw_multiline(box, baked.bake_warnings, icon='ERROR')
 
     # -- material ------------------------------------------------------------------
     box = col.box()
@@ -152,28 +150,27 @@ def _draw_object_settings(layout, obj, context=None) -> None:
     box.label(text="Solve", icon='LIGHT')
     if obj.type == 'MESH':
         box.operator("translucency.solve", icon='PLAY')
-    if settings.solve_backend:
-        box.label(text=f"Last solve: {settings.solve_seconds * 1000:.1f} ms on the {settings.solve_backend}, "
-                       f"{settings.solve_iterations} iterations, residual {settings.solve_residual:.2e}")
-    if settings.solve_message:
-        _draw_multiline(box, settings.solve_message, icon='INFO')
-    if settings.ss_backend:
-        box.label(text=f"Single scattering: {settings.ss_solve_seconds * 1000:.1f} ms on the {settings.ss_backend}")
+    solved = status.solve_status(obj)  # runtime state: never saved, so a solve writes no property
+    if solved.backend:
+        box.label(text=f"Last solve: {solved.seconds * 1000:.1f} ms on the {solved.backend}, "
+                       f"{solved.iterations} iterations, residual {solved.residual:.2e}")
+    if solved.message:
+        _draw_multiline(box, solved.message, icon='INFO')
+    if solved.ss_backend:
+        box.label(text=f"Single scattering: {solved.ss_seconds * 1000:.1f} ms on the {solved.ss_backend}")
     try:
-        from .runtime import plan_summary
-
-        plan_text = plan_summary(obj.name)
+        plan_text = status.plan_summary(obj.name)
     except Exception:  # noqa: BLE001 - drawing must never fail
         plan_text = ""
     if plan_text:
         sub = box.box()
         sub.label(text="Passes this frame (planner)", icon='PRESET')
         _draw_multiline(sub, plan_text, width=90)  # the first line says whether it runs, or why not
-    if settings.ss_message:
-        stale = "re-bake" in settings.ss_message or "not baked" in settings.ss_message
+    if solved.ss_message:
+        stale = "re-bake" in solved.ss_message or "not baked" in solved.ss_message
         sub = box.column()
         sub.alert = stale
-        _draw_multiline(sub, settings.ss_message, icon='ERROR' if stale else 'INFO')
+        _draw_multiline(sub, solved.ss_message, icon='ERROR' if stale else 'INFO')
 
     box = col.box()
     box.label(text="Cache", icon='FILE_CACHE')
@@ -193,10 +190,10 @@ def _draw_scene_settings(layout, scene, overlay_drawn: bool = False) -> None:
         sub = box.row()
         sub.active = settings.overlay_enabled
         sub.prop(settings, "overlay_mode")
-    if settings.last_solve_time > 0.0 or settings.last_backend:
-        backend = f" on the {settings.last_backend}" if settings.last_backend else ""
-        box.label(text=f"Last solve{backend}: {settings.last_solve_time:.3f} s, "
-                       f"residual {settings.last_residual:.2e}")
+    last = status.last_solve()
+    if last.get("seconds", 0.0) > 0.0 or last.get("backend"):
+        backend = f" on the {last['backend']}" if last.get("backend") else ""
+        box.label(text=f"Last solve{backend}: {last['seconds']:.3f} s, residual {last['residual']:.2e}")
 
 
 # === Hooks for the viewport overlay and the render pass (ops/overlay.py, ops/render_pass.py) ===

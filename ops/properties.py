@@ -3,7 +3,11 @@
 
 ``bpy.types.Object.translucency`` -> :class:`TranslucencyObjectSettings`
 ``bpy.types.Scene.translucency``  -> :class:`TranslucencySceneSettings`
-(the PointerProperties are attached by ``ops.register()``).
+(the PointerProperties are attached by ``ops.register()``).  What a bake
+produced is kept apart from the settings, in
+``object.translucency.status`` (:class:`TranslucencyObjectStatus`, written
+only through ``ops.status``); a solve's per-frame status is runtime state
+and never saved.
 
 Units follow ``docs/architecture.md``: optical coefficients are per millimetre,
 geometry is in object units and ``mm_per_unit`` converts it.
@@ -23,7 +27,7 @@ from bpy.props import (
     StringProperty,
 )
 
-from . import compat
+from . import compat, live, quality_costs
 
 # Used when the engine's preset table cannot be imported (it needs only numpy,
 # but registration must never depend on it): Jensen et al. 2001 names.
@@ -46,12 +50,10 @@ def _request_update(_self, _context) -> None:
 
     Setting a Python-defined property does not send a depsgraph update, so the
     live re-solve is scheduled here (throttled and coalesced by
-    ``ops.handlers.request_update``; a no-op while the add-on is not registered).
+    :func:`.live.request_update`; a no-op while the add-on is not registered).
     """
     try:
-        from . import handlers
-
-        handlers.request_update()
+        live.request_update()
     except Exception:  # noqa: BLE001 - a property update must never fail
         pass
 
@@ -109,6 +111,73 @@ class TranslucencyLevelStats(bpy.types.PropertyGroup):
     )
 
 
+class TranslucencyObjectStatus(bpy.types.PropertyGroup):
+    """What the last bake of an object produced (``object.translucency.status``; see ``ops.status``).
+
+    Written only by ``status.set_bake_status`` and reset by ``status.clear_bake_status``; the
+    solve's per-frame status lives in the runtime state and is never saved.
+    """
+
+    bake_status: StringProperty(
+        name="Bake Status",
+        description="Result of the last bake of this object (written by the bake operator)",
+        default="Not baked",
+    )
+    bake_stats: StringProperty(
+        name="Bake Statistics",
+        description="Size and timing of the last bake: nodes per level, time taken (written by the bake operator)",
+        default="",
+    )
+    bake_levels: CollectionProperty(
+        name="Bake Levels",
+        description="Node counts N_s and N_i of every QuadGraph level, coarse to fine (written by the bake operator)",
+        type=TranslucencyLevelStats,
+    )
+    bake_memory: FloatProperty(
+        name="Graph Memory (MiB)",
+        description="Memory the baked QuadGraph levels, transfer weights and vertex mapping take (written by the bake operator)",
+        default=0.0,
+        min=0.0,
+        precision=2,
+    )
+    bake_seconds: FloatProperty(
+        name="Bake Time (s)",
+        description="Wall-clock time of the last bake in seconds (written by the bake operator)",
+        default=0.0,
+        min=0.0,
+        precision=2,
+    )
+    bake_warnings: StringProperty(
+        name="Bake Warnings",
+        description="Warnings of the last bake, e.g. holes in the mesh or a non-uniform object scale (one per line)",
+        default="",
+    )
+    bake_vertices: IntProperty(
+        name="Baked Vertices",
+        description="Vertex count of the evaluated mesh that was baked (written by the bake operator)",
+        default=0,
+        min=0,
+    )
+    ss_bake_stats: StringProperty(
+        name="Single Scattering Bake",
+        description="Samples, directions, SH order and bake time per stage of the last single-scattering bake",
+        default="",
+    )
+    ss_bake_seconds: FloatProperty(
+        name="SS Bake Time (s)",
+        description="Wall-clock time of the last single-scattering bake in seconds",
+        default=0.0,
+        min=0.0,
+        precision=2,
+    )
+    ss_samples_baked: IntProperty(
+        name="SS Samples",
+        description="Number of RBF samples in the baked single-scattering data (0: not baked)",
+        default=0,
+        min=0,
+    )
+
+
 class TranslucencyObjectSettings(bpy.types.PropertyGroup):
     """Per-object Translucency settings (``object.translucency``)."""
 
@@ -125,7 +194,7 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         name="Quality",
         description="Resolution of the QuadGraph the bake builds: finer graphs are more accurate and slower to bake and solve",
         # names and tooltips carry the measured cost (translucency_addon/data/quality_costs.json)
-        items=__import__(__package__ + ".quality_costs", fromlist=["quality_items"]).quality_items(),
+        items=quality_costs.quality_items(),
         default="PREVIEW",
     )
     levels: IntProperty(
@@ -342,7 +411,7 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         precision=3,
     )
 
-    # -- cache and status -------------------------------------------------
+    # -- the cache: where the bake is and which bake it must be ---------------
     cache_filepath: StringProperty(
         name="Cache File",
         description=(
@@ -353,116 +422,15 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         subtype='FILE_PATH',
         options=PATH_OPTIONS,
     )
-    bake_status: StringProperty(
-        name="Bake Status",
-        description="Result of the last bake of this object (written by the bake operator)",
-        default="Not baked",
-    )
-    bake_stats: StringProperty(
-        name="Bake Statistics",
-        description="Size and timing of the last bake: nodes per level, time taken (written by the bake operator)",
-        default="",
-    )
     bake_key: StringProperty(
         name="Bake Key",
         description="Hash of the baked mesh and bake settings; a cache with another key is stale (written by the bake operator)",
         default="",
     )
-    bake_levels: CollectionProperty(
-        name="Bake Levels",
-        description="Node counts N_s and N_i of every QuadGraph level, coarse to fine (written by the bake operator)",
-        type=TranslucencyLevelStats,
-    )
-    bake_memory: FloatProperty(
-        name="Graph Memory (MiB)",
-        description="Memory the baked QuadGraph levels, transfer weights and vertex mapping take (written by the bake operator)",
-        default=0.0,
-        min=0.0,
-        precision=2,
-    )
-    bake_seconds: FloatProperty(
-        name="Bake Time (s)",
-        description="Wall-clock time of the last bake in seconds (written by the bake operator)",
-        default=0.0,
-        min=0.0,
-        precision=2,
-    )
-    bake_warnings: StringProperty(
-        name="Bake Warnings",
-        description="Warnings of the last bake, e.g. holes in the mesh or a non-uniform object scale (one per line)",
-        default="",
-    )
-    bake_vertices: IntProperty(
-        name="Baked Vertices",
-        description="Vertex count of the evaluated mesh that was baked (written by the bake operator)",
-        default=0,
-        min=0,
-    )
-    ss_bake_stats: StringProperty(
-        name="Single Scattering Bake",
-        description="Samples, directions, SH order and bake time per stage of the last single-scattering bake",
-        default="",
-    )
-    ss_bake_seconds: FloatProperty(
-        name="SS Bake Time (s)",
-        description="Wall-clock time of the last single-scattering bake in seconds",
-        default=0.0,
-        min=0.0,
-        precision=2,
-    )
-    ss_samples_baked: IntProperty(
-        name="SS Samples",
-        description="Number of RBF samples in the baked single-scattering data (0: not baked)",
-        default=0,
-        min=0,
-    )
-    # -- solve status (written by the solver; shown in the panel) --------------
-    solve_seconds: FloatProperty(
-        name="Solve Time (s)",
-        description="Wall-clock time of this object's last solve in seconds (written by the solver)",
-        default=0.0,
-        min=0.0,
-        precision=4,
-    )
-    solve_residual: FloatProperty(
-        name="Residual",
-        description="Relative residual reached by this object's last solve (written by the solver)",
-        default=0.0,
-        min=0.0,
-        precision=8,
-    )
-    solve_iterations: IntProperty(
-        name="Iterations",
-        description="Solver iterations (sweeps) of this object's last solve (written by the solver)",
-        default=0,
-        min=0,
-    )
-    solve_backend: StringProperty(
-        name="Backend",
-        description="Where this object's last solve ran: GPU or CPU (written by the solver)",
-        default="",
-    )
-    solve_message: StringProperty(
-        name="Solver Message",
-        description="Why the solver fell back to the CPU, or the last solve error (written by the solver)",
-        default="",
-    )
-    ss_solve_seconds: FloatProperty(
-        name="SS Time (s)",
-        description="Wall-clock time of this object's last single-scattering evaluation in seconds",
-        default=0.0,
-        min=0.0,
-        precision=4,
-    )
-    ss_backend: StringProperty(
-        name="SS Backend",
-        description="Where the last single-scattering ray pass ran: GPU or CPU (numpy)",
-        default="",
-    )
-    ss_message: StringProperty(
-        name="SS Message",
-        description="Why the single-scattering term is stale (needs a re-bake) or not on the GPU",
-        default="",
+    status: PointerProperty(
+        name="Status",
+        description="What the last bake of this object produced (written by the bake operators)",
+        type=TranslucencyObjectStatus,
     )
 
 
@@ -512,20 +480,6 @@ class TranslucencySceneSettings(bpy.types.PropertyGroup):
         soft_max=1e-2,
         precision=6,
     )
-    last_solve_time: FloatProperty(
-        name="Last Solve Time (s)",
-        description="Wall-clock time of the last solve in seconds (written by the solver)",
-        default=0.0,
-        min=0.0,
-        precision=3,
-    )
-    last_residual: FloatProperty(
-        name="Last Residual",
-        description="Relative residual reached by the last solve (written by the solver)",
-        default=0.0,
-        min=0.0,
-        precision=8,
-    )
     live_update: BoolProperty(
         update=_request_update,
         name="Live Update",
@@ -535,11 +489,6 @@ class TranslucencySceneSettings(bpy.types.PropertyGroup):
         ),
         default=True,
     )
-    last_backend: StringProperty(
-        name="Last Backend",
-        description="Where the last solve ran: GPU or CPU (written by the solver)",
-        default="",
-    )
 
 
-CLASSES = (TranslucencyLevelStats, TranslucencyObjectSettings, TranslucencySceneSettings)
+CLASSES = (TranslucencyLevelStats, TranslucencyObjectStatus, TranslucencyObjectSettings, TranslucencySceneSettings)

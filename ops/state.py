@@ -30,9 +30,10 @@ class ObjectState:
     backend: str = ""
     backend_message: str = ""
     announced: bool = False
-    material: object | None = None
-    field_sig: object = None
-    field_values: list | None = None
+    material: object | None = None  # what the solver was last given
+    solver_field: list | None = None  # the field values the solver was last given
+    field_sig: object = None  # the signature of the field samples below
+    field_values: list | None = None  # the field at every level's nodes (ops.frame samples it)
     solve_sig: tuple | None = None
     view_sig: tuple | None = None
     result: object | None = None
@@ -41,11 +42,12 @@ class ObjectState:
     render_result: object | None = None
     render_solve_sig: tuple | None = None
     bounce: object | None = None  # vertex radiance (along the normals) of the last interreflected solve
-    gpu_failed_in_render: bool = False
+    gpu_failed_in_render: str = ""  # why the GPU solve failed in a render ('' when it did not)
     occluders: scene_inputs.OccluderCache = field(default_factory=scene_inputs.OccluderCache)
     geometry_digest: str = ""
     stale_message: str = ""
     orig_map: tuple | None = None  # (digest, idx, w, positions, normals) for obj.data vertices
+    # the solve status the panel shows (ops.status.solve_status; never saved)
     seconds: float = 0.0
     residual: float = 0.0
     iterations: int = 0
@@ -85,6 +87,8 @@ CACHE_STATUS: dict[str, str] = {}
 # Counters for tests and diagnostics.
 COUNTERS = {"solves": 0, "radiance_only": 0, "loads": 0, "field_samples": 0, "writes": 0, "planner_skips": 0}
 PLANS: dict = {}  # object name -> the planner's last Plan (shown in the panel)
+ERRORS: dict[str, str] = {}  # object name -> why its last solve failed (shown until one succeeds)
+LAST_SOLVE: dict = {}  # the last solve of any object: name, seconds, residual, backend (the scene's line)
 # Object names whose mesh we just wrote (the handler ignores the update that causes).
 OWN_WRITES: set = set()
 # Bumped by the handlers when a mesh is edited (vertex-group weights are not hashed each time).
@@ -115,6 +119,7 @@ def drop_state(name: str) -> None:
     with _LOCK:
         st = _STATES.pop(name, None)
         _FAILED.pop(name, None)
+        ERRORS.pop(name, None)
         if st is not None:
             st.free()
 
@@ -130,6 +135,8 @@ def clear() -> None:
         OWN_WRITES.clear()
         GEOMETRY_EPOCH.clear()
         PLANS.clear()
+        ERRORS.clear()
+        LAST_SOLVE.clear()
 
 
 def invalidate_views() -> None:

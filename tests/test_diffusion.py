@@ -21,7 +21,8 @@ import pytest
 from bakes import baked, mesh
 from translucency_addon import cache, fresnel, kernels, primitives
 from translucency_addon.bake import BakeSettings, bake_mesh
-from translucency_addon.diffusion import DiffusionSolver, SolveOptions, solve_direct
+from translucency_addon.diffusion import DiffusionSolver, SolveOptions
+from translucency_addon.iterative import solve_direct
 from translucency_addon.fields import FieldSpec, evaluate_field
 from translucency_addon.lights import Environment, Light
 from translucency_addon.materials import Material, Medium, material_from_preset, preset
@@ -286,7 +287,7 @@ def test_no_light_gives_exactly_zero():
 
 def test_kernel_twins_match_the_sparse_matrix():
     """The packed (N,4) kernels equal the assembled CSR matrix product."""
-    from translucency_addon.diffusion import sparse_matrix
+    from translucency_addon.assembly import sparse_matrix
 
     b = baked("sphere", levels=2, base_triangles=300, mm_per_unit=10.0)
     s = DiffusionSolver(b, MARBLE)

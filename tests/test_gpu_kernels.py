@@ -264,7 +264,7 @@ def test_outgoing_partial_current(layout, precision):
 @pytest.mark.parametrize("view", ["normal", "random"])
 def test_vertex_radiance(layout, view):
     """J+ gather over the vertex map and L_o = F_t J+ / (pi eta^2): DiffusionSolver.vertex_radiance's formula."""
-    from translucency_addon.diffusion import outgoing_radiance
+    from translucency_addon.radiance import outgoing_radiance
 
     rng = np.random.default_rng(9)
     g, _, _ = make_level(layout)

@@ -26,7 +26,7 @@ import gpu_shaders
 from gpu_shaders import pack, runtime
 from gpu_shaders.solver import GPUDiffusionSolver, GPUSolveResult
 from translucency_addon import bake as bake_mod
-from translucency_addon import diffusion, errors, lights, materials, primitives
+from translucency_addon import diffusion, errors, iterative, lights, materials, primitives
 
 ROOT = Path(__file__).resolve().parent.parent
 SOLVE_TOL = 1e-4
@@ -296,6 +296,42 @@ def test_free_twice_is_safe_and_solver_recovers(scene, cpu_results):
 
 
 @pytest.mark.gpu
+@pytest.mark.parametrize("break_it", ["wander", "short"])
+def test_a_gpu_level_solve_that_breaks_the_checks_is_redone_directly(scene, monkeypatch, break_it):
+    """The GPU path has the CPU's guard (``DiffusionSolver.checked_level``, after each level's solve).
+
+    A deliberately broken GPU iteration: ``wander`` leaves the level 1e30 above its solution (outside
+    the discrete maximum principle), ``short`` stops it at 0.9 of it (inside the bounds, 10 % off the
+    energy balance).  Every level must be redone by sparse LU with the CPU's note, and what the GPU
+    then holds -- the finest surface read back, the resident radiance kernel's output -- must be the
+    direct solution.
+    """
+    bk, mat, _, q = scene
+    direct = diffusion.DiffusionSolver(bk, mat, options=diffusion.SolveOptions(solver="direct"))
+    ref = direct.solve(q=q)
+    original = GPUDiffusionSolver._chebyshev
+
+    def broken(self, g, *args, **kw):
+        info = original(self, g, *args, **kw)
+        if break_it == "wander":
+            g.set_x(g.read(g.x_current) + 1e30)
+        else:
+            g.scale_x(0.9)
+        return info
+
+    monkeypatch.setattr(GPUDiffusionSolver, "_chebyshev", broken)
+    s = GPUDiffusionSolver(bk, mat, options=options("fast"))
+    r = s.solve(q=q)
+    notes = [w for w in r.warnings if "broke the maximum principle or the energy balance" in w
+             and "solved directly" in w]
+    assert len(notes) == len(bk.levels), r.warnings
+    assert rel_err(r.phi_surface[-1], ref.phi[-1][bk.finest.n_inner:]) < 1e-6  # fp32 texture of the LU solution
+    assert s.is_resident(r)
+    assert rel_err(s.vertex_radiance(r), direct.vertex_radiance(ref)) < 1e-5
+    s.free()
+
+
+@pytest.mark.gpu
 def test_texture_limit_splits_levels_into_layers(scene, cpu_results):
     bk, mat, _, q = scene
     s = GPUDiffusionSolver(bk, mat, options=options("fast"), max_texture_size=64)
@@ -381,7 +417,7 @@ def test_tolerance_below_the_fp32_floor_terminates_honestly(layered_cube):
     assert r.residual.max() < 1e-5
     # Honest: the reported residual is the true one of the returned phi (recomputed in fp64).
     system = s.systems[-1]
-    true = diffusion.relative_residual(system, system.rhs(rc.q[-1]), r.phi[-1])
+    true = iterative.relative_residual(system, system.rhs(rc.q[-1]), r.phi[-1])
     assert np.all(np.abs(true - r.residual) <= 0.5 * r.residual + 1e-7)
     assert rel_err(r.phi[-1], rc.phi[-1]) < 1e-5
     s.free()

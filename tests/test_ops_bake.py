@@ -122,9 +122,9 @@ def bake(obj, base_triangles=BASE_TRIANGLES):
 
 
 def radiance(obj) -> np.ndarray:
-    from translucency.ops import runtime
+    from translucency.ops import attributes
 
-    return runtime.read_radiance(obj)
+    return attributes.read_radiance(obj)
 
 
 def mesh_snapshot(obj):
@@ -153,7 +153,7 @@ def files_in(directory) -> list[str]:
 
 def test_bake_evaluated_mesh_with_modifier(blender, addon, cache_dir, real_bakes):
     """The operator bakes the mesh after modifiers, headless, and fills the statistics."""
-    from translucency.ops import runtime
+    from translucency.ops import cache_files
     from translucency.translucency_addon.cache import load_bake
 
     obj = sphere(subsurf=1)
@@ -165,15 +165,15 @@ def test_bake_evaluated_mesh_with_modifier(blender, addon, cache_dir, real_bakes
     assert bake(obj) == {'FINISHED'}
     assert real_bakes.real == 1
     s = obj.translucency
-    assert s.enabled and s.bake_status == "Baked" and len(s.bake_key) == 64
-    assert len(s.bake_levels) == 2
-    for level in s.bake_levels:
+    assert s.enabled and s.status.bake_status == "Baked" and len(s.bake_key) == 64
+    assert len(s.status.bake_levels) == 2
+    for level in s.status.bake_levels:
         assert level.n_surface > 50 and level.n_inner > 50
-    assert s.bake_levels[1].n_surface > s.bake_levels[0].n_surface
-    assert s.bake_memory > 0.1 and s.bake_seconds > 0.0 and s.bake_vertices == n_eval
-    assert "N_s" in s.bake_stats and "N_i" in s.bake_stats and "MiB" in s.bake_stats
+    assert s.status.bake_levels[1].n_surface > s.status.bake_levels[0].n_surface
+    assert s.status.bake_memory > 0.1 and s.status.bake_seconds > 0.0 and s.status.bake_vertices == n_eval
+    assert "N_s" in s.status.bake_stats and "N_i" in s.status.bake_stats and "MiB" in s.status.bake_stats
 
-    path = runtime.resolve_cache_path(obj)
+    path = cache_files.resolve_cache_path(obj)
     assert os.path.dirname(path) == str(cache_dir)
     assert files_in(cache_dir) == [os.path.basename(path)]  # no partial file left
     assert os.path.basename(path).startswith("Blob_")
@@ -188,13 +188,13 @@ def test_bake_evaluated_mesh_with_modifier(blender, addon, cache_dir, real_bakes
 def test_unsaved_blend_uses_a_temporary_folder_and_says_so(blender, addon, memo_bakes):
     import tempfile
 
-    from translucency.ops import runtime
+    from translucency.ops import cache_files
 
     obj = sphere()
     assert bake(obj) == {'FINISHED'}
-    path = runtime.resolve_cache_path(obj)
+    path = cache_files.resolve_cache_path(obj)
     assert path.startswith(tempfile.gettempdir())
-    assert "not saved" in obj.translucency.bake_warnings
+    assert "not saved" in obj.translucency.status.bake_warnings
     os.remove(path)
 
 
@@ -204,9 +204,9 @@ def _assert_unchanged(obj, before_mesh, before_settings, cache_dir, names):
     assert settings_snapshot(obj) == before_settings
     assert obj.data.attributes.get("translucency_radiance") is None
     assert files_in(cache_dir) == []
-    from translucency.ops import runtime
+    from translucency.ops import state
 
-    assert runtime.get_state(obj) is None
+    assert state.get_state(obj) is None
 
 
 def test_flat_mesh_fails_and_leaves_the_scene_unchanged(blender, addon, cache_dir):
@@ -276,7 +276,7 @@ def test_threaded_job_cancel_after_the_cache_was_written(blender, addon, cache_d
 
 
 def test_save_and_reload_finds_the_cache(blender, addon, tmp_path, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     blend = tmp_path / "scene.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))  # so // resolves next to it
@@ -286,7 +286,7 @@ def test_save_and_reload_finds_the_cache(blender, addon, tmp_path, memo_bakes):
     assert bake(obj) == {'FINISHED'}
     s = obj.translucency
     assert s.cache_filepath.startswith("//translucency_cache/Blob_")
-    key, levels = s.bake_key, [(lv.n_surface, lv.n_inner) for lv in s.bake_levels]
+    key, levels = s.bake_key, [(lv.n_surface, lv.n_inner) for lv in s.status.bake_levels]
     assert (tmp_path / "translucency_cache").is_dir()
     before = radiance(obj)
     bpy.ops.wm.save_mainfile()
@@ -294,24 +294,24 @@ def test_save_and_reload_finds_the_cache(blender, addon, tmp_path, memo_bakes):
     factory_reset()
     assert "Blob" not in bpy.data.objects
     calls = memo_bakes.calls
-    loads = runtime.COUNTERS["loads"]
+    loads = state.COUNTERS["loads"]
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     obj = bpy.data.objects["Blob"]
     s = obj.translucency
-    assert s.bake_key == key and [(lv.n_surface, lv.n_inner) for lv in s.bake_levels] == levels
-    assert s.material_preset == 'SKIMMILK' and s.bake_memory > 0
-    assert "Blob" not in runtime.CACHE_STATUS  # the load handler found the cache
-    assert runtime.get_state(obj) is None  # loaded lazily, on first use
+    assert s.bake_key == key and [(lv.n_surface, lv.n_inner) for lv in s.status.bake_levels] == levels
+    assert s.material_preset == 'SKIMMILK' and s.status.bake_memory > 0
+    assert "Blob" not in state.CACHE_STATUS  # the load handler found the cache
+    assert state.get_state(obj) is None  # loaded lazily, on first use
     np.testing.assert_allclose(radiance(obj), before)  # the attribute was saved in the .blend
 
     activate(obj)
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    assert runtime.COUNTERS["loads"] == loads + 1 and memo_bakes.calls == calls  # no re-bake
+    assert state.COUNTERS["loads"] == loads + 1 and memo_bakes.calls == calls  # no re-bake
     np.testing.assert_allclose(radiance(obj), before, rtol=2e-3, atol=1e-6)
 
 
 def test_stale_cache_is_reported(blender, addon, tmp_path, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import state, status
 
     blend = tmp_path / "stale.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
@@ -323,73 +323,75 @@ def test_stale_cache_is_reported(blender, addon, tmp_path, memo_bakes):
     bpy.ops.wm.save_mainfile()
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     obj = bpy.data.objects["Blob"]
-    assert runtime.CACHE_STATUS["Blob"].startswith("Stale: the mesh changed")
+    assert state.CACHE_STATUS["Blob"].startswith("Stale: the mesh changed")
     # It still solves (on the old graph), and says why the result may be off.
     activate(obj)
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    assert "stale bake" in obj.translucency.solve_message
+    assert "stale bake" in status.solve_status(obj).message
 
 
 
 def test_changed_bake_settings_are_reported(blender, addon, cache_dir, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import cache_files, runtime, state
 
     obj = sphere()
     assert bake(obj) == {'FINISHED'}
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    assert runtime.check_cache(obj, depsgraph).startswith("Baked (cache found")
+    assert cache_files.check_cache(obj, depsgraph).startswith("Baked (cache found")
     obj.translucency.levels = 3
-    status = runtime.check_cache(obj, depsgraph)
-    assert status.startswith("Stale: the bake settings changed (baked: draft, 2 levels)")
+    found = cache_files.check_cache(obj, depsgraph)
+    assert found.startswith("Stale: the bake settings changed (baked: draft, 2 levels)")
     runtime.solve_object(obj, force=True)
-    assert runtime.CACHE_STATUS["Blob"] == status
+    assert state.CACHE_STATUS["Blob"] == found
 
 
 def test_truncated_cache_gives_a_clear_error(blender, addon, cache_dir, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import cache_files, state
 
     obj = sphere()
     assert bake(obj) == {'FINISHED'}
-    path = runtime.resolve_cache_path(obj)
+    path = cache_files.resolve_cache_path(obj)
     data = open(path, "rb").read()
     with open(path, "wb") as fh:
         fh.write(data[: len(data) // 2])
-    runtime.clear()  # as after a reload: the bake must come from the file
+    state.clear()  # as after a reload: the bake must come from the file
     before = radiance(obj)
     with pytest.raises(RuntimeError, match=r"Cannot solve 'Blob': bake cache .* is corrupt or truncated"):
         bpy.ops.translucency.solve()
     np.testing.assert_array_equal(radiance(obj), before)  # nothing was written
-    assert runtime.CACHE_STATUS["Blob"].startswith("Cache problem")
+    assert state.CACHE_STATUS["Blob"].startswith("Cache problem")
 
 
 def test_missing_cache_is_reported_after_reload(blender, addon, tmp_path, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import cache_files, state
 
     blend = tmp_path / "missing.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     obj = sphere()
     assert bake(obj) == {'FINISHED'}
     bpy.ops.wm.save_mainfile()
-    os.remove(runtime.resolve_cache_path(obj))
+    os.remove(cache_files.resolve_cache_path(obj))
     bpy.ops.wm.open_mainfile(filepath=str(blend))
-    assert "does not exist" in runtime.CACHE_STATUS["Blob"]
+    assert "does not exist" in state.CACHE_STATUS["Blob"]
     activate(bpy.data.objects["Blob"])
     with pytest.raises(RuntimeError, match="does not exist"):
         bpy.ops.translucency.solve()
 
 
 def test_free_bake(blender, addon, cache_dir, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import cache_files, state
 
     obj = sphere()
     assert bake(obj) == {'FINISHED'}
-    path = runtime.resolve_cache_path(obj)
-    assert runtime.get_state(obj) is not None and radiance(obj) is not None
+    path = cache_files.resolve_cache_path(obj)
+    assert state.get_state(obj) is not None and radiance(obj) is not None
     assert bpy.ops.translucency.free_bake() == {'FINISHED'}
     s = obj.translucency
-    assert s.cache_filepath == "" and s.bake_key == "" and len(s.bake_levels) == 0
-    assert s.bake_status == "Not baked" and s.bake_stats == ""
-    assert radiance(obj) is None and runtime.get_state(obj) is None and "Blob" not in runtime._STATES
+    assert s.cache_filepath == "" and s.bake_key == "" and len(s.status.bake_levels) == 0
+    assert s.status.bake_status == "Not baked" and s.status.bake_stats == ""
+    cleared = (s.status.bake_memory, s.status.bake_seconds, s.status.bake_vertices, s.status.bake_warnings)
+    assert cleared == (0.0, 0.0, 0, "")
+    assert radiance(obj) is None and state.get_state(obj) is None and "Blob" not in state._STATES
     assert os.path.exists(path)  # the file stays unless asked (undo may need it)
 
     assert bake(obj) == {'FINISHED'}
@@ -417,7 +419,7 @@ def test_mm_per_unit_from_scene_units_and_object_scale(blender, addon, cache_dir
     mm, warning = scene_inputs.mm_per_unit(obj, scene)
     assert mm == pytest.approx(10.0 * 2.0 ** (1.0 / 3.0)) and "non-uniform scale" in warning
     assert bake(obj) == {'FINISHED'}
-    assert "non-uniform scale" in obj.translucency.bake_warnings
+    assert "non-uniform scale" in obj.translucency.status.bake_warnings
 
 
 def test_bake_refuses_non_mesh_and_edit_mode(blender, addon, cache_dir):

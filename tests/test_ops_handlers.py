@@ -3,7 +3,7 @@
 
 Background Blender has no event loop, so ``bpy.app.timers`` never fire: the
 tests trigger ``depsgraph_update_post`` with ``view_layer.update()`` and then
-run the pending live check with ``handlers.flush()``.
+run the pending live check with ``live.flush()``.
 """
 
 from __future__ import annotations
@@ -22,64 +22,67 @@ from test_ops_bake import activate, add_light, bake, cache_dir, memo_bakes, radi
 
 
 @pytest.fixture
-def live(blender, addon, cache_dir, memo_bakes):
-    """A baked, solved ball and a point light; returns (obj, light, handlers, runtime)."""
-    from translucency.ops import handlers, runtime
+def solved_ball(blender, addon, cache_dir, memo_bakes):
+    """A baked, solved ball and a point light; returns (obj, light, ops.live, ops.state)."""
+    from translucency.ops import live, state
 
     obj = sphere()
     light = add_light(location=(3.0, 0.0, 1.0))
     assert bake(obj) == {'FINISHED'}
     bpy.context.view_layer.update()
-    handlers.flush()
-    return obj, light, handlers, runtime
+    live.flush()
+    return obj, light, live, state
 
 
-def _update_and_flush(handlers):
+def _update_and_flush(live):
     bpy.context.view_layer.update()
-    return handlers.flush()
+    return live.flush()
 
 
-def test_moving_a_light_changes_the_attribute(live):
-    obj, light, handlers, runtime = live
+def test_moving_a_light_changes_the_attribute(solved_ball):
+    from translucency.ops import status
+
+    obj, light, live, state = solved_ball
     before = radiance(obj)
     light.location = (-3.0, 0.0, 1.0)
     bpy.context.view_layer.update()
-    assert handlers.pending()  # scheduled, not solved inside the depsgraph handler
-    reports = handlers.flush()
+    assert live.pending()  # scheduled, not solved inside the depsgraph handler
+    reports = live.flush()
     assert [r.name for r in reports] == ["Blob"] and reports[0].solved
     after = radiance(obj)
     x = np.array([v.co.x for v in obj.data.vertices])
     assert after[x < -0.5].mean() > 5 * before[x < -0.5].mean()
-    assert obj.translucency.solve_seconds > 0 and obj.translucency.solve_backend
+    solved = status.solve_status(obj)
+    assert solved.seconds > 0 and solved.backend
 
 
-def test_own_attribute_writes_do_not_trigger_a_solve(live):
-    obj, light, handlers, runtime = live
+def test_own_attribute_writes_do_not_trigger_a_solve(solved_ball):
+    obj, light, live, state = solved_ball
     light.location = (0.0, 3.0, 1.0)
-    assert _update_and_flush(handlers)
-    solves = runtime.COUNTERS["solves"]
+    assert _update_and_flush(live)
+    solves = state.COUNTERS["solves"]
     for _ in range(3):  # the write above and the panel statistics cause depsgraph updates
-        _update_and_flush(handlers)
-    assert runtime.COUNTERS["solves"] == solves
-    assert not handlers.pending()
+        _update_and_flush(live)
+    assert state.COUNTERS["solves"] == solves
+    assert not live.pending()
 
 
-def test_bursts_coalesce_into_one_solve(live):
-    obj, light, handlers, runtime = live
-    solves = runtime.COUNTERS["solves"]
+def test_bursts_coalesce_into_one_solve(solved_ball):
+    obj, light, live, state = solved_ball
+    solves = state.COUNTERS["solves"]
     for x in np.linspace(3.0, -3.0, 6):  # a drag: many updates before the timer fires
         light.location.x = float(x)
         bpy.context.view_layer.update()
-    assert handlers.pending()
-    handlers.flush()
-    assert runtime.COUNTERS["solves"] == solves + 1
+    assert live.pending()
+    live.flush()
+    assert state.COUNTERS["solves"] == solves + 1
 
 
 @pytest.mark.parametrize("change", ["energy", "color", "object_moved", "world", "texture", "preset", "tolerance"])
-def test_changes_that_resolve(live, change):
-    obj, light, handlers, runtime = live
+def test_changes_that_resolve(solved_ball, change):
+    obj, light, live, state = solved_ball
     before = radiance(obj)
-    solves = runtime.COUNTERS["solves"]
+    solves = state.COUNTERS["solves"]
     if change == "energy":
         light.data.energy *= 3.0
     elif change == "color":
@@ -97,32 +100,32 @@ def test_changes_that_resolve(live, change):
         tex = bpy.data.textures.new("veins", 'CLOUDS')
         s = obj.translucency
         s.use_heterogeneity, s.field_texture = True, tex
-        _update_and_flush(handlers)
+        _update_and_flush(live)
         before = radiance(obj)
-        solves = runtime.COUNTERS["solves"]
+        solves = state.COUNTERS["solves"]
         tex.noise_scale = 0.1  # a texture edit: an update with an empty list
     elif change == "preset":
         obj.translucency.material_preset = 'SKIN1'  # a Python property: its update callback schedules
     elif change == "tolerance":
         bpy.context.scene.translucency.tolerance = 1e-6
-    _update_and_flush(handlers)
-    assert runtime.COUNTERS["solves"] == solves + 1
+    _update_and_flush(live)
+    assert state.COUNTERS["solves"] == solves + 1
     if change != "tolerance":
         assert np.abs(radiance(obj) - before).max() > 1e-4 * before.max()
 
 
-def test_live_update_off_and_disabled_objects(live):
-    obj, light, handlers, runtime = live
-    solves = runtime.COUNTERS["solves"]
+def test_live_update_off_and_disabled_objects(solved_ball):
+    obj, light, live, state = solved_ball
+    solves = state.COUNTERS["solves"]
     bpy.context.scene.translucency.live_update = False
-    handlers.flush()
+    live.flush()
     light.location.x = -3.0
     bpy.context.view_layer.update()
-    assert not handlers.pending()
+    assert not live.pending()
     bpy.context.scene.translucency.live_update = True
     obj.translucency.enabled = False
-    _update_and_flush(handlers)
-    assert runtime.COUNTERS["solves"] == solves
+    _update_and_flush(live)
+    assert state.COUNTERS["solves"] == solves
 
 
 def _animated_light_scene(tmp_path):
@@ -171,7 +174,7 @@ class _Written:
 def test_render_frames_of_an_animated_light(blender, addon, cache_dir, memo_bakes, tmp_path, capfd):
     """frame_set + render per frame (what `blender -b -f` does): each frame is solved
     for its own light, towards the render camera."""
-    from translucency.ops import handlers, runtime
+    from translucency.ops import live, runtime
 
     scene, obj, light = _animated_light_scene(tmp_path)
     with _Written(obj) as written:
@@ -191,11 +194,47 @@ def test_render_frames_of_an_animated_light(blender, addon, cache_dir, memo_bake
     report = runtime.solve_object(obj, scene, use_camera=True, force=True)
     assert report.view == "CAMERA"
     np.testing.assert_allclose(radiance(obj), results[10], rtol=1e-3, atol=1e-6)
-    handlers.flush()
+    live.flush()
+
+
+@pytest.mark.gpu
+def test_a_gpu_failure_in_a_render_moves_renders_to_the_cpu(gpu_context, blender, addon, cache_dir, memo_bakes,
+                                                             tmp_path, monkeypatch, capfd):
+    """``backend.after_gpu_failure`` in a render: that frame is solved by the CPU twin, later renders
+    stay there (``placement(failed_in_render=...)``), the object's own solver stays on the GPU, and
+    the log says why."""
+    from translucency.gpu_shaders.solver import GPUDiffusionSolver
+    from translucency.ops import runtime, state
+
+    scene, obj, light = _animated_light_scene(tmp_path)
+    scene.translucency.solver_backend = 'GPU'
+    scene.translucency.live_update = False  # frame_set must not solve in the viewport first
+    runtime.solve_object(obj, scene, force=True)
+    assert state.get_state(obj).backend == "GPU"
+
+    def fail(self, *_args, **_kw):
+        raise SystemError("simulated: no GPU context in the render")
+
+    monkeypatch.setattr(GPUDiffusionSolver, "solve", fail)
+    with _Written(obj) as written:
+        for frame in (1, 10, 1):  # frame 1 reuses the viewport's GPU solution; frame 10 fails on the GPU
+            scene.frame_set(frame)
+            bpy.ops.render.render(write_still=True)
+    (f1, gpu1), (f10, cpu10), (f1_again, cpu1) = written.frames
+    assert (f1, f10, f1_again) == (1, 10, 1)
+    assert np.all(np.isfinite(cpu10)) and cpu10[:, 0].sum() != pytest.approx(gpu1[:, 0].sum(), rel=0.05)
+    np.testing.assert_allclose(cpu1, gpu1, rtol=1e-3, atol=1e-6)  # the CPU twin's frame 1 is the GPU's
+    st = state.get_state(obj)
+    assert st.backend == "GPU" and type(st.solver) is not type(st.render_solver)  # the viewport keeps the GPU
+    assert st.gpu_failed_in_render.startswith("the GPU solve failed (SystemError: simulated")
+    out = capfd.readouterr().out
+    assert "the GPU solve failed (SystemError: simulated: no GPU context in the render); using the CPU solver " \
+           "for renders" in out
+    assert "renders of this object stay on the CPU solver" in out  # the third render, placed by the policy
 
 
 def test_animation_render_solves_every_frame(blender, addon, cache_dir, memo_bakes, tmp_path):
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     scene, obj, light = _animated_light_scene(tmp_path)
     scene.frame_start, scene.frame_end, scene.frame_step = 1, 10, 9
@@ -205,7 +244,7 @@ def test_animation_render_solves_every_frame(blender, addon, cache_dir, memo_bak
     frames = [f for f, _ in seen]
     assert frames == [1, 10], frames
     assert np.abs(seen[1][1] - seen[0][1]).max() > 0.1 * seen[0][1].max()
-    assert runtime.COUNTERS["solves"] >= 2
+    assert state.COUNTERS["solves"] >= 2
 
 
 _HEADLESS_SCRIPT = textwrap.dedent(r"""
@@ -256,28 +295,28 @@ def test_headless_render_of_a_saved_file(blender, addon, memo_bakes, tmp_path):
     assert "frame 10: 'Blob' solved on the" in proc.stdout, proc.stdout
 
 
-def test_load_post_clears_runtime_state(live, tmp_path):
-    obj, light, handlers, runtime = live
-    assert runtime.get_state(obj) is not None
+def test_load_post_clears_runtime_state(solved_ball, tmp_path):
+    obj, light, live, state = solved_ball
+    assert state.get_state(obj) is not None
     blend = tmp_path / "reload.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     bpy.ops.wm.open_mainfile(filepath=str(blend))
-    assert runtime._STATES == {}
+    assert state._STATES == {}
     obj = bpy.data.objects["Blob"]
-    assert "Blob" not in runtime.CACHE_STATUS  # the absolute cache path is still valid
+    assert "Blob" not in state.CACHE_STATUS  # the absolute cache path is still valid
 
 
 def test_unregister_removes_every_handler(blender, addon):
-    from translucency.ops import handlers
+    from translucency.ops import handlers, live
 
     names = {name for name, _fn in handlers.HANDLERS}
     assert {name for name, _fn in handlers.registered_handlers()} == names
     assert len(handlers.registered_handlers()) == len(handlers.HANDLERS)
-    handlers.request_update()
-    assert handlers.pending()
+    live.request_update()
+    assert live.pending()
     addon.unregister()
     assert handlers.registered_handlers() == []
-    assert not handlers.pending()
+    assert not live.pending()
     for name in names:  # nothing of ours, by marker or by module
         for fn in getattr(bpy.app.handlers, name):
             assert not getattr(fn, "__module__", "").startswith("translucency.ops.handlers")

@@ -20,7 +20,7 @@ def _solve_scene(use_camera=False):
 
 
 def test_marble_plan_is_shown_and_single_scattering_is_contained(blender, cache_dir, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import status
 
     add_light()
     obj = sphere()
@@ -31,19 +31,20 @@ def test_marble_plan_is_shown_and_single_scattering_is_contained(blender, cache_
     assert bake(obj) == {'FINISHED'}
     activate(obj)
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    text = runtime.plan_summary(obj.name)
+    text = status.plan_summary(obj.name)
     assert "multiple scattering [RGB]" in text
     assert "contained in the diffusion term" in text
-    assert obj.translucency.ss_backend == ""  # the single-scattering pass did not run
+    assert status.solve_status(obj).ss_backend == ""  # the single-scattering pass did not run
+    assert "not baked" not in status.solve_status(obj).ss_message  # it is baked: the planner chose
     # forcing every pass runs it
     obj.translucency.pass_planning = 'ALL'
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    assert obj.translucency.ss_backend in {"CPU", "GPU"}
+    assert status.solve_status(obj).ss_backend in {"CPU", "GPU"}
 
 
 def test_unchanged_frame_does_no_solve_and_a_moved_light_resolves_only_what_it_lights(blender, cache_dir,
                                                                                       memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     left = sphere(name="Left", location=(-6.0, 0.0, 0.0))
     right = sphere(name="Right", location=(6.0, 0.0, 0.0))
@@ -56,22 +57,22 @@ def test_unchanged_frame_does_no_solve_and_a_moved_light_resolves_only_what_it_l
         assert bake(o) == {'FINISHED'}
     bpy.context.scene.world = None  # no world light: only the spots
     _solve_scene()
-    start = runtime.COUNTERS["solves"]
+    start = state.COUNTERS["solves"]
     assert _solve_scene() == []  # nothing changed: no work
-    assert runtime.COUNTERS["solves"] == start
+    assert state.COUNTERS["solves"] == start
     before_r = radiance(right).copy()
     spot_l.location.z = 3.0
     bpy.context.view_layer.update()
     reports = _solve_scene()
     assert [r.name for r in reports if r.solved] == ["Left"]
-    assert runtime.COUNTERS["solves"] == start + 1
+    assert state.COUNTERS["solves"] == start + 1
     np.testing.assert_array_equal(radiance(right), before_r)
-    assert "SpotL" in runtime.PLANS["Left"].facts["lights_reaching"]
-    assert "SpotL" not in runtime.PLANS["Right"].facts["lights_reaching"]
+    assert "SpotL" in state.PLANS["Left"].facts["lights_reaching"]
+    assert "SpotL" not in state.PLANS["Right"].facts["lights_reaching"]
 
 
 def test_objects_outside_the_camera_do_no_work_in_renders(blender, cache_dir, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     add_light()
     seen = sphere(name="Seen")
@@ -85,24 +86,24 @@ def test_objects_outside_the_camera_do_no_work_in_renders(blender, cache_dir, me
     cam.rotation_euler = (math.radians(90.0), 0.0, 0.0)  # looking along +y at the origin
     bpy.context.scene.camera = cam
     bpy.context.view_layer.update()
-    skips = runtime.COUNTERS["planner_skips"]
+    skips = state.COUNTERS["planner_skips"]
     reports = _solve_scene(use_camera=True)
     assert [r.name for r in reports] == ["Seen"]
-    assert runtime.COUNTERS["planner_skips"] == skips + 1
-    assert "camera" in runtime.PLANS["Hidden"].reason
+    assert state.COUNTERS["planner_skips"] == skips + 1
+    assert "camera" in state.PLANS["Hidden"].reason
 
 
 def test_an_unlit_object_gets_exactly_zero_without_a_solve(blender, cache_dir, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     obj = sphere()
     spot = add_light('SPOT', location=(0.0, 0.0, 5.0), energy=1000.0, name="Away")
     spot.rotation_euler = (math.pi, 0.0, 0.0)  # pointing up, away from the object
     bpy.context.scene.world = None
     assert bake(obj) == {'FINISHED'}
-    start = runtime.COUNTERS["solves"]
+    start = state.COUNTERS["solves"]
     _solve_scene()
-    assert runtime.COUNTERS["solves"] == start
-    assert "unlit" in runtime.PLANS[obj.name].reason
+    assert state.COUNTERS["solves"] == start
+    assert "unlit" in state.PLANS[obj.name].reason
     L = radiance(obj)
     assert L is not None and np.all(L == 0.0)

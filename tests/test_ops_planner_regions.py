@@ -55,7 +55,7 @@ def _solve(obj, planning: str) -> np.ndarray:
 
 @pytest.mark.slow
 def test_thin_fin_is_never_black_and_single_scattering_serves_only_the_fin(blender, addon, cache_dir):
-    from translucency.ops import runtime
+    from translucency.ops import attributes, frame, state, status
 
     obj = finned_sphere_object()
     activate(obj)
@@ -66,8 +66,8 @@ def test_thin_fin_is_never_black_and_single_scattering_serves_only_the_fin(blend
     assert fin.sum() > 20
 
     automatic = _solve(obj, 'AUTO')
-    plan = runtime.PLANS[obj.name]
-    text = runtime.plan_summary(obj.name)
+    plan = state.PLANS[obj.name]
+    text = status.plan_summary(obj.name)
     assert plan.run and plan.multiple.channels == (True, True, True), text
     assert "diffusion doubtful where thinner than 0.33 mm" in text and "of the surface" in text, text
     assert "single scattering would be more accurate on" in text and "bake it to use it" in text, text
@@ -83,15 +83,16 @@ def test_thin_fin_is_never_black_and_single_scattering_serves_only_the_fin(blend
     s.pass_planning = 'AUTO'
     assert bpy.ops.translucency.bake_single_scattering() == {'FINISHED'}
     combined = _solve(obj, 'AUTO')
-    plan = runtime.PLANS[obj.name]
-    assert plan.single.channels == (True, True, True), runtime.plan_summary(obj.name)
-    ss = runtime.read_radiance(obj, SS_ATTR)
+    plan = state.PLANS[obj.name]
+    assert plan.single.channels == (True, True, True), status.plan_summary(obj.name)
+    ss = attributes.read_radiance(obj, SS_ATTR)
     assert np.all(ss[body] == 0.0)  # the body is thick: diffusion alone
     assert ss[fin].mean() > 0.0
     np.testing.assert_allclose(combined[body], automatic[body], rtol=1e-6, atol=1e-9)
     # in the fin the single-scattering weight and the diffusion weight add to one
-    diffusion_weight = plan.vertex_weights("multiple", *runtime._vertex_map(obj, runtime.get_state(obj)))
-    ss_weight = plan.vertex_weights("single", *runtime._vertex_map(obj, runtime.get_state(obj)))
+    mapping = frame.mesh_mapping(obj, state.get_state(obj))
+    diffusion_weight = plan.vertex_weights("multiple", mapping.idx, mapping.w)
+    ss_weight = plan.vertex_weights("single", mapping.idx, mapping.w)
     np.testing.assert_allclose(diffusion_weight + ss_weight, 1.0, atol=1e-9)
     assert ss_weight[fin].mean() > 0.5 and np.all(ss_weight[body] == 0.0)
 

@@ -28,14 +28,21 @@ def ss_sphere(name="Blob", split=True, **kw):
 
 
 def ss_radiance(obj):
-    from translucency.ops import runtime
+    from translucency.ops import attributes
 
-    return runtime.read_radiance(obj, SS_ATTR)
+    return attributes.read_radiance(obj, SS_ATTR)
 
 
 def solve(obj, **kw):
     activate(obj)
     return bpy.ops.translucency.solve(**kw)
+
+
+def solved(obj):
+    """The object's solve status (runtime state, never saved)."""
+    from translucency.ops import status
+
+    return status.solve_status(obj)
 
 
 @pytest.fixture
@@ -47,7 +54,7 @@ def baked(blender, cache_dir, memo_bakes):
 
 
 def test_bake_with_single_scattering_reports_stages_and_stats(blender, cache_dir, memo_bakes):
-    from translucency.ops import operators_bake, runtime
+    from translucency.ops import cache_files, operators_bake, state
     from translucency.translucency_addon.cache import load_bake
     from translucency.translucency_addon.single_scattering import graph_key
 
@@ -65,18 +72,18 @@ def test_bake_with_single_scattering_reports_stages_and_stats(blender, cache_dir
     fractions = [f for f, _ in stages]
     assert fractions == sorted(fractions) and fractions[-1] == pytest.approx(1.0)
     s = obj.translucency
-    st = runtime.get_state(obj)
+    st = state.get_state(obj)
     data = st.bake.single_scattering
-    assert data is not None and s.ss_samples_baked == data.n_samples > 100
-    assert f"{data.n_samples:,} samples, 32 directions, SH order 4" in s.ss_bake_stats
-    assert s.ss_bake_seconds > 0 and s.bake_seconds > 0
+    assert data is not None and s.status.ss_samples_baked == data.n_samples > 100
+    assert f"{data.n_samples:,} samples, 32 directions, SH order 4" in s.status.ss_bake_stats
+    assert s.status.ss_bake_seconds > 0 and s.status.bake_seconds > 0
     # the key (and the file name) include the single-scattering inputs; the QuadGraph key is kept for staleness
     assert s.bake_key == st.bake.key != graph_key(st.bake)
     assert s.bake_key[:16] in os.path.basename(s.cache_filepath)
-    assert load_bake(runtime.resolve_cache_path(obj), expected_key=s.bake_key).single_scattering.n_samples \
+    assert load_bake(cache_files.resolve_cache_path(obj), expected_key=s.bake_key).single_scattering.n_samples \
         == data.n_samples
-    assert runtime.check_cache(obj, bpy.context.evaluated_depsgraph_get()).startswith("Baked")
-    assert s.ss_backend in {"CPU", "GPU"} and s.ss_solve_seconds > 0  # the bake's first solve includes it
+    assert cache_files.check_cache(obj, bpy.context.evaluated_depsgraph_get()).startswith("Baked")
+    assert solved(obj).ss_backend in {"CPU", "GPU"} and solved(obj).ss_seconds > 0  # the bake's first solve
 
 
 def test_solve_adds_single_scattering_and_splits_it(baked):
@@ -124,20 +131,20 @@ def test_single_scattering_aov_after_add_to_material(baked):
 
 
 def test_material_change_asks_for_a_single_scattering_rebake(baked, memo_bakes, capsys):
-    from translucency.ops import runtime
+    from translucency.ops import cache_files, state
 
     obj = baked
     s = obj.translucency
     solve(obj)
-    assert s.ss_message == "" or "re-bake" not in s.ss_message
-    old_key, old_path, old_stored = s.bake_key, runtime.resolve_cache_path(obj), s.cache_filepath
+    assert solved(obj).ss_message == "" or "re-bake" not in solved(obj).ss_message
+    old_key, old_path, old_stored = s.bake_key, cache_files.resolve_cache_path(obj), s.cache_filepath
     before = ss_radiance(obj)
     s.material_preset = 'KETCHUP'
     assert solve(obj) == {'FINISHED'}
-    assert "single scattering needs a re-bake: the material changed" in s.ss_message
+    assert "single scattering needs a re-bake: the material changed" in solved(obj).ss_message
     assert "single scattering needs a re-bake" in capsys.readouterr().out  # the log, and the operator's warning
-    state = runtime.get_state(obj)
-    assert any("single scattering needs a re-bake" in w for w in state.warnings)
+    st = state.get_state(obj)
+    assert any("single scattering needs a re-bake" in w for w in st.warnings)
     # the QuadGraph stays: only single scattering is re-baked
     calls = memo_bakes.calls
     activate(obj)
@@ -145,19 +152,19 @@ def test_material_change_asks_for_a_single_scattering_rebake(baked, memo_bakes, 
     assert memo_bakes.calls == calls
     assert s.bake_key != old_key and os.path.exists(old_path)  # undo can go back to the old file
     solve(obj)
-    assert s.ss_message == "" or "re-bake" not in s.ss_message
+    assert solved(obj).ss_message == "" or "re-bake" not in solved(obj).ss_message
     after = ss_radiance(obj)
     assert after[:, 2].sum() < 0.5 * before[:, 2].sum()  # ketchup scatters little blue
     # eta is not baked: no re-bake needed
     s.eta = 1.45
     solve(obj)
-    assert "re-bake" not in s.ss_message
+    assert "re-bake" not in solved(obj).ss_message
     # what undo does: the old key and path come back, and the old file is still there to load
     new_key = s.bake_key
     s.bake_key, s.cache_filepath = old_key, old_stored
     assert solve(obj) == {'FINISHED'}
-    assert runtime.get_state(obj).bake.key == old_key != new_key
-    assert "the material changed" in s.ss_message
+    assert state.get_state(obj).bake.key == old_key != new_key
+    assert "the material changed" in solved(obj).ss_message
 
 
 def test_single_scattering_settings_staleness(baked):
@@ -165,15 +172,15 @@ def test_single_scattering_settings_staleness(baked):
     s = obj.translucency
     s.ss_sh_order = 2  # lower than baked: truncated at run time
     solve(obj)
-    assert "re-bake" not in s.ss_message
+    assert "re-bake" not in solved(obj).ss_message
     s.ss_directions = '128'
     solve(obj)
-    assert "settings changed (directions 32 -> 128)" in s.ss_message
+    assert "settings changed (directions 32 -> 128)" in solved(obj).ss_message
     s.ss_directions = '32'
     s.use_mm_per_unit_override = True
     s.mm_per_unit = 20.0
     solve(obj)
-    assert "the scale changed" in s.ss_message
+    assert "the scale changed" in solved(obj).ss_message
 
 
 def test_single_scattering_on_but_not_baked(blender, cache_dir, memo_bakes):
@@ -183,7 +190,7 @@ def test_single_scattering_on_but_not_baked(blender, cache_dir, memo_bakes):
     assert bake(obj) == {'FINISHED'}
     obj.translucency.use_single_scattering = True
     solve(obj)
-    assert "not baked" in obj.translucency.ss_message
+    assert "not baked" in solved(obj).ss_message
     assert obj.data.attributes.get(SS_ATTR) is None
     other = ss_sphere(name="Unbaked", location=(4.0, 0.0, 0.0))
     activate(other)
@@ -201,7 +208,7 @@ def test_cancel_during_single_scattering_leaves_nothing(blender, cache_dir, memo
     finally:
         operators_bake.PROGRESS_LISTENERS.clear()
     s = obj.translucency
-    assert s.bake_key == "" and s.ss_samples_baked == 0
+    assert s.bake_key == "" and s.status.ss_samples_baked == 0
     assert not cache_dir.exists() or not any(cache_dir.iterdir())
 
 
@@ -227,10 +234,10 @@ def test_camera_view_and_field_change(blender, cache_dir, memo_bakes):
     y = np.array([v.co.y for v in obj.data.vertices])
     assert np.all(toward_camera[y > 0.3] == 0)  # facing away from the camera
     assert toward_camera[y < -0.3].max() > 0 and np.abs(toward_camera - normal_view).max() > 0
-    assert "re-bake" not in s.ss_message
+    assert "re-bake" not in solved(obj).ss_message
     tex.noise_scale = 0.25
     solve(obj)
-    assert "the heterogeneity field changed" in s.ss_message
+    assert "the heterogeneity field changed" in solved(obj).ss_message
 
 
 def test_panel_shows_single_scattering(baked, ui):
@@ -255,12 +262,12 @@ def test_free_bake_removes_the_split_attribute(baked):
     solve(obj)
     activate(obj)
     assert bpy.ops.translucency.free_bake() == {'FINISHED'}
-    assert obj.data.attributes.get(SS_ATTR) is None and obj.translucency.ss_samples_baked == 0
+    assert obj.data.attributes.get(SS_ATTR) is None and obj.translucency.status.ss_samples_baked == 0
 
 
 @pytest.mark.gpu
 def test_gpu_kernel_in_blender_matches_numpy(gpu_context, baked):
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     obj = baked
     scene = bpy.context.scene
@@ -269,7 +276,7 @@ def test_gpu_kernel_in_blender_matches_numpy(gpu_context, baked):
     cpu = ss_radiance(obj)
     scene.translucency.solver_backend = 'GPU'  # the kernel even on llvmpipe (AUTO prefers numpy there)
     solve(obj)
-    assert obj.translucency.ss_backend == "GPU" and runtime.get_state(obj).ss_backend == "GPU"
+    assert solved(obj).ss_backend == "GPU" and state.get_state(obj).ss_backend == "GPU"
     gpu = ss_radiance(obj)
     assert np.abs(gpu - cpu).max() <= 1e-5 * np.abs(cpu).max()
 
@@ -279,7 +286,7 @@ def test_modifier_changes_the_vertex_count(blender, cache_dir, memo_bakes):
     add_light()
     obj = ss_sphere(subsurf=1)
     assert bake(obj) == {'FINISHED'}
-    assert obj.translucency.bake_vertices > len(obj.data.vertices)
+    assert obj.translucency.status.bake_vertices > len(obj.data.vertices)
     solve(obj)
     ss = ss_radiance(obj)
     assert ss.shape == (len(obj.data.vertices), 3) and np.all(np.isfinite(ss))
@@ -291,7 +298,7 @@ def test_modifier_changes_the_vertex_count(blender, cache_dir, memo_bakes):
 def test_render_evaluates_single_scattering_toward_the_camera(blender, cache_dir, memo_bakes, tmp_path, backend):
     """An F12-style render solves in frame_change_post toward the render camera; with the GPU preferred the
     kernel runs when the render handler has a GPU context, numpy otherwise (per-call fallback)."""
-    from translucency.ops import runtime
+    from translucency.ops import runtime, state
 
     scene = bpy.context.scene
     add_light()
@@ -310,7 +317,7 @@ def test_render_evaluates_single_scattering_toward_the_camera(blender, cache_dir
 
     def written(*_args):
         seen.append(ss_radiance(obj).copy())
-        backends.append(runtime.get_state(obj).ss_backend)
+        backends.append(state.get_state(obj).ss_backend)
 
     backends = []
 

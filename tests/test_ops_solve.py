@@ -20,7 +20,7 @@ def _baked(subsurf=0, **kw):
 
 
 def test_solve_writes_a_finite_point_color_attribute(blender, addon, cache_dir, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import state, status
 
     add_light()
     for subsurf in (0, 1):
@@ -35,11 +35,12 @@ def test_solve_writes_a_finite_point_color_attribute(blender, addon, cache_dir, 
         # Modifiers carry it to the evaluated mesh (the one renders and the overlay read).
         evaluated = obj.evaluated_get(bpy.context.evaluated_depsgraph_get()).data
         assert len(evaluated.attributes["translucency_radiance"].data) == len(evaluated.vertices)
-        s = obj.translucency
-        assert s.solve_backend in {"CPU", "GPU"} and s.solve_seconds > 0 and 0 < s.solve_residual < 1e-3
-        assert runtime.get_state(obj).backend == s.solve_backend
-    scene = bpy.context.scene.translucency
-    assert scene.last_backend in {"CPU", "GPU"} and scene.last_solve_time > 0
+        solved = status.solve_status(obj)  # the runtime state's, never saved
+        assert solved.backend in {"CPU", "GPU"} and solved.seconds > 0 and 0 < solved.residual < 1e-3
+        assert state.get_state(obj).backend == solved.backend and solved.iterations > 0
+        assert obj.translucency.status.bake_status == "Baked"  # a solve leaves the saved status alone
+    last = status.last_solve()
+    assert last["name"] == "S1" and last["backend"] in {"CPU", "GPU"} and last["seconds"] > 0
 
 
 def test_lit_side_is_brighter(blender, addon, cache_dir, memo_bakes):
@@ -53,14 +54,14 @@ def test_lit_side_is_brighter(blender, addon, cache_dir, memo_bakes):
 
 
 def test_material_change_resolves_without_rebake(blender, addon, cache_dir, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     obj = _baked()
     add_light()
     activate(obj)
     bpy.ops.translucency.solve()
-    state = runtime.get_state(obj)
-    solver = state.solver
+    st = state.get_state(obj)
+    solver = st.solver
     marble = radiance(obj)
     calls = memo_bakes.calls
     obj.translucency.material_preset = 'KETCHUP'
@@ -73,7 +74,7 @@ def test_material_change_resolves_without_rebake(blender, addon, cache_dir, memo
     bpy.ops.translucency.solve()
     assert radiance(obj).mean() < 0.5 * marble.mean()  # strongly absorbing
     assert memo_bakes.calls == calls  # no bake at all
-    assert runtime.get_state(obj).solver is solver  # set_material on the same solver
+    assert state.get_state(obj).solver is solver  # set_material on the same solver
 
 
 def test_bad_custom_material_is_reported(blender, addon, cache_dir, memo_bakes):
@@ -88,7 +89,7 @@ def test_bad_custom_material_is_reported(blender, addon, cache_dir, memo_bakes):
 
 
 def test_texture_field_is_sampled_at_the_nodes_and_resampled_on_edit(blender, addon, cache_dir, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     obj = _baked()
     add_light()
@@ -102,35 +103,35 @@ def test_texture_field_is_sampled_at_the_nodes_and_resampled_on_edit(blender, ad
     s.second_preset = 'KETCHUP'
     s.field_source = 'TEXTURE'
     s.field_texture = tex
-    samples = runtime.COUNTERS["field_samples"]
+    samples = state.COUNTERS["field_samples"]
     calls = memo_bakes.calls
     bpy.ops.translucency.solve()
     mixed = radiance(obj)
-    assert runtime.COUNTERS["field_samples"] == samples + 1
-    state = runtime.get_state(obj)
-    assert [len(f) for f in state.field_values] == [lv.n_nodes for lv in state.bake.levels]
-    f = state.field_values[-1]
+    assert state.COUNTERS["field_samples"] == samples + 1
+    st = state.get_state(obj)
+    assert [len(f) for f in st.field_values] == [lv.n_nodes for lv in st.bake.levels]
+    f = st.field_values[-1]
     assert 0.0 <= f.min() and f.max() <= 1.0 and f.std() > 0.02  # a real pattern
     # The field is the texture's intensity at the node positions (object space x scale).
-    p = state.bake.levels[-1].position[:5]
+    p = st.bake.levels[-1].position[:5]
     np.testing.assert_allclose(f[:5], [tex.evaluate(tuple(x))[3] for x in p], atol=1e-6)
     assert np.abs(mixed - homogeneous).max() > 0.05 * homogeneous.max()
 
     bpy.ops.translucency.solve()  # nothing changed: not sampled again
-    assert runtime.COUNTERS["field_samples"] == samples + 1
+    assert state.COUNTERS["field_samples"] == samples + 1
     tex.noise_scale = 0.15  # editing the texture re-samples, still without a re-bake
     bpy.ops.translucency.solve()
-    assert runtime.COUNTERS["field_samples"] == samples + 2
+    assert state.COUNTERS["field_samples"] == samples + 2
     assert np.abs(radiance(obj) - mixed).max() > 0
     s.field_scale = 3.0
     bpy.ops.translucency.solve()
-    assert runtime.COUNTERS["field_samples"] == samples + 3
+    assert state.COUNTERS["field_samples"] == samples + 3
     assert memo_bakes.calls == calls
 
 
 @pytest.mark.parametrize("source", ["VERTEX_GROUP", "ATTRIBUTE"])
 def test_vertex_group_and_attribute_fields(blender, addon, cache_dir, memo_bakes, source):
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     obj = _baked(subsurf=1)
     add_light()
@@ -149,8 +150,8 @@ def test_vertex_group_and_attribute_fields(blender, addon, cache_dir, memo_bakes
     s.field_vertex_group = s.field_attribute = "mix"
     activate(obj)
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    level = runtime.get_state(obj).bake.levels[-1]
-    f = runtime.get_state(obj).field_values[-1]
+    level = state.get_state(obj).bake.levels[-1]
+    f = state.get_state(obj).field_values[-1]
     z = level.position[:, 2]
     assert f[z > 0.7].mean() > 0.9 and f[z < -0.2].mean() < 0.1
 
@@ -229,7 +230,7 @@ def test_world_lights_the_object(blender, addon, cache_dir, memo_bakes):
 
 
 def test_view_towards_the_camera(blender, addon, cache_dir, memo_bakes):
-    from translucency.ops import runtime
+    from translucency.ops import runtime, state
 
     obj = _baked()
     add_light(location=(0.0, -4.0, 0.0))
@@ -241,36 +242,36 @@ def test_view_towards_the_camera(blender, addon, cache_dir, memo_bakes):
     activate(obj)
     bpy.ops.translucency.solve()
     normal = radiance(obj)
-    solves = runtime.COUNTERS["solves"]
+    solves = state.COUNTERS["solves"]
     assert bpy.ops.translucency.solve(use_camera=True) == {'FINISHED'}
     towards = radiance(obj)
     y = np.array([v.co.y for v in obj.data.vertices])
     front = y < -0.9  # facing the camera: the same; grazing or back-facing: darker
     np.testing.assert_allclose(towards[front], normal[front], rtol=0.05)
     assert towards[y > 0.3].sum() == 0.0
-    assert runtime.COUNTERS["solves"] == solves + 1  # forced; a view change alone needs no solve
+    assert state.COUNTERS["solves"] == solves + 1  # forced; a view change alone needs no solve
     report = runtime.solve_object(obj, use_camera=False)
     assert report is not None and not report.solved  # only the radiance was re-evaluated
 
 
 def test_state_follows_the_bake_key_as_after_undo(blender, addon, cache_dir, memo_bakes):
     """Undo restores properties, not Python state: a state is used only while its key matches."""
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     obj = _baked()
     add_light()
     activate(obj)
     bpy.ops.translucency.solve()
     key = obj.translucency.bake_key
-    loads = runtime.COUNTERS["loads"]
+    loads = state.COUNTERS["loads"]
     obj.translucency.bake_key = "0" * 64  # as if undo went back to another bake
-    assert runtime.get_state(obj) is None
+    assert state.get_state(obj) is None
     with pytest.raises(RuntimeError, match="stale"):
         bpy.ops.translucency.solve()
     obj.translucency.bake_key = key  # redo
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    assert runtime.COUNTERS["loads"] == loads + 1  # re-loaded from the cache file
-    assert runtime.get_state(obj).key == key
+    assert state.COUNTERS["loads"] == loads + 1  # re-loaded from the cache file
+    assert state.get_state(obj).key == key
 
 
 def test_unbaked_object_cannot_be_solved(blender, addon):
@@ -303,6 +304,7 @@ def test_backend_falls_back_to_cpu(blender, addon, monkeypatch):
         raise RuntimeError("shader compile error")
 
     broken.make_solver = fail
+    broken.available = lambda: (True, "simulated GPU")  # the policy asks for a GPU context first
     monkeypatch.setitem(sys.modules, "translucency.gpu_shaders", broken)
     monkeypatch.setattr(sys.modules["translucency"], "gpu_shaders", broken, raising=False)
     solver, name, message = backend.make_solver(bake_obj, material, None, SolveOptions(), prefer="AUTO")
@@ -314,6 +316,62 @@ def test_backend_falls_back_to_cpu(blender, addon, monkeypatch):
     solver, name, message = backend.make_solver(bake_obj, material, None, SolveOptions(), prefer="GPU")
     assert name == "CPU" and "not available" in message
     backend.free_solver(solver)  # no .free(): a no-op
+
+
+def test_one_policy_places_every_pass_and_says_why(blender, addon, monkeypatch):
+    """``ops.backend.placement`` is where GPU or CPU is decided, each refusal with its reason."""
+    import threading
+
+    from translucency import gpu_shaders
+    from translucency.ops import backend
+
+    monkeypatch.setattr(gpu_shaders, "available", lambda: (True, "llvmpipe (LLVM 15.0.6, 256 bits)"))
+    assert backend.placement("CPU") == backend.Placement("CPU", "")
+    assert backend.placement("AUTO", off_main=False).gpu
+    off = backend.placement("AUTO", off_main=True)
+    assert not off.gpu and f"thread '{threading.current_thread().name}'" in off.reason
+    assert "no GPU version" in backend.placement("GPU", solver="direct", off_main=False).reason
+    ss = backend.placement("AUTO", kind="single scattering", off_main=False)
+    assert not ss.gpu and "llvmpipe" in ss.reason and "software rasteriser" in ss.reason
+    assert backend.placement("GPU", kind="single scattering", off_main=False).gpu  # asked for: no preference
+    failed = backend.after_gpu_failure(SystemError("no GPU context"), rendering=True)
+    assert not failed.gpu and "SystemError: no GPU context" in failed.reason and "for renders" in failed.reason
+    assert backend.after_gpu_failure(ValueError("a bug"), rendering=False, on_gpu=False) is None  # not a fallback
+    again = backend.placement("AUTO", off_main=False, failed_in_render=failed.reason, built=True)
+    assert not again.gpu and "renders of this object stay on the CPU" in again.reason
+    assert backend.placement("AUTO", off_main=False, built=True).gpu
+    monkeypatch.setattr(gpu_shaders, "available", lambda: (False, "simulated: no compute shaders"))
+    assert "simulated: no compute shaders" in backend.placement("AUTO", off_main=False).reason
+    assert backend.placement("AUTO", off_main=False, built=True).gpu  # a built solver is not re-checked per frame
+
+
+@pytest.mark.gpu
+def test_a_gpu_solve_that_raises_is_redone_on_the_cpu_and_says_why(gpu_context, blender, addon, cache_dir,
+                                                                   memo_bakes, monkeypatch):
+    """The retry rule (``backend.after_gpu_failure``): outside a render the object moves to the CPU
+    solver for good, the same frame is solved there, and the panel and the log say why."""
+    from translucency.gpu_shaders.solver import GPUDiffusionSolver
+    from translucency.ops import state, status
+
+    obj = _baked()
+    add_light()
+    activate(obj)
+    scene = bpy.context.scene.translucency
+    scene.solver_backend = 'CPU'
+    assert bpy.ops.translucency.solve() == {'FINISHED'}
+    cpu = radiance(obj)
+    scene.solver_backend = 'GPU'
+
+    def fail(self, *_args, **_kw):
+        raise SystemError("simulated: the GPU context went away")
+
+    monkeypatch.setattr(GPUDiffusionSolver, "solve", fail)
+    assert bpy.ops.translucency.solve() == {'FINISHED'}
+    st = state.get_state(obj)
+    assert st.backend == "CPU" and type(st.solver).__name__ == "DiffusionSolver"
+    assert "the GPU solve failed (SystemError: simulated: the GPU context went away)" in st.backend_message
+    assert "GPU solve failed" in status.solve_status(obj).message
+    np.testing.assert_allclose(radiance(obj), cpu, rtol=1e-6)  # the same frame, solved on the CPU
 
 
 def test_panel_shows_stats_actions_and_hooks(blender, addon, ui, cache_dir, memo_bakes, monkeypatch):
@@ -336,10 +394,11 @@ def test_panel_shows_stats_actions_and_hooks(blender, addon, ui, cache_dir, memo
     ops = layout.operators()
     assert {"translucency.bake", "translucency.free_bake", "translucency.solve"} <= set(ops)
     s = obj.translucency
-    for lv in s.bake_levels:
+    for lv in s.status.bake_levels:
         assert f"{lv.n_surface:,}" in text and f"{lv.n_inner:,}" in text
     assert "MiB" in text and "bake time" in text
-    assert "Last solve" in text and s.solve_backend in text and "residual" in text
+    solved = addon.ops.status.solve_status(obj)
+    assert "Last solve" in text and f"on the {solved.backend}" in text and "residual" in text
     assert {"live_update", "field_source", "solver_backend", "tolerance"} <= set(layout.props())
     for name in ("overlay", "render_pass"):
         if importlib.util.find_spec(f"translucency.ops.{name}") is not None:

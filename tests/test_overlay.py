@@ -384,7 +384,7 @@ def test_overlay_draws_a_real_solve(overlay):
     light.data.energy = 1000.0
     light.location = (3.0, 0.0, 1.0)
     scene.collection.objects.link(light)
-    assert bpy.ops.translucency.bake() == {'FINISHED'}, obj.translucency.bake_status
+    assert bpy.ops.translucency.bake() == {'FINISHED'}, obj.translucency.status.bake_status
     assert bpy.ops.translucency.solve() == {'FINISHED'}
     assert obj.data.attributes.get(ATTRIBUTE) is not None
     scene.translucency_display.auto_exposure = True

@@ -102,7 +102,8 @@ def test_scene_settings_defaults(blender, addon):
     assert settings.overlay_mode in {'ONLY', 'ADD'}
     assert settings.solver_backend == 'AUTO'
     assert settings.tolerance == pytest.approx(1e-4)
-    assert settings.last_solve_time == 0.0
+    # a solve's status is runtime state (ops.status), never a saved setting
+    assert not any(hasattr(settings, name) for name in ("last_solve_time", "last_residual", "last_backend"))
 
 
 def test_material_presets_come_from_the_engine(blender, addon):
@@ -181,15 +182,15 @@ def test_settings_persist_across_save_and_reload(blender, tmp_path):
     s.field_attribute = "density"
     s.field_vertex_group = "veins"
     s.cache_filepath = "//cache/persisted.npz"
-    s.bake_status = "Baked"
+    s.status.bake_status = "Baked"
+    s.status.bake_levels.add().n_surface = 321
+    s.status.bake_memory = 1.5
     scene = bpy.context.scene.translucency
     scene.cache_directory = "//elsewhere/"
     scene.overlay_enabled = False
     scene.overlay_mode = 'ONLY'
     scene.solver_backend = 'CPU'
     scene.tolerance = 1e-6
-    scene.last_solve_time = 0.25
-    scene.last_residual = 3e-5
 
     path = tmp_path / "persist.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path))
@@ -207,12 +208,45 @@ def test_settings_persist_across_save_and_reload(blender, tmp_path):
     assert s.use_heterogeneity and s.second_preset == 'SKIN1' and s.field_source == 'ATTRIBUTE'
     assert s.field_texture is not None and s.field_texture.name == "mix"
     assert (s.field_attribute, s.field_vertex_group) == ("density", "veins")
-    assert s.cache_filepath == "//cache/persisted.npz" and s.bake_status == "Baked"
+    assert s.cache_filepath == "//cache/persisted.npz" and s.status.bake_status == "Baked"
+    assert [lv.n_surface for lv in s.status.bake_levels] == [321] and s.status.bake_memory == pytest.approx(1.5)
     scene = bpy.context.scene.translucency
     assert scene.cache_directory == "//elsewhere/"
     assert not scene.overlay_enabled and scene.overlay_mode == 'ONLY' and scene.solver_backend == 'CPU'
     assert scene.tolerance == pytest.approx(1e-6)
-    assert scene.last_solve_time == pytest.approx(0.25) and scene.last_residual == pytest.approx(3e-5)
+
+
+def test_a_file_from_before_the_status_group_loads_with_its_status(blender, tmp_path):
+    """Older files saved the bake status among the settings (``translucency.bake_status`` ...) and the
+    solve's per-frame outputs there and on the scene.  On load the bake status moves into
+    ``translucency.status``, the per-frame outputs are dropped, and the settings stay as they were."""
+    bpy.ops.mesh.primitive_cube_add()
+    obj = bpy.context.object
+    obj.name = "Old"
+    s = obj.translucency
+    s.material_preset = 'SKIN1'
+    s.bake_key = "k" * 64
+    # what an older version left in the file: ID properties under the old names
+    s["bake_status"] = "Baked"
+    s["bake_stats"] = "N_s 1 / 2; N_i 3 / 4; 0.1 MiB; 2.0 s"
+    s["bake_memory"] = 0.125
+    s["bake_vertices"] = 8
+    s["bake_levels"] = [{"n_surface": 10, "n_inner": 20}, {"n_surface": 40, "n_inner": 80}]
+    s["solve_seconds"] = 0.5
+    s["solve_backend"] = "GPU"
+    bpy.context.scene.translucency["last_solve_time"] = 0.25
+    path = tmp_path / "old.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    factory_reset()
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+
+    s = bpy.data.objects["Old"].translucency
+    assert s.material_preset == 'SKIN1' and s.bake_key == "k" * 64
+    assert s.status.bake_status == "Baked" and s.status.bake_stats.startswith("N_s 1 / 2")
+    assert s.status.bake_memory == pytest.approx(0.125) and s.status.bake_vertices == 8
+    assert [(lv.n_surface, lv.n_inner) for lv in s.status.bake_levels] == [(10, 20), (40, 80)]
+    assert not set(s.keys()) & {"bake_status", "bake_levels", "solve_seconds", "solve_backend"}
+    assert "last_solve_time" not in bpy.context.scene.translucency.keys()
 
 
 # --- no gpu, no wheels at import and register time -------------------------------------

@@ -380,7 +380,7 @@ def baked_sphere_scene():
         light.keyframe_insert("location", frame=frame)
     scene.frame_set(1)
     bpy.context.view_layer.objects.active = obj
-    assert bpy.ops.translucency.bake() == {'FINISHED'}, obj.translucency.bake_status
+    assert bpy.ops.translucency.bake() == {'FINISHED'}, obj.translucency.status.bake_status
     assert bpy.ops.translucency.solve() == {'FINISHED'}
     return obj
 

@@ -135,7 +135,7 @@ def test_marble_bunny_is_closer_to_the_path_tracer():
 def test_the_operator_bakes_sky_visibility_and_solves_with_the_bounce(blender, addon, cache_dir):
     import bpy
 
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     bpy.ops.mesh.primitive_torus_add(major_radius=1.0, minor_radius=0.45)
     obj = bpy.context.object
@@ -149,7 +149,7 @@ def test_the_operator_bakes_sky_visibility_and_solves_with_the_bounce(blender, a
     world.color = (1.0, 1.0, 1.0)
     bpy.context.scene.world = world
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    st = runtime._STATES[obj.name]
+    st = state._STATES[obj.name]
     assert st.bake.sky is not None and len(st.bake.sky.levels) == len(st.bake.levels)
     assert st.bounce is not None and st.bounce.shape == (len(st.bake.mesh_vertices), 3)
     assert np.all(np.isfinite(st.bounce)) and st.bounce.max() > 0

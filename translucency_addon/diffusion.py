@@ -107,7 +107,7 @@ It works on any graph of the contract in :mod:`.graph`; the parts are
 * :mod:`.iterative` -- Jacobi, Chebyshev, sparse LU on one level;
 * :mod:`.radiance` -- J+, its power-preserving clamp, ``outgoing_radiance``.
 
-Their names are re-exported here, so ``from .diffusion import assemble`` keeps working.
+Import each part's names from its own module; this one defines only the driver.
 """
 
 from __future__ import annotations
@@ -118,19 +118,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import kernels
-# Re-exported names (F401): the parts' public API, importable from here as before the split.
-from .assembly import SCHEMES, LevelSystem, _fitted_link, assemble, node_coefficients, sparse_matrix  # noqa: F401
+from .assembly import assemble, node_coefficients
 from .errors import MaterialError, TranslucencyError
 from .fresnel import diffuse_reflectance_internal
-from .graph import DiffusionGraph, SolverInput, check_graph, graph_components  # noqa: F401
-from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, energy_imbalance,  # noqa: F401
-                        outside_maximum_principle, relative_residual,
-                        solve_chebyshev, solve_direct, solve_jacobi)
+from .graph import SolverInput
+from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, energy_imbalance, outside_maximum_principle,
+                        solve_direct)
 from .lights import environment_flux, incident_flux, shadow_visibility
 from .materials import Material
 from .radiance import clamp_scale, outgoing_radiance
-from .spectral import (DEFLATION_GAP, Deflation, deflation, gershgorin_upper, lanczos_bottom,  # noqa: F401
-                       lanczos_lower, spectral_bounds)
 
 SOLVERS = ("fast", "paper", "direct", "jacobi")
 
@@ -390,7 +386,8 @@ class DiffusionSolver:
         """Run the linear solves on the ``active`` levels, coarse to fine (eq. 10 between them).
 
         This is the part a GPU backend replaces (``gpu_shaders.solver``); the
-        assembly, the light pass and the output stay shared.
+        assembly, the light pass, the solution checks after each level
+        (:meth:`checked_level`) and the output stay shared.
         Returns ``(phi per level (None where inactive), [LevelSolve])``.
         """
         opts = self.options
@@ -416,17 +413,7 @@ class DiffusionSolver:
             x0[:, ~np.any(b != 0, axis=0)] = 0.0
             tol = opts.tol if i == n_lv - 1 else (opts.coarse_tol or opts.tol)
             x, info = fn(system, b, x0, tol, opts.max_iterations, opts.check_every)
-            # Only the default solver is guarded: Jacobi is the paper's baseline, whose failures are reported.
-            if opts.solver == "fast" and (outside_maximum_principle(system, b, x)
-                                           or energy_imbalance(system, q[i][:, cols], x, self.fdr) > BALANCE_TOL):
-                # A near-singular level (little absorption, a weak leak) can let the iteration wander
-                # along its slowest mode while the residual looks small; sparse LU settles it.
-                x, direct = solve_direct(system, b)
-                info = LevelSolve(info.iterations, direct.residual, info.history + direct.history,
-                                  info.seconds + direct.seconds,
-                                  note=f"level {i}: the {opts.solver} solve broke the maximum principle or the "
-                                       f"energy balance (residual {float(np.max(info.residual)):.2e}); "
-                                       "solved directly instead")
+            x, info = self.checked_level(i, system, q[i][:, cols], b, x, info)
             full = np.zeros((system.n, 3))
             full[:, cols] = x
             phi[i] = full
@@ -435,6 +422,39 @@ class DiffusionSolver:
             info.residual = res
             solves.append(info)
         return phi, solves
+
+    @property
+    def guards_solutions(self) -> bool:
+        """Whether :meth:`checked_level` checks this solver's level solutions.
+
+        Only the default solver is guarded: Jacobi is the paper's baseline, whose failures are reported.
+        """
+        return self.options.solver == "fast"
+
+    def checked_level(self, level: int, system, q, b, x, info):
+        """The checks every backend's level solve must pass, and the redo when it does not.
+
+        Called after each level's solve, by this class and by the GPU backend (which reads the level
+        back for it), so both are guarded alike.  A solution of the FV system lies in
+        ``0 <= phi <= max 4q/(1 - F_dr)`` (the discrete maximum principle,
+        :func:`.iterative.outside_maximum_principle`) and keeps the discrete energy balance to
+        :data:`.iterative.BALANCE_TOL` of the light in (:func:`.iterative.energy_imbalance`).  A
+        near-singular level (little absorption, a weak leak) can let the iteration wander along its
+        slowest mode while the residual looks small; such a level is redone by sparse LU on the CPU and
+        the returned :class:`LevelSolve` carries a note that says so.
+
+        ``q``, ``b``, ``x``: the level's incident light, right-hand side and solution, for the
+        channels of ``system``.  Returns ``(x, info)``, unchanged when ``x`` passes.
+        """
+        if not self.guards_solutions or not (outside_maximum_principle(system, b, x)
+                                             or energy_imbalance(system, q, x, self.fdr) > BALANCE_TOL):
+            return x, info
+        x, direct = solve_direct(system, b)
+        return x, LevelSolve(info.iterations, direct.residual, info.history + direct.history,
+                             info.seconds + direct.seconds,
+                             note=f"level {level}: the {self.options.solver} solve broke the maximum principle or "
+                                  f"the energy balance (residual {float(np.max(info.residual)):.2e}); "
+                                  "solved directly instead")
 
     # -- output ------------------------------------------------------------------
     def surface_partial_current(self, result: SolveResult, level: int = -1) -> np.ndarray:

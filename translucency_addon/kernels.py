@@ -85,6 +85,6 @@ def outgoing_partial_current(phi_s: np.ndarray, q: np.ndarray, fdr: float) -> np
     """J+ = max(0, phi - 2 q) / (2 (1 + F_dr)) at surface nodes (kernel ``radiance.glsl``).
 
     Derived in ``diffusion.py``; negative values are clamped to zero (see
-    ``diffusion.outgoing_radiance`` for when they can occur and why).
+    ``radiance.outgoing_radiance`` for when they can occur and why).
     """
     return np.maximum(phi_s - 2.0 * q, 0.0) / (2.0 * (1.0 + fdr))

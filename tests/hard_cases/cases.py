@@ -723,7 +723,7 @@ def residual_floor(run: Run, level: int) -> float:
     """
     if not run.solver_name.startswith("gpu"):
         return TOL
-    from translucency_addon.diffusion import spectral_bounds
+    from translucency_addon.spectral import spectral_bounds
 
     lam_min, _ = spectral_bounds(run.solver.systems[level])
     return max(TOL, 2.0 * FP32_EPS / float(np.min(lam_min)))
@@ -756,7 +756,7 @@ def power(run: Run, level: int):
 
 
 def gpu_clamp_factor(run: Run) -> np.ndarray:
-    """The per-channel ``diffusion.clamp_scale`` the CPU output applies and the GPU's does not.
+    """The per-channel ``radiance.clamp_scale`` the CPU output applies and the GPU's does not.
 
     The GPU's radiance kernel (gpu_shaders) clamps J+ at 0 without taking
     back the power the clamp adds; until it does, the GPU radiance is
@@ -764,7 +764,7 @@ def gpu_clamp_factor(run: Run) -> np.ndarray:
     case; 0.9998 on the thin shell).  The GPU's own, unscaled output is still
     held to the energy bound.
     """
-    from translucency_addon.diffusion import clamp_scale
+    from translucency_addon.radiance import clamp_scale
 
     lv = run.scenario.bake.finest
     return clamp_scale(run.phi[-1][lv.n_inner:], run.result.q[-1], lv.area, run.solver.fdr)

@@ -159,7 +159,8 @@ def _chebyshev_bound(system, tol):
     from scipy.sparse import diags
     from scipy.sparse.linalg import eigsh
 
-    from translucency_addon.diffusion import gershgorin_upper, sparse_matrix
+    from translucency_addon.assembly import sparse_matrix
+    from translucency_addon.spectral import gershgorin_upper
 
     worst = 0.0
     for c in range(3):
@@ -529,17 +530,17 @@ def test_blender_solve_refuses_bad_materials(variant, values, match, blender, ad
 def test_blender_solve_refuses_a_bad_cache(variant, blender, addon, cache_dir, memo_bakes):
     import bpy
 
-    from translucency.ops import runtime
+    from translucency.ops import cache_files, state
 
     obj, L = _baked_and_solved()
-    path = runtime.resolve_cache_path(obj)
+    path = cache_files.resolve_cache_path(obj)
     regex = hc.damage_cache(path, path, variant)
-    runtime.clear()  # as after reopening the .blend: the bake must come from the file
+    state.clear()  # as after reopening the .blend: the bake must come from the file
     before = scene_digest(cache_dir)
     with pytest.raises(RuntimeError, match=r"Cannot solve 'Blob': .*(" + regex + ")"):
         bpy.ops.translucency.solve()
     assert scene_digest(cache_dir) == before
-    assert runtime.CACHE_STATUS["Blob"].startswith("Cache problem")
+    assert state.CACHE_STATUS["Blob"].startswith("Cache problem")
 
 
 def test_blender_no_lights_and_light_inside_give_exact_zero(blender, addon, cache_dir, memo_bakes):
@@ -583,13 +584,13 @@ def test_blender_texture_limit_falls_back_to_the_cpu(blender, addon, cache_dir, 
     import bpy
     import gpu
 
-    from translucency.ops import runtime
+    from translucency.ops import state
 
     monkeypatch.setattr(gpu.capabilities, "max_texture_size_get", lambda: 32)
     monkeypatch.setattr(gpu.capabilities, "max_texture_layers_get", lambda: 2)
     bpy.context.scene.translucency.solver_backend = 'AUTO'
     obj, L = _baked_and_solved()
-    st = runtime.get_state(obj)
+    st = state.get_state(obj)
     assert st.backend == "CPU" and "32 x 32 with 2 layers" in st.backend_message, st.backend_message
 
 
@@ -612,7 +613,7 @@ def test_a_solve_that_breaks_the_maximum_principle_is_redone_directly():
     """The FV solution lies in [0, max 4q/(1 - F_dr)]; an iterate outside is refused and the level is
     solved by sparse LU, with a warning that says so (the derandomised fuzz found a near-singular
     mix -- no absorption in one channel -- where Chebyshev wandered to 1e185 at a residual of 1e-5)."""
-    from translucency_addon import diffusion
+    from translucency_addon import iterative
     from translucency_addon.diffusion import DiffusionSolver, SolveOptions
     from translucency_addon.iterative import BALANCE_TOL, energy_imbalance, outside_maximum_principle
 
@@ -630,14 +631,14 @@ def test_a_solve_that_breaks_the_maximum_principle_is_redone_directly():
     assert energy_imbalance(system, q[-1], 0.9 * good.phi[-1], solver.fdr) > BALANCE_TOL
 
     def wander(system, b, x0, tol, max_iter, check_every=8):  # a broken iteration: 1e185 at a small residual
-        x, info = diffusion.solve_chebyshev(system, b, x0, tol, max_iter, check_every)
+        x, info = iterative.solve_chebyshev(system, b, x0, tol, max_iter, check_every)
         return x + 1e185, info
 
-    original = diffusion.SOLVER_FUNCTIONS["fast"]
-    diffusion.SOLVER_FUNCTIONS["fast"] = wander
+    original = iterative.SOLVER_FUNCTIONS["fast"]
+    iterative.SOLVER_FUNCTIONS["fast"] = wander
     try:
         r = solver.solve(q=q)
     finally:
-        diffusion.SOLVER_FUNCTIONS["fast"] = original
+        iterative.SOLVER_FUNCTIONS["fast"] = original
     np.testing.assert_allclose(r.phi[-1], good.phi[-1], rtol=1e-9)
     assert any("broke the maximum principle" in w and "solved directly" in w for w in r.warnings), r.warnings

@@ -1,0 +1,236 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""One object's frame, read from Blender once: :class:`FrameInputs`, made by :func:`gather`.
+
+Everything a frame of one baked object needs -- the scale, the material and
+its heterogeneity field, the lights, the world, the occluders, the views,
+the planner's passes, channels and regions, and how the finest surface nodes
+map to the mesh's vertices -- is read here into one frozen value.  The steps
+of :mod:`.runtime` (solve, single scattering, write, publish) take that value
+and never go back to the scene.
+
+What costs a walk over the scene is read only for the passes the planner
+runs: the occluders when diffusion runs; the viewport's view and the
+single-scattering staleness when single scattering runs; the mesh mapping
+when either runs.  Kept between frames in the object's :class:`~.state.ObjectState`
+(never in the value): the field samples (re-sampled only when the field's
+signature changes), the occluder triangles and the mapping to ``obj.data``'s
+vertices (re-computed only when those vertices move).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import scene_inputs
+from .state import COUNTERS, FRAME_EPOCH, GEOMETRY_EPOCH, ObjectState
+
+NOT_BAKED_SS = ("Single Scattering is on but was not baked: press Bake Single Scattering "
+                "(or Bake, which bakes both)")
+
+
+@dataclass(frozen=True)
+class MeshMapping:
+    """How values at the finest surface nodes reach ``obj.data``'s vertices (where the attribute lives).
+
+    ``same``: ``obj.data`` has the baked (evaluated) mesh's vertex count, so the bake's own map
+    serves; otherwise (a modifier changed the count) a map to ``obj.data``'s own ``positions`` and
+    ``normals``, whose ``digest`` keys what is cached per vertex set.
+    """
+
+    same: bool
+    idx: np.ndarray
+    w: np.ndarray
+    positions: np.ndarray | None = None
+    normals: np.ndarray | None = None
+    digest: str | None = None
+
+
+@dataclass(frozen=True)
+class FrameInputs:
+    """Everything one object's frame needs, read from Blender once (:func:`gather`)."""
+
+    name: str
+    n_vertices: int  # of obj.data, whose attribute is written
+    mm: float  # millimetres per object unit
+    material: object  # translucency_addon.materials.Material
+    field_sig: object  # the heterogeneity field's signature (None: homogeneous)
+    field_values: list | None  # the field at every level's nodes (sampled when field_sig changed)
+    lights: tuple  # translucency_addon.lights.Light, object space
+    environment: object | None  # translucency_addon.lights.Environment
+    view: tuple | None  # towards the render camera (use_camera), object space; None: along the normals
+    ss_view: tuple | None  # single scattering's view: the camera, else the first 3D viewport's eye
+    prefer: str  # the scene's Solver setting: AUTO, GPU or CPU
+    tolerance: float
+    rendering: bool  # a render depsgraph
+    off_main: bool  # not on Blender's main thread (a render job)
+    want_ms: bool  # the object's Multiple Scattering switch
+    want_ss: bool  # the object's Single Scattering switch
+    split: bool  # also write single scattering alone (Split Pass)
+    ss_order: int  # SH order used: the setting, at most the baked one
+    plan: object  # translucency_addon.planner.Plan
+    use_ms: bool  # diffusion runs this frame
+    use_ss: bool  # single scattering runs this frame
+    ms_channels: tuple  # the planner's diffusion channels
+    occluders: object  # other objects' triangles in object space (None without, or when diffusion is off)
+    occ_sig: tuple | None
+    mapping: MeshMapping | None  # None when no pass runs
+    ss_stale: str  # why the baked single scattering no longer matches ('' when it does)
+    warnings: tuple  # scale, world, stale bake, stale single scattering
+
+    @property
+    def unseen(self) -> bool:
+        """Outside the render camera's view: no work at all this frame."""
+        return not self.plan.run and self.plan.reason.startswith("outside the camera view")
+
+    @property
+    def env_sig(self) -> tuple | None:
+        return None if self.environment is None else tuple(self.environment.radiance)
+
+    def weights(self, kind: str) -> np.ndarray:
+        """The planner's per-vertex weight of a pass (``"multiple"``/``"single"``), on ``obj.data``'s vertices."""
+        return self.plan.vertex_weights(kind, self.mapping.idx, self.mapping.w)
+
+
+def gather(obj, scene, depsgraph, st: ObjectState, use_camera: bool) -> FrameInputs:
+    """Read one frame of ``obj`` from Blender: inputs, the planner's decision, and what the passes that run need.
+
+    Raises :class:`TranslucencyError` subclasses (a bad material, a field without its texture).
+    """
+    settings = obj.translucency
+    matrix = obj.evaluated_get(depsgraph).matrix_world.copy()
+    mm, scale_warning = scene_inputs.mm_per_unit(obj, scene, matrix)
+    metres_per_bu = scene_inputs.metres_per_world_unit(obj, scene, mm, matrix)
+    material = scene_inputs.build_material(settings)
+    want_ms = bool(settings.use_multiple_scattering)
+    field_sig = _field(obj, settings, depsgraph, st, want_ms)
+    lights = tuple(scene_inputs.collect_lights(depsgraph, matrix, metres_per_bu))
+    environment, world_warning = scene_inputs.world_environment(scene.world)
+    in_view = scene_inputs.in_camera_view(scene, depsgraph, obj) if use_camera else True
+    plan = make_plan(obj.name, st, settings, material, lights, environment, mm, in_view)
+
+    off_main = threading.current_thread() is not threading.main_thread()
+    rendering = getattr(depsgraph, "mode", "VIEWPORT") == 'RENDER'
+    has_ss = st.bake.single_scattering is not None
+    use_ms = want_ms and plan.run and plan.multiple.runs
+    use_ss = plan.run and plan.single.runs and has_ss
+    want_ss = bool(settings.use_single_scattering)
+    occluders, occ_sig = (scene_inputs.collect_occluders(depsgraph, obj, matrix, st.occluders) if use_ms
+                          else (None, None))
+    view = scene_inputs.camera_view(scene, depsgraph, matrix) if use_camera else None
+    ss_view, ss_stale = None, ""
+    if use_ss:
+        ss_view = view
+        if ss_view is None and not use_camera and not rendering and not off_main:
+            ss_view = scene_inputs.viewport_view(matrix)
+        ss_stale = _ss_staleness(obj, st, settings, depsgraph, material, field_sig, mm)
+    elif want_ss and not has_ss:
+        ss_stale = NOT_BAKED_SS
+    return FrameInputs(
+        name=obj.name, n_vertices=len(obj.data.vertices), mm=mm, material=material, field_sig=field_sig,
+        field_values=st.field_values, lights=lights, environment=environment, view=view, ss_view=ss_view,
+        prefer=scene.translucency.solver_backend, tolerance=float(scene.translucency.tolerance),
+        rendering=rendering, off_main=off_main, want_ms=want_ms, want_ss=want_ss,
+        split=bool(settings.ss_split_pass),
+        ss_order=min(int(settings.ss_sh_order), st.bake.single_scattering.order) if has_ss else 0,
+        plan=plan, use_ms=use_ms, use_ss=use_ss,
+        ms_channels=plan.multiple.channels if plan.multiple is not None else (False, False, False),
+        occluders=occluders, occ_sig=occ_sig, mapping=mesh_mapping(obj, st) if use_ms or use_ss else None,
+        ss_stale=ss_stale,
+        warnings=tuple(w for w in (scale_warning, world_warning, st.stale_message, ss_stale) if w))
+
+
+def _field(obj, settings, depsgraph, st: ObjectState, want_ms: bool):
+    """The field's signature; its values at every level's nodes are re-sampled into ``st`` when it changed."""
+    epoch = (GEOMETRY_EPOCH.get(obj.name, 0), GEOMETRY_EPOCH.get(FRAME_EPOCH, 0))
+    field_sig = scene_inputs.field_signature(obj, settings, depsgraph, epoch)
+    changed = field_sig != st.field_sig or (field_sig is not None and st.field_values is None)
+    if changed and want_ms:
+        if field_sig is None:
+            st.field_values = None
+        else:
+            st.field_values = scene_inputs.sample_field(obj, settings, [lv.position for lv in st.bake.levels],
+                                                        depsgraph)
+            COUNTERS["field_samples"] += 1
+        st.field_sig = field_sig
+    return field_sig
+
+
+def make_plan(name: str, st: ObjectState, settings, material, lights, environment, mm: float, in_view: bool):
+    """The planner's decision for this object and frame (``translucency_addon.planner.plan_object``).
+
+    The object's switches become overrides: a term that is off is forced off;
+    with Pass Planning "All" every enabled term runs on every channel.
+    """
+    from ..translucency_addon.planner import plan_object
+
+    has_ss = st.bake.single_scattering is not None
+    overrides = {}
+    every = getattr(settings, "pass_planning", "AUTO") == 'ALL'
+    if not settings.use_multiple_scattering:
+        overrides["multiple"] = False
+    elif every:
+        overrides["multiple"] = True
+    if not (settings.use_single_scattering and has_ss):
+        overrides["single"] = False
+    elif every:
+        overrides["single"] = True
+    return plan_object(st.bake.with_scale(mm), material, list(lights), environment, field_values=st.field_values,
+                       has_single_scattering=has_ss, in_view=in_view, enabled=bool(settings.enabled),
+                       overrides=overrides, name=name)
+
+
+def _ss_staleness(obj, st: ObjectState, settings, depsgraph, material, field_sig, mm: float) -> str:
+    """Why the baked single scattering no longer matches the object ('' when it does)."""
+    from ..translucency_addon.single_scattering import stale_message, staleness
+
+    data = st.bake.single_scattering
+    try:
+        want = scene_inputs.ss_settings(settings)
+    except Exception as ex:  # noqa: BLE001
+        return str(ex)
+    field_fp = None
+    if material.heterogeneous:
+        if st.ss_field_fp is None or st.ss_field_fp[0] != field_sig:
+            st.ss_field_fp = (field_sig, scene_inputs.ss_field_fingerprint(obj, settings, depsgraph, field_sig))
+        field_fp = st.ss_field_fp[1]
+    reasons = staleness(data, settings=want, material=material, field_fp=field_fp, mm_per_unit=mm)
+    return stale_message(reasons)
+
+
+# ------------------------------------------------------------------ the mesh's vertices
+
+
+def _original_normals(mesh, V) -> np.ndarray:
+    normals = getattr(mesh, "vertex_normals", None)
+    if normals is not None and len(normals) == len(V):
+        arr = np.empty(len(V) * 3, dtype=np.float32)
+        normals.foreach_get("vector", arr)
+        return arr.reshape(-1, 3).astype(np.float64)
+    _, F = scene_inputs.mesh_arrays(mesh)
+    return scene_inputs.mesh_normals(V, F)
+
+
+def mesh_mapping(obj, st: ObjectState) -> MeshMapping:
+    """The finest surface nodes that carry values to ``obj.data``'s vertices (read once per frame).
+
+    The baked (evaluated) mesh's own vertex map when ``obj.data`` has its vertex count; otherwise
+    a map to ``obj.data``'s vertices (a modifier changed the count), cached in ``st`` until they move.
+    """
+    bake = st.bake
+    if len(obj.data.vertices) == len(bake.mesh_vertices):
+        idx, w = bake.vertex_map
+        return MeshMapping(True, idx, w)
+    from ..translucency_addon.bake import vertex_mapping
+
+    mesh = obj.data
+    V = scene_inputs.vertex_positions(mesh)
+    digest = scene_inputs.array_digest(V)
+    if st.orig_map is None or st.orig_map[0] != digest:
+        N = _original_normals(mesh, V)
+        idx, w = vertex_mapping(V, N, bake.finest, bake.settings.vertex_map_k)
+        st.orig_map = (digest, idx, w, V, N)
+    digest, idx, w, V, N = st.orig_map
+    return MeshMapping(False, idx, w, V, N, digest)
