@@ -18,7 +18,8 @@ import pytest
 from test_diffusion import sphere_analytic
 from translucency_addon import primitives
 from translucency_addon.assembly import assemble
-from translucency_addon.diffusion import DiffusionSolver, solve_direct
+from translucency_addon.diffusion import DiffusionSolver
+from translucency_addon.iterative import solve_direct
 from translucency_addon.fluid import FluidOptions, FluidSolver
 from translucency_addon.fluid.solver import FluidDiffusionSolver
 from translucency_addon.fluid.surface_map import surface_weights
