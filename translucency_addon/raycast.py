@@ -126,11 +126,12 @@ class TriangleBVH:
         lo[n_leaves - 1 :] = tmin
         hi[n_leaves - 1 :] = tmax
         start = n_leaves - 1
-        while start > 0:
+        while start > 0:  # one tree level at a time; its children are a contiguous range, pairwise
             count = (start + 1) // 2
-            parent = np.arange(start - count, start)
-            lo[parent] = np.minimum(lo[2 * parent + 1], lo[2 * parent + 2])
-            hi[parent] = np.maximum(hi[2 * parent + 1], hi[2 * parent + 2])
+            p0 = start - count
+            c0, c1 = 2 * p0 + 1, 2 * start + 1
+            np.minimum(lo[c0:c1:2], lo[c0 + 1:c1 + 1:2], out=lo[p0:start])
+            np.maximum(hi[c0:c1:2], hi[c0 + 1:c1 + 1:2], out=hi[p0:start])
             start -= count
         # Pad boxes by a relative epsilon so that axis-aligned flat leaves
         # are still hit by the slab test.
@@ -142,11 +143,10 @@ class TriangleBVH:
         self.hi = hi
         # For front-to-back traversal: the axis along which the two children's
         # centres differ most, and whether the second child lies on its + side.
-        internal = np.arange(n_leaves - 1)
         cen = 0.5 * (lo + hi)
-        diff = cen[2 * internal + 2] - cen[2 * internal + 1]
+        diff = cen[2:2 * n_leaves - 1:2] - cen[1:2 * n_leaves - 2:2]  # second child - first, per internal node
         self.split_axis = np.argmax(np.abs(diff), axis=1)
-        self.second_is_plus = diff[internal, self.split_axis] >= 0
+        self.second_is_plus = np.take_along_axis(diff, self.split_axis[:, None], axis=1)[:, 0] >= 0
         self.first_leaf = n_leaves - 1
         self.V = V
         self._centroid_tree = None
