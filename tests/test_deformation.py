@@ -189,6 +189,12 @@ def test_cache_keeps_the_tet_mesh_and_format_1_still_solves(bar, tmp_path):
     P = primitives.bend(V, 30.0, blend=1.0)
     assert np.array_equal(DeformationRig(back).deform(P).bake.levels[-1].position,
                           rig.deform(P).bake.levels[-1].position)
+    # a tet mesh that does not fit its graph is refused
+    bad = cache.bake_to_arrays(bake)
+    bad["L0/tets"] = bad["L0/tets"] + len(bad["L0/tet_vertices"])
+    np.savez(tmp_path / "bad.npz", **bad)
+    with pytest.raises(cache.CacheError, match="tetrahedral mesh"):
+        cache.load_bake(tmp_path / "bad.npz")
     # an old cache: no tet arrays, format 1
     old = tmp_path / "old.npz"
     with np.load(path, allow_pickle=False) as z:

@@ -24,8 +24,8 @@ the user's mesh; :mod:`.quadgraph`), which the bake stores since cache format
 * **points on the surface** -- the tet mesh's boundary vertices, the surface
   nodes and the resampled shadow surface -- with the user's mesh: each keeps
   its closest triangle, its barycentric coordinates there and its (tiny)
-  offset in the triangle's frame (:class:`SurfaceAttachment`), so a surface
-  node stays on the deformed surface exactly where it was placed;
+  offset (:class:`~.mesh_attachment.SurfaceAttachment`), so a surface node
+  stays on the deformed surface exactly where it was placed;
 * **the tet mesh's inner vertices** by the harmonic extension of the boundary
   displacement: ``K_II u_I = -K_IB u_B`` with K the P1 finite-element
   stiffness of the rest tet mesh (the cotangent Laplacian in 3D), factorised
@@ -43,10 +43,14 @@ detect exactly), the stiffness of the P1 elements gives the linear precision
 above (a graph Laplacian with uniform weights does not), and the nodes'
 links, face areas and cell volumes are then the dual of a valid tet mesh,
 exactly as after a bake.  A biharmonic field would be smoother across the
-blend region of a bend but needs two solves and a second boundary condition
-(the normal derivative), which a pose does not give us; for the bends and
-twists of docs/accuracy.md the harmonic field stays within a few per cent of
-a re-bake.
+blend region of a bend but needs a second boundary condition (the normal
+derivative), which a pose does not give us.  An as-rigid-as-possible
+refinement (per-tet rotations, the same factorisation) was tried on a bar
+bent by 90 degrees: it did not remove the few inverted tets, which have all
+four vertices on the surface, where no interior field moves them, and it
+costs a 3x3 SVD per tet per iteration (0.2 s at Preview in numpy).  For the
+bends, squash and twist of docs/accuracy.md the harmonic field is as close
+to a re-bake as two re-bakes are to each other.
 
 Per frame (:meth:`DeformationRig.deform`): link lengths, face areas and cell
 volumes from the deformed tets (the same functions as the bake), surface
@@ -60,21 +64,36 @@ Attached to the rest pose: the material and its heterogeneity field (sample
 them at the rest positions, ``bake.levels[i].position``, once), and the sky
 visibility.  Its hidden directions were cast in the rest pose's object space;
 a deformed surface turns them with it: per surface node the rotation of its
-mesh triangle's frame (:class:`DeformedSky`), so the hidden part of a
-directional sky moves with the surface it belongs to.  Which directions are
-hidden is not cast again: a pose that opens or closes a concavity keeps the
-rest pose's occlusion (documented in docs/accuracy.md).  Single scattering
-is not deformed: a deformed bake carries none.
+mesh triangle's frame (:class:`~.deformed_sky.DeformedSky`), so the hidden
+part of a directional sky moves with the surface it belongs to.  Which
+directions are hidden is not cast again: a pose that opens or closes a
+concavity keeps the rest pose's occlusion (docs/accuracy.md, "Deformation":
+the bar bent by 90 degrees, whose arms come to see each other, is 9 % from a
+re-bake with it, 4 % -- the re-bake's own variation -- without).  Single
+scattering is not deformed: a deformed bake carries none.
 
-Validity (:class:`DeformationReport`): a tet whose volume falls to 1e-6 of
-its rest volume or below (inverted or flattened), a link that turns against
-the face it crosses (the surface node behind its boundary face, or an inner
-link through an inverted face), or a link stretched or compressed beyond
-``stretch_limit`` (default :data:`STRETCH_LIMIT`) refuses the pose with
-:class:`~.errors.GraphFolded`, whose message says how many of each and
-the worst stretch, and the caller keeps its last valid frame
-(:class:`DeformationFrames` does).  A changed vertex count, NaN vertices or a
-collapsed object raise :class:`~.errors.DeformationError`.
+Validity (:class:`DeformationReport`, the finest level's figures: the image
+comes from it; a coarser level only starts its iteration).  Refused with
+:class:`~.errors.GraphFolded`, which carries the report and says "re-bake in
+this pose or at rest":
+
+* a fold: inverted (or flattened to 1e-6 of their rest volume) tets holding
+  more than :data:`FOLD_VOLUME` of the volume, or more than :data:`FOLD_LINKS`
+  of the links turned against the face they cross where they did not at rest.
+  Below that they are slivers, which fTetWild leaves at any quality and which
+  turn over under the smallest non-affine motion; they get a small positive
+  volume and are counted in the report;
+* a link between inner nodes stretched or compressed beyond ``stretch_limit``
+  (:data:`STRETCH_LIMIT`, 3x).  Surface links are left out of the stretch:
+  their length is where the bake's ray met the surface, down to a few per cent
+  of their neighbours'.  The limit is about resolution, not stability: the
+  bar stretched 2.9x along its length was still within 1 % of a re-bake's own
+  variation (docs/bench_deformation.md), but the graph there is a third as
+  fine as the bake made it.
+
+A changed vertex count, NaN vertices or a collapsed object (a zero scale)
+raise :class:`~.errors.DeformationError`.  Nothing of the rig changes either
+way; :class:`~.deformation_frames.DeformationFrames` keeps the last valid frame.
 """
 
 from __future__ import annotations
@@ -348,7 +367,7 @@ class DeformationRig:
         moved = (self.incidence @ np.abs(cross - self.geo.cross).sum(axis=1)) > 0
         normals = np.array(self.bake.mesh_normals, dtype=np.float64)
         if moved.any():
-            vn = self.incidence[moved] @ cross
+            vn = (self.incidence @ cross)[moved]
             ln = np.linalg.norm(vn, axis=1, keepdims=True)
             normals[moved] = np.where(ln > 0, vn / np.maximum(ln, 1e-300), (0.0, 0.0, 1.0))
         t1 = time.perf_counter()
@@ -403,7 +422,8 @@ class DeformationRig:
         changed = np.any(src != 0.0, axis=1)
         normal = np.array(lv.normal)
         normal[changed] = unit(normal[changed] + src[changed])
-        vol = signed_volumes(tv, tets)
+        # = tetra.signed_volumes(tv, tets), bit for bit, from the face vector already at hand (face 3 = e01 x e02)
+        vol = np.einsum("ij,ij->i", fv[:, 3], tv[tets[:, 3]] - tv[tets[:, 0]]) / 6.0
         new = replace(lv, position=position, edge_length=link_lengths(position, lv.neighbors), face_area=face_area,
                       volume=vol, normal=normal, area=s_area, tet_vertices=tv, stats={**lv.stats})
         strain = level_strain(rig, new, vol, fv, self.stretch_limit)
