@@ -66,7 +66,7 @@ class DeformedSky:
             np.add.at(hidden, lv.node, w[:, None] * environment.radiance_at(d))
             return hidden
         S0, S1, S2 = self.moments(level, eta)
-        M = np.einsum("sij,sjk,slk->sil", R, S2, R)
+        M = R @ S2 @ R.transpose(0, 2, 1)
         m = np.column_stack([S0, np.einsum("sij,sj->si", R, S1), M[:, 0, 0], M[:, 1, 1], M[:, 2, 2],
                              M[:, 0, 1], M[:, 0, 2], M[:, 1, 2]])
         return m @ quad
