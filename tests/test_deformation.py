@@ -150,12 +150,15 @@ def test_bad_poses_raise_and_change_nothing(bar):
     nan[5] = np.nan
     folded = primitives.bend(V, 150.0, blend=0.2, preserve_volume=False)  # linear skinning pinches the joint
     stretched = V * np.array([4.0, 1.0, 1.0])  # every link along the bar 4x longer
+    zero_bone = V.copy()
+    zero_bone[V[:, 0] > 0.5] = (0.5, 0.0, 0.0)  # a bone scaled to zero: its part of the bar collapses to a point
     cases = [
         (V[:-3], DeformationError, "topology changed"),
         (nan, DeformationError, "NaN"),
         (0.0 * V + 1.0, DeformationError, "collapses"),
         (folded, GraphFolded, "folds the baked graph"),
         (stretched, GraphFolded, "overstretches"),
+        (zero_bone, GraphFolded, "re-bake in this pose or at rest"),
     ]
     for P, kind, words in cases:
         with pytest.raises(kind, match=words) as info:

@@ -249,13 +249,16 @@ class DeformationReport:
         at = f" at frame {frame}" if frame is not None else ""
         inv = (f"{self.inverted_tets} tets inverted ({100 * self.inverted_volume:.2g} % of the volume), "
                f"{self.inverted_links} links turned inside out ({100 * self.inverted_link_fraction:.2g} %)")
-        stretch = f"worst link stretch {self.worst_stretch:.2f}x (limit {self.stretch_limit:g}x"
+        worst = (f"{self.worst_stretch:.2f}x" if self.worst_stretch < 1e6
+                 else "unbounded (links shrunk to nothing: a zero scale?)")
+        stretch = f"worst link stretch {worst} (limit {self.stretch_limit:g}x"
         stretch += f", {self.stretched_links} links beyond)" if self.stretched_links else ")"
+        turned = self.inverted_tets or self.inverted_links
         if self.valid:
-            slivers = f"; {inv}: slivers, tolerated" if self.inverted_tets or self.inverted_links else ""
-            return f"deformation{at}: {stretch}{slivers}"
+            return f"deformation{at}: {stretch}" + (f"; {inv}: slivers, tolerated" if turned else "")
         what = "folds" if self.folded else "overstretches"
-        return f"the deformation{at} {what} the baked graph: {inv}, {stretch}; re-bake in this pose or at rest"
+        return (f"the deformation{at} {what} the baked graph: " + (f"{inv}, " if turned else "")
+                + f"{stretch}; re-bake in this pose or at rest")
 
 
 def level_strain(rig: LevelRig, lv: GraphLevel, vol, fv, stretch_limit: float) -> dict:
@@ -277,7 +280,9 @@ def level_strain(rig: LevelRig, lv: GraphLevel, vol, fv, stretch_limit: float) -
             "inverted_volume": float(rig.rest_volume[flat].sum() / rig.rest_volume.sum()),
             "inverted_links": int(np.count_nonzero(turned)),
             "inverted_link_fraction": float(np.count_nonzero(turned) / max(np.count_nonzero(rig.rest_crossing), 1)),
-            "stretched_links": int(np.count_nonzero(strain > stretch_limit)),
+            # plus any link (surface links too) of no length or no number: the solver could not use it
+            "stretched_links": int(np.count_nonzero(strain > stretch_limit)
+                                   + np.count_nonzero(has & ~(np.isfinite(lv.edge_length) & (lv.edge_length > 0)))),
             "worst_stretch": float(strain.max()) if strain.size else 1.0}
 
 
