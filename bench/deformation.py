@@ -221,7 +221,7 @@ def speed_table(r) -> str:
         f"| deformation: mesh (normals, triangle geometry) | - | {ms(d['deform_mesh'])} |",
         f"| deformation: graph (harmonic tet field, links, faces, volumes, normals, validity) | - | "
         f"{ms(d['deform_graph'])} |",
-        f"| deformation: shadow BVH refit, sky rotations | - | {ms(d['deform_bvh'])} |",
+        f"| deformation: shadow BVH refit, shadow surface, sky visibility handed over | - | {ms(d['deform_bvh'])} |",
         f"| coefficients and assembly (every level) | - | {ms(d['assemble'])} |",
         f"| light pass (shadow rays, sky) | {ms(r['undeformed_lights'])} | {ms(d['lights'])} |",
         f"| warm-started solve (two passes: plain and interreflected) + radiance | "

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import CacheError
+
 
 class DeformedSky:
     """The bake's sky visibility carried along by a pose (same interface as ``SkyVisibility``).
@@ -85,6 +87,10 @@ class DeformedSky:
         if vertex_radiance is not None:
             q = q + lv.bounce(w, vertex_radiance)
         return q
+
+    def to_arrays(self, prefix: str = "sky/") -> dict:
+        raise CacheError("a deformed bake is not written to a cache: it is the rest pose's bake at one pose; "
+                         "save the rest pose's bake (its DeformationRig re-poses it)")
 
     def hidden_fraction(self, level: int, normals=None, eta: float = 1.0) -> np.ndarray:
         return self.rest.hidden_fraction(level, self._rest_levels[level].normal, eta)
