@@ -477,15 +477,12 @@ def write_costs(b: Bench, path=COSTS_JSON):
 def update_readme(b, path=ROOT / "README.md"):
     """Replace the body of README.md's "Accuracy versus time" section (only that section)."""
     from bench.accuracy_report import headline_table
-    from bench.accuracy_text import findings_headline
+    from bench.accuracy_text import findings_headline, replace_section
 
     text = path.read_text()
     head = "## Accuracy versus time\n"
     if head not in text:
         return False
-    start = text.index(head) + len(head)
-    nxt = text.find("\n## ", start)
-    end = len(text) if nxt < 0 else nxt + 1
     body = ["",
             "Measured by `bench/accuracy.py` against an independent path tracer (Mitsuba 3, translucency only) "
             "on matched scenes; the full report, every knob and the plots are in "
@@ -494,7 +491,7 @@ def update_readme(b, path=ROOT / "README.md"):
             "", headline_table(b, HEADLINE), ""]
     body += [p + "\n" for p in findings_headline(b, HEADLINE)]
     body += ["![accuracy of the presets on every scene against time](docs/images/accuracy_presets.png)", ""]
-    path.write_text(text[:start] + "\n".join(body) + "\n" + text[end:])
+    path.write_text(replace_section(text, head, "\n".join(body) + "\n"))
     return True
 
 

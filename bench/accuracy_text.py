@@ -473,6 +473,34 @@ def findings_model(b):
     return out
 
 
+# Sections of docs/accuracy.md that other benchmarks write (bench/deformation.py): kept when this one rewrites it.
+KEPT_SECTIONS = ("## Particle fluids (Voronoi-fluid cells, issue 14)\n", "## Deformation without a re-bake\n")
+
+
+def section_span(text: str, head: str):
+    """``(start, end)`` of the section under ``head`` (a "## " heading line), or None."""
+    if head not in text:
+        return None
+    start = text.index(head)
+    nxt = text.find("\n## ", start + len(head))
+    return start, len(text) if nxt < 0 else nxt + 1
+
+
+def replace_section(text: str, head: str, body: str) -> str:
+    """``text`` with the section under ``head`` replaced by ``head + body`` (appended when absent)."""
+    span = section_span(text, head)
+    if span is None:
+        return text.rstrip("\n") + "\n\n" + head + body
+    return text[:span[0]] + head + body + text[span[1]:]
+
+
+def kept_sections(path: Path) -> str:
+    """The :data:`KEPT_SECTIONS` of the report at ``path`` as they are now."""
+    text = Path(path).read_text() if Path(path).exists() else ""
+    spans = [section_span(text, h) for h in KEPT_SECTIONS]
+    return "".join("\n" + text[a:b].rstrip("\n") + "\n" for a, b in (s for s in spans if s))
+
+
 def write(b, out: Path, img_dir: Path, costs=None):
     """The plots (accuracy_report) and the text (render, here) of docs/accuracy.md."""
     out = Path(out)
@@ -496,12 +524,7 @@ def write(b, out: Path, img_dir: Path, costs=None):
     if not report.plot_kappa(b, figs["kappa"]):
         figs.pop("kappa")
     link = {k: (rel / v.name).as_posix() for k, v in figs.items()}
-    text = render(b, link, costs, head_scene)
-    from bench.fluid_reference import markdown_section  # particle fluids (issue 14), from its stored result
-
-    fluid = markdown_section()
-    if fluid:
-        text = text.rstrip("\n") + "\n\n" + fluid
+    text = render(b, link, costs, head_scene) + kept_sections(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
     return figs

@@ -43,7 +43,7 @@ RESULT = ROOT / "bench" / "data" / "fluid_reference.json"
 REF_CACHE = ROOT / "bench" / "data" / "reference"
 SEMI_AXES = (12.0, 9.0, 7.0)  # mm
 SPACINGS = (1.0, 0.75)  # mm
-BEGIN, END = "<!-- fluid-reference: written by bench/fluid_reference.py -->", "<!-- /fluid-reference -->"
+HEADING = "## Particle fluids (Voronoi-fluid cells, issue 14)\n"
 
 
 def fluid_particles(spacing: float, seed: int = 0) -> np.ndarray:
@@ -134,7 +134,7 @@ def markdown_section(data: dict | None = None) -> str:
         if not RESULT.exists():
             return ""
         data = json.loads(RESULT.read_text())
-    lines = [BEGIN, "", "## Particle fluids (Voronoi-fluid cells, issue 14)", "",
+    lines = [HEADING.rstrip("\n"), "",
              f"`.venv/bin/python bench/fluid_reference.py` (the reference is cached in `{data['cache']}`; "
              f"`--refresh` renders it again, {data['reference_seconds']:.0f} s here). Particles on a cubic lattice "
              f"jittered by 10 % fill an ellipsoid of {' x '.join(f'{a:g}' for a in SEMI_AXES)} mm semi-axes, radius = "
@@ -159,19 +159,15 @@ def markdown_section(data: dict | None = None) -> str:
               "count.  Flicker: particles re-jittered by 10 % of their spacing every frame in a static blob change "
               "the per-vertex radiance by at most 0.9 % of the peak under uniform light and 6.4 % under a sun "
               "(skim milk, blue; the test's bounds are 1 % and 8 %).  Cell geometry is exact: lattice volumes and "
-              "face areas to 1e-9 (`tests/test_fluid_cells.py`).", "", END, ""]
+              "face areas to 1e-9 (`tests/test_fluid_cells.py`).", ""]
     return "\n".join(lines)
 
 
 def update_accuracy_doc(section: str, path: Path = ROOT / "docs" / "accuracy.md") -> None:
-    """Replace (or append) only the fluid subsection of docs/accuracy.md."""
-    text = path.read_text()
-    if BEGIN in text and END in text:
-        a, b = text.index(BEGIN), text.index(END) + len(END)
-        text = text[:a] + section.rstrip("\n") + text[b:]
-    else:
-        text = text.rstrip("\n") + "\n\n" + section
-    path.write_text(text)
+    """Replace (or append) only the fluid section of docs/accuracy.md (kept by bench/accuracy.py's rewrite)."""
+    from bench.accuracy_text import replace_section
+
+    path.write_text(replace_section(path.read_text(), HEADING, section[len(HEADING):]))
 
 
 def main(argv=None):

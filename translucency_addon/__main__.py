@@ -8,7 +8,7 @@
                                       (--material NAME | --sigma-a R,G,B --sigma-s R,G,B --eta X)
                                       [--env R,G,B] [--sun DX,DY,DZ:E] [--point X,Y,Z:W]
                                       [--surface MESH.obj --surface-out L.npy] [--stats STATS.json]
-    python -m translucency_addon solve CACHE.npz -o OUT.npy
+    python -m translucency_addon solve CACHE.npz -o OUT.npy [--deformed POSED.obj]
                                       [--material marble | --sigma-a R,G,B --sigma-s R,G,B --eta X]
                                       [--env R,G,B] [--sun DX,DY,DZ:E] [--point X,Y,Z:W]
                                       [--camera X,Y,Z] [--no-single-scattering] [--ss-output SS.npy]
@@ -116,6 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-single-scattering", action="store_true",
                    help="leave out the single-scattering term even when the cache holds it")
     s.add_argument("--ss-output", default=None, help="also write the single-scattering term alone (.npy)")
+    s.add_argument("--deformed", default=None, metavar="POSED.obj",
+                   help="solve on the baked graph deformed to this pose (the baked mesh's vertices, same count "
+                        "and order; Wang et al. sec. 6.4) instead of re-baking; radiance at the posed vertices")
 
     _fluid_parser(sub)
 
@@ -260,6 +263,17 @@ def cmd_solve(a) -> int:
         spec = field_spec_from_args(a, bake.mesh_vertices)
         field_values = [evaluate_field(spec, lv.position) for lv in bake.levels]
     lights, env = lights_from_args(a)
+    deformation = None
+    if a.deformed:  # after the field: the material stays attached to the rest pose
+        from .deformation import deform_from_obj
+
+        pose = deform_from_obj(bake, a.deformed)
+        deformation = {"worst_link_stretch": pose.report.worst_stretch, "inverted_tets": pose.report.inverted_tets,
+                       "seconds": pose.seconds}
+        print(pose.report.describe(), file=sys.stderr)
+        if bake.single_scattering is not None and not a.no_single_scattering:
+            print("warning: single scattering is baked in the rest pose and not deformed; left out", file=sys.stderr)
+        bake = pose.bake
     solver = DiffusionSolver(bake, material, field_values, SolveOptions(solver=a.solver, tol=a.tol))
     t1 = time.perf_counter()
     result, _ = solver.solve_interreflected(lights, env, shadows=not a.no_shadows)  # = solve() without sky data
@@ -289,6 +303,7 @@ def cmd_solve(a) -> int:
             else "the cache holds no single-scattering data (bake with --single-scattering)"},
         "radiance_mean": L.mean(axis=0).tolist(),
         "n_vertices": int(len(L)),
+        "deformation": deformation,
     }
     if a.stats:
         with open(a.stats, "w", encoding="utf-8") as fh:

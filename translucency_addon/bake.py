@@ -139,6 +139,7 @@ class Bake:
     stats: dict = field(default_factory=dict)
     single_scattering: object | None = None  # single_scattering data, when baked
     sky: object | None = None  # sky_visibility.SkyVisibility, when baked (environment self-occlusion)
+    surface_bvh: object | None = None  # a prebuilt raycast.TriangleBVH of the mesh (a deformed bake's, refitted)
 
     @property
     def finest(self) -> GraphLevel:

@@ -24,7 +24,8 @@ from .bake import Bake, BakeSettings
 from .errors import CacheError
 from .quadgraph import GraphLevel
 
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2  # 2: each level's tetrahedral mesh (deformation.py) is stored too
+READABLE_FORMATS = (1, 2)  # a format-1 cache still solves; deforming it asks for a re-bake
 MAGIC = "translucency-cache"
 
 
@@ -123,10 +124,10 @@ def _meta(z, path) -> dict:
         raise CacheError(f"bake cache {path!r} is corrupt or truncated: {exc}") from exc
     if meta.get("magic") != MAGIC:
         raise CacheError(f"{path!r} is not a Translucency bake cache")
-    if meta.get("format") != CACHE_FORMAT:
+    if meta.get("format") not in READABLE_FORMATS:
         raise CacheError(
             f"bake cache {path!r} has format version {meta.get('format')}, this version reads "
-            f"{CACHE_FORMAT}; re-bake the object"
+            f"{', '.join(str(f) for f in READABLE_FORMATS)}; re-bake the object"
         )
     return meta
 
@@ -190,6 +191,11 @@ def _check_consistency(bake: Bake, path) -> None:
         for name in ("position", "edge_length", "face_area", "volume", "normal", "area"):
             if not np.all(np.isfinite(getattr(lv, name))):
                 raise CacheError(f"bake cache {os.fspath(path)!r}: level {i} {name} contains NaN or Inf")
+        if (lv.tets is None) != (lv.tet_vertices is None) or lv.tets is not None and not (
+                lv.tets.shape == (lv.n_inner, 4) and lv.tet_vertices.ndim == 2 and lv.tet_vertices.shape[1] == 3
+                and lv.tets.min() >= 0 and lv.tets.max() < len(lv.tet_vertices)
+                and np.all(np.isfinite(lv.tet_vertices))):
+            raise CacheError(f"bake cache {os.fspath(path)!r}: level {i} tetrahedral mesh does not match its graph")
     idx, w = bake.vertex_map
     if len(idx) != len(bake.mesh_vertices) or (idx.size and idx.max() >= bake.levels[-1].n_surface):
         raise CacheError(f"bake cache {os.fspath(path)!r}: vertex mapping does not match the mesh")

@@ -186,7 +186,7 @@ class DiffusionSolver:
         self.options = options or SolveOptions()
         if self.options.solver not in SOLVERS:
             raise TranslucencyError(f"unknown solver {self.options.solver!r}; choose one of {', '.join(SOLVERS)}")
-        self._shadow_bvh = None
+        self._shadow_bvh = bake.surface_bvh  # None: built on the first shadow ray
         self.warnings: list[str] = []  # of the latest light pass (incident)
         self.set_material(material, field_values)
 

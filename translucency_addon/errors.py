@@ -40,3 +40,18 @@ class GPUUnavailable(TranslucencyError):
 
 class GraphTooLarge(TranslucencyError):
     """The QuadGraph does not fit the GPU's texture limits."""
+
+
+class DeformationError(TranslucencyError):
+    """A pose the baked graph cannot follow: vertex count changed, NaN vertices, a collapsed object."""
+
+
+class GraphFolded(DeformationError):
+    """A deformation inverts tetrahedra or links of the baked graph, or stretches a link too far.
+
+    ``report`` is the :class:`~.deformation.DeformationReport` of the refused pose.
+    """
+
+    def __init__(self, message: str, report=None):
+        super().__init__(message)
+        self.report = report

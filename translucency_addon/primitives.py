@@ -52,26 +52,29 @@ def uv_sphere(radius: float = 1.0, n_lat: int = 24, n_lon: int = 48, center=(0.0
     return V * radius + np.asarray(center, dtype=np.float64), np.asarray(F, dtype=np.int64)
 
 
-def box(size=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0), subdivisions: int = 0, n: int | None = None):
-    """Axis-aligned box, each face split into n x n quads (n = 2^subdivisions unless given).
+def box(size=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0), subdivisions: int = 0, n=None):
+    """Axis-aligned box, each face split into quads: n x n (n = 2^subdivisions unless given), or
+    ``n = (nx, ny, nz)`` divisions along each axis (a bar with square-ish triangles).
 
     Shared vertices are merged; vertices are sorted lexicographically (np.unique).
     """
-    n = 2**subdivisions if n is None else int(n)
-    if n < 1:
+    n = 2**subdivisions if n is None else n
+    ns = np.broadcast_to(np.asarray(n, dtype=np.int64), (3,))
+    if np.any(ns < 1):
         raise ValueError(f"a box face needs at least 1 division, got {n}")
-    g = np.linspace(-0.5, 0.5, n + 1)
+    grids = [np.linspace(-0.5, 0.5, int(k) + 1) for k in ns]
     Vs, Fs = [], []
     off = 0
     for axis in range(3):
         for sign in (-1.0, 1.0):
             u, v = [a for a in range(3) if a != axis]
-            U, W = np.meshgrid(g, g, indexing="ij")
-            P = np.zeros((n + 1, n + 1, 3))
+            U, W = np.meshgrid(grids[u], grids[v], indexing="ij")
+            nu, nv = U.shape
+            P = np.zeros((nu, nv, 3))
             P[..., axis] = 0.5 * sign
             P[..., u] = U
             P[..., v] = W
-            idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1) + off
+            idx = np.arange(nu * nv).reshape(nu, nv) + off
             a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
             tris = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
             # Orient outward: normal of (a,b,c) is u x v = +axis direction for even permutations.
@@ -80,11 +83,11 @@ def box(size=(1.0, 1.0, 1.0), center=(0.0, 0.0, 0.0), subdivisions: int = 0, n: 
                 tris = tris[:, [0, 2, 1]]
             Vs.append(P.reshape(-1, 3))
             Fs.append(tris)
-            off += (n + 1) ** 2
+            off += nu * nv
     V = np.concatenate(Vs)
     F = np.concatenate(Fs)
     # Merge the duplicated edge vertices (keyed on the unit-box lattice: exact for any n).
-    key = np.round(V * 2 * n).astype(np.int64)
+    key = np.round(V * 2 * ns).astype(np.int64)
     _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
     V = V[first] * np.asarray(size, dtype=np.float64) + np.asarray(center, dtype=np.float64)
     return V, inv.reshape(-1)[F]
@@ -174,3 +177,67 @@ def union_surface(V, F, edge_length: float):
     tris[~outward] = tris[~outward][:, [0, 2, 1]]
     used, inverse = np.unique(tris, return_inverse=True)
     return TV[used], inverse.reshape(-1, 3)
+
+
+# -- procedural poses (deformations of a mesh's vertices, same count and order) ---------------------
+def _smoothstep(x):
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def rotation(axis, degrees: float) -> np.ndarray:
+    """3x3 rotation matrix about ``axis`` (Rodrigues)."""
+    k = np.asarray(axis, dtype=np.float64)
+    k = k / np.linalg.norm(k)
+    a = np.deg2rad(degrees)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * K @ K
+
+
+def bend(V, degrees: float, joint=(0.0, 0.0, 0.0), along: int = 0, axis=(0.0, 1.0, 0.0), blend: float = 0.5,
+         preserve_volume: bool = True):
+    """Two bones meeting at ``joint``, the second turned by ``degrees`` about ``axis``, with the
+    weight w of the second rising smoothly from 0 to 1 over ``joint -+ blend`` along the
+    coordinate ``along`` (an armature with automatic weights).
+
+    ``preserve_volume`` (Blender's armature option of that name, dual-quaternion skinning):
+    a point turns by w x degrees about the joint, so the bend is a smooth arc; without it,
+    linear blend skinning mixes the two bones' positions, which pinches the inside of the
+    joint (its width falls to cos(degrees / 2) at w = 1/2).
+    """
+    V = np.asarray(V, dtype=np.float64)
+    j = np.asarray(joint, dtype=np.float64)
+    w = _smoothstep((V[:, along] - j[along] + blend) / (2.0 * blend))
+    if not preserve_volume:
+        turned = (V - j) @ rotation(axis, degrees).T + j
+        return (1.0 - w[:, None]) * V + w[:, None] * turned
+    k = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    a = np.deg2rad(degrees) * w[:, None]
+    p = V - j
+    return j + p * np.cos(a) + np.cross(k, p) * np.sin(a) + np.outer(p @ k, k) * (1.0 - np.cos(a))
+
+
+def twist(V, degrees: float, along: int = 2):
+    """Twist about the axis ``along`` through the bounding-box centre: 0 at the lowest vertex,
+    ``degrees`` at the highest, linear in between."""
+    V = np.asarray(V, dtype=np.float64)
+    lo, hi = V[:, along].min(), V[:, along].max()
+    c = 0.5 * (V.min(axis=0) + V.max(axis=0))
+    t = (V[:, along] - lo) / max(hi - lo, 1e-300)
+    e = np.eye(3)[along]
+    a = np.deg2rad(degrees) * t[:, None]
+    p = V - c
+    return c + p * np.cos(a) + np.cross(e, p) * np.sin(a) + np.outer(p @ e, e) * (1.0 - np.cos(a))
+
+
+def squash(V, factor: float = 0.7, along: int = 2, bulge: float = 0.25):
+    """Squash to ``factor`` of the height along ``along`` (the lowest point stays), bulging out
+    sideways by up to ``bulge`` at mid-height (a shape key's squash-and-stretch; not affine)."""
+    V = np.asarray(V, dtype=np.float64)
+    lo, hi = V[:, along].min(), V[:, along].max()
+    c = 0.5 * (V.min(axis=0) + V.max(axis=0))
+    t = (V[:, along] - lo) / max(hi - lo, 1e-300)
+    side = 1.0 + bulge * 4.0 * t * (1.0 - t)
+    out = c + (V - c) * side[:, None]
+    out[:, along] = lo + factor * (V[:, along] - lo)
+    return out

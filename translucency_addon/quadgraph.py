@@ -45,8 +45,14 @@ class GraphLevel:
     area: np.ndarray  # (n_surface,) area weight of surface nodes (boundary face area), units^2
     block_size: int = BLOCK_SIZE
     stats: dict = field(default_factory=dict)
+    # The tetrahedral mesh the level is the dual of (what a deformation moves, deformation.py):
+    # its vertices (object units) and, per inner node in node order, its tet (column k lies
+    # opposite link slot k).  None in caches written before it was stored (format 1).
+    tet_vertices: np.ndarray | None = None  # (n_tet_vertices, 3)
+    tets: np.ndarray | None = None  # (n_inner, 4) int32
 
     ARRAYS = ("position", "neighbors", "edge_length", "face_area", "volume", "normal", "area")
+    TET_ARRAYS = ("tet_vertices", "tets")
 
     @property
     def n_nodes(self) -> int:
@@ -74,6 +80,7 @@ class GraphLevel:
 
     def to_arrays(self, prefix: str) -> dict:
         d = {prefix + a: getattr(self, a) for a in self.ARRAYS}
+        d.update({prefix + a: getattr(self, a) for a in self.TET_ARRAYS if getattr(self, a) is not None})
         d[prefix + "counts"] = np.array([self.n_inner, self.n_surface, self.block_size], dtype=np.int64)
         return d
 
@@ -81,6 +88,7 @@ class GraphLevel:
     def from_arrays(cls, d, prefix: str, stats: dict | None = None) -> "GraphLevel":
         n_inner, n_surface, block = (int(x) for x in d[prefix + "counts"])
         kw = {a: np.asarray(d[prefix + a]) for a in cls.ARRAYS}
+        kw.update({a: np.asarray(d[prefix + a]) for a in cls.TET_ARRAYS if prefix + a in d})
         return cls(n_inner=n_inner, n_surface=n_surface, block_size=block, stats=stats or {}, **kw)
 
 
@@ -95,6 +103,30 @@ def _face_geometry(TV, TT, t, k):
     flip = np.einsum("ij,ij->i", nrm, opposite - c) > 0
     nrm[flip] *= -1.0
     return c, area, nrm
+
+
+def tet_face_vectors(TV, TT) -> np.ndarray:
+    """(T, 4, 3): for face k (opposite vertex k, vertices in ``FACE_VERTS`` order) of every tet, the
+    cross product of its edges; its length is twice the face area."""
+    p0, p1, p2, p3 = (TV[TT[:, k]] for k in range(4))
+    e01, e02, e03 = p1 - p0, p2 - p0, p3 - p0
+    out = np.empty((len(TT), 4, 3))
+    out[:, 0] = np.cross(p2 - p1, p3 - p1)  # the same differences as (tri[1] - tri[0]) x (tri[2] - tri[0])
+    out[:, 1] = np.cross(e02, e03)
+    out[:, 2] = np.cross(e01, e03)
+    out[:, 3] = np.cross(e01, e02)
+    return out
+
+
+def tet_face_areas(TV, TT) -> np.ndarray:
+    """(T, 4) area of face k (opposite vertex k) of every tet: the A_ij of its links."""
+    return 0.5 * np.linalg.norm(tet_face_vectors(TV, TT), axis=2)
+
+
+def link_lengths(position, neighbors) -> np.ndarray:
+    """(N, K) link lengths d_ij between node positions, 0 where a slot is empty."""
+    has = neighbors >= 0
+    return np.where(has, np.linalg.norm(position[:, None, :] - position[np.maximum(neighbors, 0)], axis=2), 0.0)
 
 
 def greedy_bfs_blocks(adjacency, n: int, block: int, seed_order=None) -> np.ndarray:
@@ -260,12 +292,9 @@ def build_level(TV, TT, surface_bvh, vertex_normals, *, relax_iterations: int = 
     centroid = TV[TT].mean(axis=1)
     bt, bk = np.nonzero(topo.neighbor < 0)
     S = len(bt)
-    # Face areas for every (tet, face) slot.
-    all_t = np.repeat(np.arange(T), 4)
-    all_k = np.tile(np.arange(4), T)
-    _, all_area, _ = _face_geometry(TV, TT, all_t, all_k)
-    face_area_tet = all_area.reshape(T, 4)
-    fc, farea, fnrm = _face_geometry(TV, TT, bt, bk)
+    face_area_tet = tet_face_areas(TV, TT)
+    fc, _, fnrm = _face_geometry(TV, TT, bt, bk)
+    farea = face_area_tet[bt, bk]
 
     inner_pos = relax_inner_nodes(TV, TT, centroid, topo.neighbor, relax_iterations)
     # Local size, used to bound fallbacks: twice the longest edge of the boundary face.
@@ -313,7 +342,7 @@ def build_level(TV, TT, surface_bvh, vertex_normals, *, relax_iterations: int = 
     face_area[inner_new] = face_area_tet
     face_area[T + surf_new, 0] = farea
     has = neighbors >= 0
-    edge_length = np.where(has, np.linalg.norm(position[:, None, :] - position[np.maximum(neighbors, 0)], axis=2), 0.0)
+    edge_length = link_lengths(position, neighbors)
     volume = np.empty(T)
     volume[inner_new] = vol
     normal = np.empty((S, 3))
@@ -331,7 +360,8 @@ def build_level(TV, TT, surface_bvh, vertex_normals, *, relax_iterations: int = 
     )
     level = GraphLevel(n_inner=T, n_surface=S, position=position, neighbors=neighbors,
                        edge_length=edge_length, face_area=face_area, volume=volume, normal=normal,
-                       area=area, block_size=block_size, stats=stats)
+                       area=area, block_size=block_size, stats=stats,
+                       tet_vertices=np.asarray(TV, dtype=np.float64), tets=TT[inner_order].astype(np.int32))
     return level
 
 
