@@ -74,8 +74,10 @@ class SolverInput(Protocol):
     ``mm_per_unit``, the surface the light pass and the output use --
     ``mesh_vertices``/``mesh_faces`` (shadow rays and the inside test of
     lights, unless the solver overrides ``shadow_bvh``/``lights_inside``),
-    ``mesh_normals`` and ``vertex_map`` (``vertex_radiance``) -- and ``sky``
-    (sky visibility or None).
+    ``mesh_normals`` and ``vertex_map`` (``vertex_radiance``) -- ``sky``
+    (sky visibility or None) and ``surface_bvh`` (a prebuilt
+    :class:`.raycast.TriangleBVH` of the mesh, e.g. a deformed bake's refitted
+    one, or None to build it on the first shadow ray).
     """
 
     levels: list
@@ -86,6 +88,7 @@ class SolverInput(Protocol):
     mesh_normals: np.ndarray
     vertex_map: tuple
     sky: object
+    surface_bvh: object
 
 
 def check_graph(graph: DiffusionGraph, name: str = "graph") -> None:

@@ -71,6 +71,7 @@ class FluidFrame:
     mesh_faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
     shepard: list = field(default_factory=list)
     sky: object = None
+    surface_bvh: object = None  # the fluid's shadow rays go to its BallOccluder, not a mesh BVH
 
 
 class FluidDiffusionSolver(DiffusionSolver):
