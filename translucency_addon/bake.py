@@ -139,6 +139,7 @@ class Bake:
     stats: dict = field(default_factory=dict)
     single_scattering: object | None = None  # single_scattering data, when baked
     sky: object | None = None  # sky_visibility.SkyVisibility, when baked (environment self-occlusion)
+    voxel_number_map: object | None = None  # voxel_number_map.VoxelNumberMap, when baked (inner parts)
 
     @property
     def finest(self) -> GraphLevel:
