@@ -285,7 +285,7 @@ def bake_voxel_number_map(composite, settings: VNMSettings | None = None, *, mm_
 
     t0 = time.perf_counter()
     stage("surface", 0.1)
-    surf = extract_surface_voxels(V, F, vol.origin, vol.h, vol.shape)
+    surf = extract_surface_voxels(V, F, vol.origin, vol.h, vol.shape, bvh=bvh)
     comp = extend_into_surface_voxels(vol.components, vol.blocked, surf, vol.origin, vol.h)
     times["surface"] = time.perf_counter() - t0
     C = comp.shape[3]

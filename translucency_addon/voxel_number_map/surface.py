@@ -72,8 +72,14 @@ def surface_samples(V, F, spacing: float):
     return np.concatenate(pts), np.concatenate(ars), np.concatenate(tri)
 
 
-def extract_surface_voxels(V, F, origin, h: float, shape) -> SurfaceVoxels:
-    """Number the voxels the mesh passes through, with their patch area, centroid and normal."""
+def extract_surface_voxels(V, F, origin, h: float, shape, bvh=None) -> SurfaceVoxels:
+    """Number the voxels the mesh passes through, with their patch area, centroid and normal.
+
+    With ``bvh`` (of the same mesh) the centroids are moved onto the surface
+    (the closest point): a curved patch's centroid lies inside the object by
+    its sagitta, where a shadow ray towards the light would hit the patch's own
+    surface and a chord would start short of the boundary.
+    """
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     pts, ars, tri = surface_samples(V, F, h / 3.0)
@@ -93,7 +99,10 @@ def extract_surface_voxels(V, F, origin, h: float, shape) -> SurfaceVoxels:
     ln = np.linalg.norm(nrm, axis=1, keepdims=True)
     nrm = np.where(ln > 0, nrm / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0]))
     keep = area > 0
-    return SurfaceVoxels(voxel=voxel[keep], position=pos[keep], normal=nrm[keep], area=area[keep])
+    pos = pos[keep]
+    if bvh is not None:
+        pos = bvh.closest_point(pos)[0]
+    return SurfaceVoxels(voxel=voxel[keep], position=pos, normal=nrm[keep], area=area[keep])
 
 
 def extend_into_surface_voxels(components: np.ndarray, blocked: np.ndarray, surf: SurfaceVoxels,
