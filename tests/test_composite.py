@@ -106,7 +106,7 @@ def test_bad_part_meshes_and_roles():
         CompositeObject(*BOX, THIN, [InnerPart("f", *primitives.box((0.5, 0.5, 0.0), n=2), "cavity")])
     with pytest.raises(TranslucencyError, match="two roles .cavity as 'x' and opaque as 'y'"):
         CompositeObject(*BOX, THIN, [InnerPart("x", V, F, "cavity"), InnerPart("y", V, F, "opaque")])
-    with pytest.raises(TranslucencyError, match="listed twice"):
+    with pytest.raises(TranslucencyError, match="two inner parts are named .x."):
         CompositeObject(*BOX, THIN, [InnerPart("x", V, F, "cavity"), InnerPart("x", *sphere(0.2), "opaque")])
     with pytest.raises(TranslucencyError, match="two roles: cavity and the medium 'marble'"):
         InnerPart("x", V, F, "cavity", preset("marble"))

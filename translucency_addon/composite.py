@@ -140,13 +140,6 @@ class CompositeObject:
         for p in self.parts:
             if not isinstance(p, InnerPart):
                 raise TranslucencyError(f"inner parts must be InnerPart, got {type(p).__name__}")
-            if p.name in names:
-                raise TranslucencyError(f"inner part {p.name!r} is listed twice; each part once, with one role")
-            names.add(p.name)
-            try:
-                validate_mesh(np.asarray(p.V), np.asarray(p.F))
-            except MeshError as exc:
-                raise MeshError(f"inner part {p.name!r}: {exc}") from None
             key = p.geometry_hash()
             if key in seen:
                 other = seen[key]
@@ -155,6 +148,13 @@ class CompositeObject:
                 raise TranslucencyError(f"the same mesh is given {what}: a part is one medium, a cavity or "
                                         "opaque; remove one of them")
             seen[key] = p
+            if p.name in names:
+                raise TranslucencyError(f"two inner parts are named {p.name!r}; give each part its own name")
+            names.add(p.name)
+            try:
+                validate_mesh(np.asarray(p.V), np.asarray(p.F))
+            except MeshError as exc:
+                raise MeshError(f"inner part {p.name!r}: {exc}") from None
         if self.material.heterogeneous and self.field is None:
             raise MaterialError("the outer material mixes two media and needs a field to mix them")
 
@@ -249,12 +249,14 @@ class VoxelLabels:
 
 
 def label_voxels(outer_inside: np.ndarray, part_inside: list, parts, h_mm: float | None = None,
-                 warnings=None) -> VoxelLabels:
+                 warnings=None, walls: bool = True) -> VoxelLabels:
     """Resolve nesting, touching, overlap and clipping into one label per voxel (module docstring).
 
     ``outer_inside``: bool grid, voxel centres inside the outer mesh;
     ``part_inside[k]``: the same for inner part ``parts[k]``;
     ``warnings``: those of :func:`check_parts_against_outer` (kept first).
+    ``walls``: refuse a cavity without a voxel of wall to the outside (what
+    the Voxel Number Map needs; a QuadGraph resolves thinner walls).
     Raises :class:`~.errors.MeshError` for the refused cases.
     """
     from scipy.ndimage import binary_dilation, binary_erosion
@@ -324,7 +326,7 @@ def label_voxels(outer_inside: np.ndarray, part_inside: list, parts, h_mm: float
                                                           [[0, 1, 0], [1, 1, 1], [0, 1, 0]],
                                                           [[0, 0, 0], [0, 1, 0], [0, 0, 0]]], dtype=bool))
     for k, p in enumerate(parts):
-        if p.role != "cavity":
+        if p.role != "cavity" or not walls:
             continue
         touching = int(((label == 2 + k) & outside_grown).sum())
         if touching:

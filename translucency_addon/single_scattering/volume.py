@@ -280,7 +280,7 @@ def _coefficients(material, field, pts):
 
 
 def voxelise_composite(composite, *, resolution=48, mm_per_unit: float = 1.0, bvh=None,
-                       fine: bool = False) -> VoxelVolume:
+                       fine: bool = False, walls: bool = True) -> VoxelVolume:
     """Voxelise a :class:`~translucency_addon.composite.CompositeObject`: the outer mesh and its inner parts.
 
     Every voxel gets the coefficients of the part it lies in (nesting, touching
@@ -291,7 +291,8 @@ def voxelise_composite(composite, *, resolution=48, mm_per_unit: float = 1.0, bv
     weight of each homogeneous component medium (the outer material's one or
     two media, then each medium part), so ``sigma_t = sum_c w_c sigma_t,c``:
     a quantity linear in the coefficients (an optical depth) can be baked once
-    per component and weighted by coefficients chosen later.
+    per component and weighted by coefficients chosen later.  ``walls``: see
+    :func:`~translucency_addon.composite.label_voxels`.
     """
     from ..composite import check_parts_against_outer, label_voxels
     from ..raycast import TriangleBVH
@@ -308,7 +309,7 @@ def voxelise_composite(composite, *, resolution=48, mm_per_unit: float = 1.0, bv
     part_bvhs = [TriangleBVH(np.asarray(p.V, dtype=np.float64), np.asarray(p.F, dtype=np.int64))
                  for p in composite.parts]
     part_inside = [column_inside(b, origin, h, shape) for b in part_bvhs]
-    labels = label_voxels(outer, part_inside, composite.parts, h_mm=h * mm_per_unit, warnings=warnings)
+    labels = label_voxels(outer, part_inside, composite.parts, h_mm=h * mm_per_unit, warnings=warnings, walls=walls)
     lab = labels.label
     mat = composite.material
     names = [mat.medium_a.name] + ([mat.medium_b.name] if mat.heterogeneous else [])
