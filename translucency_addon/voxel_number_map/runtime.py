@@ -140,9 +140,10 @@ class VoxelNumberMapEvaluator:
             mu_l = np.where(lit, np.clip(mu, 0.0, 1.0), 0.0)
             fl = E * np.where(lit, fresnel_transmittance(mu_l, self.eta), 0.0)[:, None]
             E_in += fl * mu_l[:, None]
-            fl = fl * self.kernel.clamp(mu_l)
+            rho = self.kernel.rho_at(mu_l)
+            fl = fl * self.kernel.clamp(mu_l, rho)
             phi += fl
-            local += fl * self.kernel.rho_at(mu_l)
+            local += fl * rho
         if environment is not None and not environment.is_black and self.env_phi is not None:
             L = environment.radiance_at(self.vnm.env_directions)  # (D, 3)
             for c in range(3):

@@ -83,15 +83,18 @@ def extract_surface_voxels(V, F, origin, h: float, shape, bvh=None) -> SurfaceVo
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     pts, ars, tri = surface_samples(V, F, h / 3.0)
-    shape = np.asarray(shape)
-    ijk = np.clip(np.floor((pts - np.asarray(origin)) / h).astype(np.int64), 0, shape - 1)
-    flat = np.ravel_multi_index(ijk.T, tuple(shape))
-    voxel, inv = np.unique(flat, return_inverse=True)
-    n = len(voxel)
     e1 = V[F[:, 1]] - V[F[:, 0]]
     e2 = V[F[:, 2]] - V[F[:, 0]]
     fn = np.cross(e1, e2)
     fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+    shape = np.asarray(shape)
+    # A face lying exactly on a voxel boundary (an axis-aligned box on the bbox-aligned grid) would split its
+    # samples between the voxels on both sides by round-off: each sample goes to the voxel just inside it.
+    inward = pts - (1e-4 * h) * fn[tri]
+    ijk = np.clip(np.floor((inward - np.asarray(origin)) / h).astype(np.int64), 0, shape - 1)
+    flat = np.ravel_multi_index(ijk.T, tuple(shape))
+    voxel, inv = np.unique(flat, return_inverse=True)
+    n = len(voxel)
     area = np.bincount(inv, weights=ars, minlength=n)
     pos = np.stack([np.bincount(inv, weights=ars * pts[:, c], minlength=n) for c in range(3)], axis=1)
     nrm = np.stack([np.bincount(inv, weights=ars * fn[tri, c], minlength=n) for c in range(3)], axis=1)

@@ -179,10 +179,12 @@ class PreparedKernel:
         below = np.clip(mu / nodes[0], 0.0, 1.0)  # rho ~ mu as mu -> 0
         return np.where((mu < nodes[0])[..., None], self.rho[rows, 0] * below[..., None], r)
 
-    def clamp(self, mu: np.ndarray) -> np.ndarray:
-        """``min(1, mu / (s + rho(mu)))`` per voxel and channel: the power a voxel returns <= what it took in."""
+    def clamp(self, mu: np.ndarray, rho=None) -> np.ndarray:
+        """``min(1, mu / (s + rho(mu)))`` per voxel and channel: the power a voxel returns <= what it took in.
+
+        ``rho``: :meth:`rho_at` of the same ``mu``, when the caller has it already."""
         mu = np.asarray(mu, dtype=np.float64)
-        out = self.s.reshape((self.n,) + (1,) * (mu.ndim - 1) + (3,)) + self.rho_at(mu)
+        out = self.s.reshape((self.n,) + (1,) * (mu.ndim - 1) + (3,)) + (self.rho_at(mu) if rho is None else rho)
         return np.minimum(1.0, np.divide(mu[..., None], out, out=np.ones_like(out), where=out > 0))
 
     def product(self, x: np.ndarray) -> np.ndarray:
@@ -246,5 +248,6 @@ def environment_weights(kern: PreparedKernel, normals, visible, directions, eta:
     c = np.divide(np.pi * (1.0 - diffuse_reflectance_external(eta)), quad, out=np.zeros_like(quad), where=quad > 0)
     w = c[:, None] * (4.0 * np.pi / len(dirs)) * ft * np.asarray(visible, dtype=np.float64)
     mu_c = np.clip(mu, 0.0, 1.0)
-    phi = w[..., None] * kern.clamp(mu_c)
-    return w, phi, phi * kern.rho_at(mu_c)
+    rho = kern.rho_at(mu_c)
+    phi = w[..., None] * kern.clamp(mu_c, rho)
+    return w, phi, phi * rho
