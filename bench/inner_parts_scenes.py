@@ -6,8 +6,8 @@
 * ``bottle``: a sealed bottle 16 cm tall (glass 4 mm thick, a weakly scattering medium) holding wine
   (absorbing, weakly scattering) to 7 cm, air above it (9,926 vertices; the paper's has 10,604).
 
-Coefficients are per mm.  The single-scattering-dominant medium has albedo 0.33-0.40 and an optical
-thickness of 2-3.6 across the cube; glass and wine are invented (no measured preset exists): a
+Coefficients are per mm.  The single-scattering-dominant medium has albedo 0.18-0.20 and an optical
+thickness of 2.5-3.9 across the cube; glass and wine are invented (no measured preset exists): a
 faintly green glass that scatters 0.02/mm, a red wine that absorbs green and blue.
 """
 
@@ -19,7 +19,7 @@ from translucency_addon import primitives
 from translucency_addon.composite import CompositeObject, InnerPart
 from translucency_addon.materials import Material, Medium, preset
 
-SS_MEDIUM = Medium((0.06, 0.08, 0.12), (0.04, 0.05, 0.06), "single-scattering")
+SS_MEDIUM = Medium((0.10, 0.12, 0.16), (0.025, 0.03, 0.035), "single-scattering")
 GLASS = Medium((0.004, 0.001, 0.004), (0.02, 0.02, 0.02), "glass")
 WINE = Medium((0.02, 0.35, 0.30), (0.05, 0.05, 0.05), "wine")
 GLASS_ETA = 1.5

@@ -197,6 +197,8 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
     response itself, which a solve of the full q would swamp).  The result is
     the first solution plus the response, on the finest level.
     ``info``: ``{"solves", "seconds", "residual", "exchange_power"}``.
+    ``warm_start``: a previous result of this function (the last frame): the
+    exchange then starts from its wall q and follows it (:func:`_follow`).
     Without an exchange (no cavity) this is one :meth:`DiffusionSolver.solve`.
     """
     import scipy.sparse.linalg as spla
@@ -211,7 +213,10 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
     op = exchange.operator(solver.eta)
     m = exchange.m
     levels = solver.bake.levels
-    state = {"last": None, "solves": 1}
+    # a previous frame's exchange starts this one: its response solve and its wall q (GMRES's first guess)
+    prev_resp = getattr(warm_start, "cavity_response", None)
+    prev_q = getattr(warm_start, "cavity_q", None)
+    state = {"last": prev_resp, "solves": 1}
     kw = {k: v for k, v in kw.items() if k not in ("q", "bounce")}
 
     def response(v):
@@ -223,6 +228,8 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
         state["solves"] += 1
         return res
 
+    if prev_q is not None and np.shape(prev_q) == (m, 3):
+        return _follow(solver, exchange, first, np.asarray(prev_q, dtype=np.float64), op, tol, max_solves, t0, kw)
     jp0 = wall_partial_current(solver, first, nodes)
     b = op @ jp0
 
@@ -233,7 +240,8 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
 
     scale = max(float(np.abs(b).max()), 1e-300)
     A = spla.LinearOperator((3 * m, 3 * m), matvec=matvec, dtype=np.float64)
-    x, code = spla.gmres(A, b.ravel() / scale, rtol=tol, atol=0.0, restart=max_solves, maxiter=1)
+    x0 = None if prev_q is None or np.shape(prev_q) != (m, 3) else np.asarray(prev_q).ravel() / scale
+    x, code = spla.gmres(A, b.ravel() / scale, x0=x0, rtol=tol, atol=0.0, restart=max_solves, maxiter=1)
     q_cav = x.reshape(m, 3) * scale
     resp = response(q_cav)
     phi = list(first.phi)
@@ -248,4 +256,36 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
             "exchange_power": {k: v.tolist() for k, v in exchange_power(solver, final, exchange).items()},
             "wall_nodes": m}
     final.seconds["cavity_exchange"] = info["seconds"]
+    final.cavity_response, final.cavity_q = resp, q_cav
+    return final, info
+
+
+def _follow(solver, exchange, first, q_cav, op, tol, max_solves, t0, kw):
+    """Frame to frame: start from the previous frame's wall q and repeat ``q_cav = op J+(solve(q_ext + q_cav))``,
+    each solve of the whole q warm-started from the last.  A small change of the lights needs a few cheap
+    solves where GMRES would start over; the contraction per step is the wall's return ratio (< 1)."""
+    from .diffusion import SolveResult
+
+    nodes = exchange.nodes
+    q_ext = list(first.q)
+    last, solves, change = first, 1, np.inf
+    scale = max(float(np.abs(q_cav).max()), 1e-300)
+    while solves < max_solves:
+        q = list(q_ext)
+        q[-1] = q_ext[-1].copy()
+        q[-1][nodes] += q_cav
+        last = solver.solve(q=q, warm_start=last, **kw)
+        solves += 1
+        new = op @ wall_partial_current(solver, last, nodes)
+        change = float(np.abs(new - q_cav).max()) / max(float(np.abs(new).max()), scale * 1e-12)
+        q_cav = new
+        if change <= tol:
+            break
+    final = SolveResult(phi=last.phi, q=last.q, level_solves=last.level_solves, seconds=dict(first.seconds),
+                        scheme=last.scheme, warnings=list(first.warnings))
+    info = {"solves": solves, "seconds": time.perf_counter() - t0, "residual": change, "gmres_code": None,
+            "exchange_power": {k: v.tolist() for k, v in exchange_power(solver, final, exchange).items()},
+            "wall_nodes": exchange.m, "mode": "followed the previous frame"}
+    final.seconds["cavity_exchange"] = info["seconds"]
+    final.cavity_response, final.cavity_q = None, q_cav
     return final, info

@@ -105,10 +105,11 @@ class Plan:
     estimated_ms: float = 0.0
     facts: dict = field(default_factory=dict)
     advice: list = field(default_factory=list)  # what a better result would need (panel, CLI)
+    voxel_number_map: PassDecision | None = None  # Mochida et al., when baked (inner parts)
 
     @property
     def passes(self) -> dict:
-        return {p.name: p for p in (self.multiple, self.single) if p is not None}
+        return {p.name: p for p in (self.multiple, self.single, self.voxel_number_map) if p is not None}
 
     def channel_mask(self, name: str) -> np.ndarray:
         p = self.passes.get(name)
@@ -256,16 +257,29 @@ def light_reaching(lights, environment, center, radius_units: float, mm_per_unit
 
 def plan_object(bake, material: Material, lights=(), environment: Environment | None = None, *,
                 field_values=None, has_single_scattering: bool | None = None, in_view: bool = True,
-                enabled: bool = True, overrides: dict | None = None, name: str = "object") -> Plan:
+                enabled: bool = True, overrides: dict | None = None, name: str = "object",
+                has_voxel_number_map: bool | None = None) -> Plan:
     """Decide the passes of one object for this frame (see the module docstring).
 
     ``overrides`` force a pass on or off (``{"single": False}``: single
-    scattering is turned off, so it is not available to replace diffusion).
+    scattering is turned off, so it is not available to replace diffusion;
+    ``{"voxel_number_map": False}`` likewise).
     """
     overrides = overrides or {}
     if has_single_scattering is None:
         has_single_scattering = getattr(bake, "single_scattering", None) is not None
-    ss_available = bool(has_single_scattering) and overrides.get("single") is not False
+    if has_voxel_number_map is None:
+        has_voxel_number_map = getattr(bake, "voxel_number_map", None) is not None
+    ss_real = bool(has_single_scattering) and overrides.get("single") is not False
+    vnm_real = bool(has_voxel_number_map) and overrides.get("voxel_number_map") is not False
+    parts = inner_parts(bake)
+    replacement = replacement_pass(ss_real, vnm_real, parts)
+    # Below, "single scattering" is the pass that replaces diffusion where it is invalid; _split_replacement
+    # hands its decision to the Voxel Number Map when that is the replacement.
+    baked_ss, has_single_scattering = has_single_scattering, bool(has_single_scattering or has_voxel_number_map)
+    ss_available = replacement is not None
+    if material.heterogeneous and isinstance(field_values, (list, tuple)) and getattr(bake, "composite", None):
+        field_values = None  # node labels of an object with inner parts, not a mixing field
     if not enabled:
         return Plan(name, False, "translucency disabled")
     if not in_view:
@@ -420,22 +434,91 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
     single = PassDecision("single", tuple(ss_ch), ss_why, tuple(bound),
                           weights=None if all(np.all(ss_w[:, c] == 1.0) for c in range(3) if ss_ch[c]) else ss_w)
 
-    for p in (multiple, single):
+    single, vnm = _split_replacement(single, replacement, baked_ss, ss_real, bool(has_voxel_number_map), vnm_real,
+                                     parts)
+    if parts:
+        facts["inner_parts"] = parts
+        facts["replacement"] = replacement
+    for p in (multiple, single, vnm):
         force = overrides.get(p.name)
         if force is not None:
             p.channels = (bool(force),) * 3
             p.reasons = [f"{CHANNELS[c]}: forced {'on' if force else 'off'} by the user" for c in range(3)]
             p.forced = True
             p.weights = None
-    if not (multiple.runs or single.runs):
+    if not (multiple.runs or single.runs or vnm.runs):
         return Plan(name, False, _nothing_runs(multiple, single, ss_available), multiple, single, facts=facts,
-                    advice=advice)
+                    advice=advice, voxel_number_map=vnm)
     cost = 0.0
     if multiple.runs:
         cost += 1e-4 * bake.finest.n_nodes * sum(multiple.channels) / 3.0  # ~0.1 us per node-channel sweep x ~50
     if single.runs:
         cost += 5.0
-    return Plan(name, True, "runs", multiple, single, estimated_ms=cost, facts=facts, advice=advice)
+    if vnm.runs:  # the packed kernel read once per frame (~2 GB/s on a CPU core) plus the light pass
+        n = bake.voxel_number_map.n if getattr(bake, "voxel_number_map", None) is not None else 2000
+        cost += 1.0 + 6e-6 * n * n / 2.0
+    return Plan(name, True, "runs", multiple, single, estimated_ms=cost, facts=facts, advice=advice,
+                voxel_number_map=vnm)
+
+
+# What the accuracy bench measured on the paper's scenes (docs/accuracy.md, "Objects with inner parts"):
+# the scattering passes against Mitsuba's scattered light, and their frame time on 2 CPU cores.
+MEASURED_INNER_PARTS = "see docs/accuracy.md, Objects with inner parts"
+
+
+def inner_parts(bake) -> dict:
+    """{role: count} of the bake's inner parts ({} for a plain object)."""
+    comp = getattr(bake, "composite", None)
+    out: dict = {}
+    for role in getattr(comp, "roles", ()) or ():
+        out[role] = out.get(role, 0) + 1
+    return out
+
+
+def replacement_pass(ss_available: bool, vnm_available: bool, parts: dict):
+    """Which pass replaces diffusion where it is invalid: ``"voxel_number_map"``, ``"single"`` or None.
+
+    With inner parts the Voxel Number Map: its chords cross cavities (sigma 0),
+    inner media and opaque parts as they are, in one matrix-vector product per
+    frame.  Without inner parts single scattering (view-dependent ray
+    integration) when it is baked, else the Voxel Number Map when that is.
+    """
+    if vnm_available and (parts or not ss_available):
+        return "voxel_number_map"
+    if ss_available:
+        return "single"
+    return None
+
+
+def _split_replacement(single: PassDecision, replacement, baked_ss: bool, ss_on: bool, baked_vnm: bool, vnm_on: bool,
+                       parts: dict):
+    """The replacement pass's decision goes to single scattering or to the Voxel Number Map; the other says why not."""
+    kinds = ", ".join(f"{n} {r}{'s' if n > 1 and r != 'opaque' else ''}" for r, n in sorted(parts.items()))
+    if replacement == "voxel_number_map":
+        vnm = PassDecision("voxel_number_map", single.channels,
+                           [r.replace("single scattering", "the Voxel Number Map") for r in single.reasons],
+                           single.bound, weights=single.weights)
+        if not baked_ss:
+            why = "not baked"
+        elif not ss_on:
+            why = "turned off"
+        else:
+            why = (f"the Voxel Number Map replaces it: the object has inner parts ({kinds}), which its chords cross "
+                   f"as they are ({MEASURED_INNER_PARTS})")
+        return PassDecision("single", (False,) * 3, [f"{C}: {why}" for C in CHANNELS]), vnm
+    if not baked_vnm:
+        why = "not baked"
+    elif not vnm_on:
+        why = "turned off"
+    elif replacement == "single":
+        why = "single scattering replaces diffusion here (no inner parts)"
+    else:
+        why = "nothing to replace"
+    if replacement is None or not baked_ss and replacement != "single":
+        single = PassDecision("single", (False,) * 3, [f"{C}: not baked" if not baked_ss else f"{C}: turned off"
+                                                       for C in CHANNELS])
+    vnm = PassDecision("voxel_number_map", (False,) * 3, [f"{C}: {why}" for C in CHANNELS])
+    return single, vnm
 
 
 def _nothing_runs(multiple: PassDecision, single: PassDecision, ss_available: bool) -> str:
@@ -458,7 +541,8 @@ def describe_plan(plan: Plan) -> str:
         lines = [f"{plan.object_name}: skipped -- {plan.reason}"]
     else:
         lines = [f"{plan.object_name}: runs (estimated {plan.estimated_ms:.0f} ms per frame)"]
-    for label, p in (("multiple scattering", plan.multiple), ("single scattering", plan.single)):
+    for label, p in (("multiple scattering", plan.multiple), ("single scattering", plan.single),
+                     ("Voxel Number Map", plan.voxel_number_map)):
         if p is None:
             continue
         on = "".join(ch if run else "-" for ch, run in zip(CHANNELS, p.channels))
