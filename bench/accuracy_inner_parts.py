@@ -66,8 +66,20 @@ def full_bottle():
                            [InnerPart("wine", *b["inside"], "medium", S.WINE)]), 10.0
 
 
+def index_matched(make):
+    """The same scene with eta = 1 everywhere: no interface, no internal reflection (a diagnostic)."""
+    from translucency_addon.composite import CompositeObject
+    from translucency_addon.materials import Material
+
+    def build():
+        comp, mm = make()
+        return CompositeObject(comp.V, comp.F, Material(comp.material.medium_a, eta=1.0), comp.parts), mm
+    return build
+
+
 SCENES = {
     "cube_cavity_ss": lambda: S.cube_cavity("single-scattering"),
+    "cube_cavity_ss_eta1": index_matched(lambda: S.cube_cavity("single-scattering")),
     "cube_cavity_marble": lambda: S.cube_cavity("marble"),
     "cube_stone": S.cube_stone,
     "bottle_full": full_bottle,
@@ -84,7 +96,8 @@ def ref_scene(name, comp, mm, quick):
         cam = Camera.orthographic((0.0, 0.0, 0.0), VIEW, up=(0, 0, 1), width=36.0)
         res = (16, 16) if quick else (32, 32)
     spp = 64 if quick else (256 if name == "cube_cavity_marble" else 1024)
-    parts = tuple(RefPart(p.name, p.V, p.F, p.role, p.medium, WINE_ETA if p.role == "medium" else 1.0)
+    eta_part = WINE_ETA if comp.material.eta != 1.0 else 1.0
+    parts = tuple(RefPart(p.name, p.V, p.F, p.role, p.medium, eta_part if p.role == "medium" else 1.0)
                   for p in comp.parts)
     return RefScene(comp.V, comp.F, mm, comp.material, cam, environment=env, resolution=res, spp=spp, name=name,
                     parts=parts)
@@ -233,6 +246,7 @@ def run_diffusion(name, comp, mm, scene, variants):
 
 PASSES = {
     "cube_cavity_ss": ("vnm", "single", "diffusion"),
+    "cube_cavity_ss_eta1": ("vnm", "single"),
     "cube_cavity_marble": ("vnm", "single", "diffusion:solid:no exchange"),
     "cube_stone": ("vnm", "single", "diffusion"),
     "bottle_full": ("vnm", "single"),
@@ -328,10 +342,13 @@ def main(argv=None):
         REF_DIR = ROOT / "bench" / "out" / "reference_inner_parts_quick"
     print(f"load average {os.getloadavg()[0]:.1f}", file=sys.stderr)
     results = [evaluate(n, a.quick, a.refresh) for n in a.scenes.split(",")]
+    if not a.quick:  # a run of some scenes keeps the others' stored results
+        old = {r["scene"]: r for r in json.loads(RESULTS.read_text())} if RESULTS.exists() else {}
+        old.update({r["scene"]: r for r in results})
+        results = [old[n] for n in SCENES if n in old]
+        RESULTS.write_text(json.dumps(results, indent=1, default=float) + "\n")
     text = markdown(results)
     print(text)
-    if not a.quick:
-        RESULTS.write_text(json.dumps(results, indent=1, default=float) + "\n")
     if a.out:
         write(results, Path(a.out))
 

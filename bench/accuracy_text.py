@@ -498,5 +498,10 @@ def write(b, out: Path, img_dir: Path, costs=None):
     link = {k: (rel / v.name).as_posix() for k, v in figs.items()}
     text = render(b, link, costs, head_scene)
     out.parent.mkdir(parents=True, exist_ok=True)
+    # bench/accuracy_inner_parts.py owns a marked section of the same file: keep it
+    old = out.read_text() if out.exists() else ""
+    begin, end = "<!-- BEGIN inner-parts", "<!-- END inner-parts -->"
+    if begin in old and end in old:
+        text = text.rstrip("\n") + "\n\n" + old[old.index(begin):old.index(end) + len(end)] + "\n"
     out.write_text(text)
     return figs

@@ -27,7 +27,6 @@ the LUT does not fit the texture limits; the reason is logged once.
 
 from __future__ import annotations
 
-import logging
 import weakref
 from collections import Counter
 
@@ -35,20 +34,19 @@ import numpy as np
 
 from . import runtime
 from .runtime import KernelSpec
+# The texture rows, the texture limit, the one-message log and the software-rasteriser list are the
+# single-scattering kernel's (same 4096-texel rows).
+from .single_scattering import SOFTWARE_RENDERERS, TEX_W, _log_once, _max_texture_size, pack_rows, rows_for
 
 try:  # installed extension: translucency.gpu_shaders -> translucency.translucency_addon
     from ..translucency_addon import errors
 except ImportError:  # top-level package (repo root on sys.path)
     from translucency_addon import errors
 
-log = logging.getLogger(__name__)
-
-TEX_W = 4096
 LOCAL_X = 64
 MAX_COMPONENTS = 3
 _F = "FLOAT_2D_ARRAY"
 _W = frozenset({"WRITE"})
-SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "software rasterizer", "basic render driver")
 
 runtime.KERNELS.setdefault("vnm_transport", KernelSpec(
     "voxel_number_map.glsl",
@@ -58,30 +56,10 @@ runtime.KERNELS.setdefault("vnm_transport", KernelSpec(
     defines=(("TEX_W", str(TEX_W)),),
     local=(LOCAL_X, 1, 1)))
 
-_LOGGED: set = set()
 _LIVE = weakref.WeakSet()
 
 
-def _log_once(message: str) -> None:
-    if message not in _LOGGED:
-        _LOGGED.add(message)
-        log.warning(message)
-        print(f"Translucency: {message}", flush=True)
-
-
 # ------------------------------------------------------------------ packing (numpy only)
-
-def rows_for(n: int) -> int:
-    return max(1, -(-int(n) // TEX_W))
-
-
-def pack_rows(values: np.ndarray) -> np.ndarray:
-    """(n, 4) float32 rows -> (1, rows, TEX_W, 4), row-major, zero padded."""
-    v = np.asarray(values, dtype=np.float32).reshape(-1, 4)
-    out = np.zeros((rows_for(len(v)) * TEX_W, 4), dtype=np.float32)
-    out[: len(v)] = v
-    return out.reshape(1, -1, TEX_W, 4)
-
 
 def pack_map(vnm) -> dict:
     """The textures uploaded once per map: LUT (fp16-exact values) and voxel geometry (centred)."""
@@ -109,15 +87,6 @@ def pack_coefficients(coef) -> np.ndarray:
     out[:C, :3] = coef.h_mm * np.asarray(coef.sigma_t)
     out[4:4 + C, :3] = coef.h_mm * np.asarray(coef.sigma_s)
     return out.reshape(1, 1, 8, 4)
-
-
-def _max_texture_size() -> int:
-    import gpu
-
-    try:
-        return int(gpu.capabilities.max_texture_size_get())
-    except Exception:  # noqa: BLE001
-        return 16384
 
 
 class GPUTransmission:

@@ -25,7 +25,7 @@ from translucency_addon.cache import load_bake
 from translucency_addon.cavity import exchange_power, solve_with_cavities, wall_partial_current
 from translucency_addon.composite_bake import CompositeMaterial
 from translucency_addon.diffusion import DiffusionSolver, SolveOptions
-from translucency_addon.lights import Light
+from translucency_addon.lights import Environment, Light
 from translucency_addon.materials import Material, Medium
 
 R_CAVITY = 6.0
@@ -93,6 +93,9 @@ def test_the_exchange_returns_the_light_the_wall_loses(cli_bake):
     assert np.allclose(out1 + abs1, in1, rtol=2e-3)  # nothing vanishes into the hollow
     assert np.allclose(out0 + abs0 + lost, in0, rtol=2e-3)  # ... which is what the plain solve loses
     assert np.all(out1 > out0 * 1.001)
+    # a world lights the outer surface only: the walls receive nothing but the exchange
+    res, _ = solve_with_cavities(solver, info.exchange, [], Environment((1.0, 1.0, 1.0)), tol=1e-5)
+    assert np.allclose(res.q[-1][info.exchange.nodes], res.cavity_q) and np.all(res.q[-1][outer] > 0)
 
 
 def test_opaque_part_absorbs_in_the_diffusion(cli_bake):

@@ -62,6 +62,7 @@ class CavityExchange:
     cavity: np.ndarray  # (m,) which cavity (0 .. n_cavities-1)
     K: np.ndarray  # (m, m) float32 form factors, rows normalised per cavity
     names: tuple = ()
+    level_walls: list | None = None  # per level, the wall's surface-node indices (no outside light reaches them)
 
     @property
     def m(self) -> int:
@@ -82,9 +83,22 @@ class CavityExchange:
         return op
 
     def to_arrays(self, prefix: str = "cavity/") -> dict:
-        return {f"{prefix}nodes": self.nodes.astype(np.int64), f"{prefix}cavity": self.cavity.astype(np.int64),
-                f"{prefix}K": self.K.astype(np.float32),
-                f"{prefix}names": np.frombuffer("\n".join(self.names).encode("utf-8"), dtype=np.uint8)}
+        d = {f"{prefix}nodes": self.nodes.astype(np.int64), f"{prefix}cavity": self.cavity.astype(np.int64),
+             f"{prefix}K": self.K.astype(np.float32),
+             f"{prefix}names": np.frombuffer("\n".join(self.names).encode("utf-8"), dtype=np.uint8)}
+        for i, w in enumerate(self.level_walls or ()):
+            d[f"{prefix}walls{i}"] = np.asarray(w, dtype=np.int64)
+        return d
+
+    def dark_walls(self, q: list) -> list:
+        """``q`` per level (eq. 3 from the scene's lights) with the cavity walls set to 0: no outside light
+        reaches a closed hollow (the environment term of eq. 3 is unoccluded, the walls face the hollow)."""
+        out = list(q)
+        for i, w in enumerate(self.level_walls or ()):
+            if out[i] is not None and len(w):
+                out[i] = np.array(out[i])
+                out[i][w] = 0.0
+        return out
 
     @classmethod
     def from_arrays(cls, d, n_surface: int, prefix: str = "cavity/") -> "CavityExchange":
@@ -99,7 +113,13 @@ class CavityExchange:
         if cav.shape != (m,) or K.shape != (m, m) or (m and (nodes.min() < 0 or nodes.max() >= n_surface)) \
                 or not np.all(np.isfinite(K)):
             raise CacheError("cavity exchange data does not match the graph")
-        return cls(nodes=nodes, cavity=cav, K=K, names=names)
+        walls, i = [], 0
+        while f"{prefix}walls{i}" in d:
+            walls.append(np.asarray(d[f"{prefix}walls{i}"], dtype=np.int64))
+            i += 1
+        if walls and not np.array_equal(walls[-1], nodes):
+            raise CacheError("cavity exchange data does not match the graph")
+        return cls(nodes=nodes, cavity=cav, K=K, names=names, level_walls=walls or [nodes])
 
 
 def is_convex(V, F, tol: float = 1e-6) -> bool:
@@ -131,9 +151,14 @@ def build_cavity_exchange(bake, composite, progress=None) -> CavityExchange:
     V, F = np.asarray(bake.mesh_vertices), np.asarray(bake.mesh_faces)
     cavities = composite.cavities
     bvh = TriangleBVH(V, F)
-    _, tri, _ = bvh.closest_point(lv.surface_position)
     bounds = np.cumsum([len(composite.F)] + [len(p.F) for p in cavities])
-    which = np.searchsorted(bounds, tri, side="right") - 1  # -1: outer surface
+
+    def walls(level):  # the cavity (-1: the outer surface) each surface node's closest face belongs to
+        _, tri, _ = bvh.closest_point(level.surface_position)
+        return np.searchsorted(bounds, tri, side="right") - 1
+
+    level_walls = [np.flatnonzero(walls(level) >= 0) for level in bake.levels[:-1]]
+    which = walls(lv)
     nodes = np.flatnonzero(which >= 0)
     cav = which[nodes]
     P = lv.surface_position[nodes]
@@ -167,7 +192,8 @@ def build_cavity_exchange(bake, composite, progress=None) -> CavityExchange:
         K[sel] /= np.where(rows > 0, rows, 1.0)[:, None]
         if progress is not None:
             progress((c + 1) / len(cavities))
-    return CavityExchange(nodes=nodes, cavity=cav, K=K.astype(np.float32), names=tuple(p.name for p in cavities))
+    return CavityExchange(nodes=nodes, cavity=cav, K=K.astype(np.float32), names=tuple(p.name for p in cavities),
+                          level_walls=level_walls + [nodes])
 
 
 def wall_partial_current(solver, result, nodes) -> np.ndarray:
@@ -199,6 +225,8 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
     ``info``: ``{"solves", "seconds", "residual", "exchange_power"}``.
     ``warm_start``: a previous result of this function (the last frame): the
     exchange then starts from its wall q and follows it (:func:`_follow`).
+    The light pass is the solver's own (``incident``), with the walls dark:
+    outside light reaches a closed hollow only through the medium.
     Without an exchange (no cavity) this is one :meth:`DiffusionSolver.solve`.
     """
     import scipy.sparse.linalg as spla
@@ -206,9 +234,15 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
     from .diffusion import SolveResult
 
     t0 = time.perf_counter()
-    first = solver.solve(lights, environment, warm_start=warm_start, **kw)
     if exchange is None or exchange.m == 0:
+        first = solver.solve(lights, environment, warm_start=warm_start, **kw)
         return first, {"solves": 1, "seconds": time.perf_counter() - t0, "residual": 0.0}
+    light_kw = {k: kw.pop(k) for k in ("shadows", "occluders") if k in kw}
+    usable = solver.can_warm_start(warm_start) or solver.options.levels == "finest"
+    levels_needed = [len(solver.bake.levels) - 1] if usable else None
+    q = exchange.dark_walls(solver.incident(lights, environment, levels=levels_needed, **light_kw))
+    first = solver.solve(q=q, warm_start=warm_start, **kw)
+    first.warnings = list(solver.warnings) + list(first.warnings)
     nodes = exchange.nodes
     op = exchange.operator(solver.eta)
     m = exchange.m

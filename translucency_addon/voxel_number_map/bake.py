@@ -146,19 +146,9 @@ class VoxelNumberMap:
 
     @classmethod
     def from_arrays(cls, d, prefix: str = "vnm/") -> "VoxelNumberMap":
-        def get(name):
-            key = prefix + name
-            if key not in d:
-                raise CacheError(f"Voxel Number Map data is incomplete: {key!r} is missing")
-            return np.asarray(d[key])
+        from ..single_scattering.data import read_prefixed
 
-        version = int(get("version").reshape(-1)[0])
-        if version != FORMAT_VERSION:
-            raise CacheError(f"Voxel Number Map data has format version {version}; this build reads {FORMAT_VERSION}")
-        try:
-            meta = json.loads(bytes(get("meta_json").astype(np.uint8)).decode("utf-8"))
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise CacheError(f"Voxel Number Map metadata is corrupt: {exc}") from None
+        get, meta = read_prefixed(d, prefix, "Voxel Number Map data", FORMAT_VERSION)
         pos = get("position").astype(np.float64)
         n = len(pos)
         kind = get("kind").astype(np.int64)
