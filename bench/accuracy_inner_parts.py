@@ -95,7 +95,8 @@ def ref_scene(name, comp, mm, quick):
     else:
         cam = Camera.orthographic((0.0, 0.0, 0.0), VIEW, up=(0, 0, 1), width=36.0)
         res = (16, 16) if quick else (32, 32)
-    spp = 64 if quick else (256 if name == "cube_cavity_marble" else 1024)
+    # the scattered light of the low-albedo cubes is a difference of two renders: more samples
+    spp = 64 if quick else {"cube_cavity_marble": 256, "bottle_full": 1024}.get(name, 4096)
     eta_part = WINE_ETA if comp.material.eta != 1.0 else 1.0
     parts = tuple(RefPart(p.name, p.V, p.F, p.role, p.medium, eta_part if p.role == "medium" else 1.0)
                   for p in comp.parts)

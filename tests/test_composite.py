@@ -119,3 +119,19 @@ def test_bad_part_meshes_and_roles():
     assert parse_role("Cavity", "x") == ("cavity", None)
     assert parse_role("opaque", "x") == ("opaque", None)
     assert parse_role("skin", "x") == ("medium", preset("skin1"))
+
+
+def test_single_scattering_bakes_on_the_composite_volume_and_says_so():
+    """The single-scattering pass can render an object with inner parts from the same voxels (the planner
+    prefers it over the Voxel Number Map only when its bake knows the parts)."""
+    from translucency_addon.single_scattering import SingleScatteringSettings, bake_single_scattering
+
+    comp = CompositeObject(*BOX, THIN, [InnerPart("stone", *sphere(0.4), "opaque")])
+    vol = voxelise_composite(comp, resolution=16, fine=True)
+    data = bake_single_scattering(comp.V, comp.F, THIN, None,
+                                  SingleScatteringSettings(quality=16, n_dirs=16, n_samples=200, sh_order=2),
+                                  volume=vol)
+    assert data.stats["inner_parts"] is True
+    plain = bake_single_scattering(*BOX, THIN, None,
+                                   SingleScatteringSettings(quality=16, n_dirs=16, n_samples=200, sh_order=2))
+    assert plain.stats["inner_parts"] is False

@@ -34,7 +34,8 @@ def with_parts(roles=("cavity",), vnm=True):
 
 
 def test_replacement_rule():
-    assert replacement_pass(True, True, {"cavity": 1}) == "voxel_number_map"
+    assert replacement_pass(True, True, {"cavity": 1}) == "voxel_number_map"  # its bake does not know the parts
+    assert replacement_pass(True, True, {"cavity": 1}, ss_knows_parts=True) == "single"  # measured more accurate
     assert replacement_pass(True, True, {}) == "single"
     assert replacement_pass(False, True, {}) == "voxel_number_map"
     assert replacement_pass(True, False, {"opaque": 1}) == "single"
@@ -50,6 +51,12 @@ def test_low_albedo_object_with_a_cavity_runs_the_voxel_number_map():
     assert plan.facts["inner_parts"] == {"cavity": 1, "opaque": 1}
     text = describe_plan(plan)
     assert "Voxel Number Map [RGB]" in text and plan.estimated_ms > 1.0
+    # single scattering baked with the parts is the more accurate replacement (docs/accuracy.md)
+    b = with_parts(("cavity", "opaque"))
+    b = dataclasses.replace(b, single_scattering=SimpleNamespace(stats={"inner_parts": True}))
+    plan = plan_object(b, THIN, SUN, None, name="cube")
+    assert plan.single.channels == (True, True, True) and plan.voxel_number_map.channels == (False, False, False)
+    assert all("baked with the inner parts, it is the more accurate" in r for r in plan.voxel_number_map.reasons)
 
 
 def test_marble_with_a_cavity_runs_diffusion_only():
