@@ -247,10 +247,8 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
     op = exchange.operator(solver.eta)
     m = exchange.m
     levels = solver.bake.levels
-    # a previous frame's exchange starts this one: its response solve and its wall q (GMRES's first guess)
-    prev_resp = getattr(warm_start, "cavity_response", None)
-    prev_q = getattr(warm_start, "cavity_q", None)
-    state = {"last": prev_resp, "solves": 1}
+    prev_q = getattr(warm_start, "cavity_q", None)  # a previous frame's wall q: follow it (_follow)
+    state = {"last": None, "solves": 1}
     kw = {k: v for k, v in kw.items() if k not in ("q", "bounce")}
 
     def response(v):
@@ -274,8 +272,7 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
 
     scale = max(float(np.abs(b).max()), 1e-300)
     A = spla.LinearOperator((3 * m, 3 * m), matvec=matvec, dtype=np.float64)
-    x0 = None if prev_q is None or np.shape(prev_q) != (m, 3) else np.asarray(prev_q).ravel() / scale
-    x, code = spla.gmres(A, b.ravel() / scale, x0=x0, rtol=tol, atol=0.0, restart=max_solves, maxiter=1)
+    x, code = spla.gmres(A, b.ravel() / scale, rtol=tol, atol=0.0, restart=max_solves, maxiter=1)
     q_cav = x.reshape(m, 3) * scale
     resp = response(q_cav)
     phi = list(first.phi)
@@ -290,7 +287,7 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
             "exchange_power": {k: v.tolist() for k, v in exchange_power(solver, final, exchange).items()},
             "wall_nodes": m}
     final.seconds["cavity_exchange"] = info["seconds"]
-    final.cavity_response, final.cavity_q = resp, q_cav
+    final.cavity_q = q_cav
     return final, info
 
 
@@ -321,5 +318,5 @@ def _follow(solver, exchange, first, q_cav, op, tol, max_solves, t0, kw):
             "exchange_power": {k: v.tolist() for k, v in exchange_power(solver, final, exchange).items()},
             "wall_nodes": exchange.m, "mode": "followed the previous frame"}
     final.seconds["cavity_exchange"] = info["seconds"]
-    final.cavity_response, final.cavity_q = None, q_cav
+    final.cavity_q = q_cav
     return final, info

@@ -52,8 +52,8 @@ below and in the tests.
   single-scattering passes stay off as contained in it).  Where diffusion is invalid, the pass that
   replaces it is single scattering when its bake knows the parts (``voxelise_composite``), the
   Voxel Number Map otherwise (:func:`replacement_pass`; measured against Mitsuba's scattered light,
-  docs/accuracy.md: single scattering 6-8 points of relative RMS more accurate on the cubes, the
-  map 2-5x faster per frame).
+  docs/accuracy.md: single scattering 8 points of relative RMS more accurate on the cubes and the
+  bottle, the map about 2x faster per frame).
 * **Objects** are skipped when translucency is disabled, when they are not
   in the camera's view, or when no light reaches them (no light source with
   power whose range and cone reach the bounding sphere, and a black world).
@@ -473,8 +473,8 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
 
 # What the accuracy bench measured on the paper's scenes (docs/accuracy.md, "Objects with inner parts"):
 # the scattering passes against Mitsuba's scattered light, and their frame time on 2 CPU cores.
-MEASURED_INNER_PARTS = ("measured on the cube with a cavity: single scattering 57 %, the Voxel Number Map 63 % "
-                        "relative RMS, 46 ms against 11 ms per frame; docs/accuracy.md")
+MEASURED_INNER_PARTS = ("measured against a path tracer on a cube with a cavity: single scattering 51 %, the Voxel "
+                        "Number Map 59 % relative RMS, about 19 against 8 ms per frame; docs/accuracy.md")
 
 
 def inner_parts(bake) -> dict:
@@ -492,9 +492,9 @@ def replacement_pass(ss_available: bool, vnm_available: bool, parts: dict, ss_kn
     Measured on the paper's scenes against Mitsuba's scattered light
     (docs/accuracy.md, "Objects with inner parts"): single scattering baked
     with the inner parts (``voxelise_composite``) is the more accurate of the
-    two everywhere (6-8 points of relative RMS on the cubes, 8 on the bottle;
+    two everywhere (8 points of relative RMS on the cubes and on the bottle;
     both miss what they do not model: multiple scattering and the light the
-    boundary reflects back inside), the Voxel Number Map 2-5x faster per
+    boundary reflects back inside), the Voxel Number Map about 2x faster per
     frame.  So: single scattering when it is baked and knows the parts (or
     there are none); otherwise the Voxel Number Map, whose chords cross
     cavities, inner media and opaque parts as they are; single scattering
