@@ -199,7 +199,7 @@ def run_diffusion(name, comp, mm, scene, variants):
     from bench.accuracy_core import environment_turned
     from translucency_addon.bake import BakeSettings, bake_mesh
     from translucency_addon.cavity import solve_with_cavities
-    from translucency_addon.composite_bake import CompositeMaterial, bake_composite
+    from translucency_addon.composite_bake import bake_composite, diffusion_material
     from translucency_addon.diffusion import DiffusionSolver, SolveOptions
 
     out = []
@@ -221,8 +221,7 @@ def run_diffusion(name, comp, mm, scene, variants):
     t0 = time.perf_counter()
     bake = bake_composite(comp, settings)
     bake_s = time.perf_counter() - t0
-    solver = DiffusionSolver(bake, CompositeMaterial(comp.material, bake.composite), bake.composite.labels,
-                             SolveOptions())
+    solver = DiffusionSolver(bake, *diffusion_material(comp.material, bake.composite), SolveOptions())
     idx, w = bake.vertex_map
     vd_all = np.zeros((len(bake.mesh_vertices), 3))
     vd_all[:n_outer] = vd

@@ -266,9 +266,9 @@ def cmd_solve(a) -> int:
     lights, env = lights_from_args(a)
     outer_material, cavity_info = material, None
     if bake.composite is not None:  # inner parts: per-node media and the cavity exchange (composite_bake, cavity)
-        from .composite_bake import CompositeMaterial
+        from .composite_bake import diffusion_material
 
-        material, field_values = CompositeMaterial(material, bake.composite), bake.composite.labels
+        material, field_values = diffusion_material(material, bake.composite, field_values)
     solver = DiffusionSolver(bake, material, field_values, SolveOptions(solver=a.solver, tol=a.tol))
     t1 = time.perf_counter()
     if bake.composite is not None and bake.composite.exchange is not None:

@@ -117,6 +117,15 @@ class CompositeMaterial:
         return sa, ss
 
 
+def diffusion_material(material, info: CompositeInfo | None, field_values=None):
+    """``(material, field_values)`` for a ``DiffusionSolver`` of a bake with inner parts: the per-node media
+    of :class:`CompositeMaterial` with the node labels when the object has medium or opaque parts, the
+    material and its own field unchanged otherwise (cavities are carved out of the graph)."""
+    if info is None or not any(r in ("medium", "opaque") for r in info.roles):
+        return material, field_values
+    return CompositeMaterial(material, info), info.labels
+
+
 def node_labels(composite, points) -> np.ndarray:
     """0 for the outer medium, 1 + k inside part k (the innermost part containing the point wins)."""
     from .raycast import TriangleBVH, inside_mesh

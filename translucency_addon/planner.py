@@ -288,8 +288,8 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
     # hands its decision to the Voxel Number Map when that is the replacement.
     baked_ss, has_single_scattering = has_single_scattering, bool(has_single_scattering or has_voxel_number_map)
     ss_available = replacement is not None
-    if material.heterogeneous and isinstance(field_values, (list, tuple)) and getattr(bake, "composite", None):
-        field_values = None  # node labels of an object with inner parts, not a mixing field
+    if hasattr(material, "outer"):  # a composite_bake.CompositeMaterial: plan for the outer medium
+        material, field_values = material.outer, None
     if not enabled:
         return Plan(name, False, "translucency disabled")
     if not in_view:
