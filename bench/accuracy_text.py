@@ -473,8 +473,9 @@ def findings_model(b):
     return out
 
 
-# Sections of docs/accuracy.md that other benchmarks write (bench/deformation.py): kept when this one rewrites it.
-KEPT_SECTIONS = ("## Particle fluids (Voronoi-fluid cells, issue 14)\n", "## Deformation without a re-bake\n")
+# Sections other benches write into docs/accuracy.md (replace_section); a rewrite by bench/accuracy.py keeps them.
+KEPT_SECTIONS = ("## Particle fluids (Voronoi-fluid cells, issue 14)\n", "## Deformation without a re-bake\n",
+                 "## Objects with inner parts (issue 15): cavities, several media, an opaque part\n")
 
 
 def section_span(text: str, head: str):

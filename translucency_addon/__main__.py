@@ -4,6 +4,8 @@
                                       [--levels N] [--mm-per-unit X] [--sky-directions 64]
                                       [--single-scattering [--material marble] [--ss-quality preview]
                                        [--ss-dirs 128] [--ss-samples 20000] [--ss-order 4]]
+    python -m translucency_addon bake OUTER.obj --inner PART.obj:ROLE ... [--voxel-number-map] -o CACHE.npz
+                                      (ROLE: a preset name, cavity or opaque)
     python -m translucency_addon fluid POINTS.npy -o PHI.npz --radius R --mm-per-unit S
                                       (--material NAME | --sigma-a R,G,B --sigma-s R,G,B --eta X)
                                       [--env R,G,B] [--sun DX,DY,DZ:E] [--point X,Y,Z:W]
@@ -13,6 +15,7 @@
                                       [--env R,G,B] [--sun DX,DY,DZ:E] [--point X,Y,Z:W]
                                       [--camera X,Y,Z] [--no-single-scattering] [--ss-output SS.npy]
                                       [--solver paper|fast|direct] [--tol 1e-4] [--stats STATS.json]
+                                      [--no-voxel-number-map]
 
 Single scattering: ``bake --single-scattering`` also bakes the RBF
 optical-depth samples (Bernabei et al.) for the material given to ``bake``
@@ -94,6 +97,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--ss-dirs", type=int, default=128, help="single scattering: optical-depth directions (32, 128, 512)")
     b.add_argument("--ss-samples", type=int, default=20000, help="single scattering: target number of RBF samples")
     b.add_argument("--ss-order", type=int, default=4, choices=[1, 2, 3, 4], help="single scattering: SH order")
+    b.add_argument("--inner", action="append", default=[], metavar="PART.obj:ROLE",
+                   help="an inner part (same object space): ROLE a preset name (another medium), cavity or opaque")
+    b.add_argument("--voxel-number-map", action="store_true",
+                   help="also bake the Voxel Number Map (surface-voxel optical-thickness LUT, Mochida et al.)")
+    b.add_argument("--vnm-quality", default="preview", choices=["draft", "preview", "final"],
+                   help="Voxel Number Map: target surface voxels 800 / 2,000 / 3,500 (budget 4,096)")
     b.add_argument("--json", action="store_true", help="print the statistics as JSON")
 
     s = sub.add_parser("solve", help="solve the diffusion (and single scattering) for a baked mesh")
@@ -119,6 +128,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--deformed", default=None, metavar="POSED.obj",
                    help="solve on the baked graph deformed to this pose (the baked mesh's vertices, same count "
                         "and order; Wang et al. sec. 6.4) instead of re-baking; radiance at the posed vertices")
+    s.add_argument("--no-voxel-number-map", action="store_true",
+                   help="leave out the Voxel Number Map term even when the cache holds it")
 
     _fluid_parser(sub)
 
@@ -221,7 +232,22 @@ def cmd_bake(a) -> int:
             ss_settings.validated()
         except ValueError as exc:
             raise TranslucencyError(f"single scattering: {exc}") from None
-    bake = bake_mesh(V, F, settings, progress=progress)
+    if a.inner or a.voxel_number_map:
+        from .composite_bake import bake_composite, composite_from_files
+        from .voxel_number_map import VNMSettings
+
+        material = material or material_from_args(a)
+        field = None
+        if material.heterogeneous:
+            from .fields import evaluate_field
+
+            spec = field_spec_from_args(a, V)
+            field = lambda p: evaluate_field(spec, p)  # noqa: E731
+        comp = composite_from_files(V, F, material, a.inner, field)
+        bake = bake_composite(comp, settings, VNMSettings(quality=a.vnm_quality) if a.voxel_number_map else None,
+                              progress=progress)
+    else:
+        bake = bake_mesh(V, F, settings, progress=progress)
     print(file=sys.stderr)
     if a.single_scattering:
         field = field_spec_from_args(a, bake.mesh_vertices) if material.heterogeneous else None
@@ -237,6 +263,14 @@ def cmd_bake(a) -> int:
         print(json.dumps(out, indent=2, default=str))
     else:
         print(format_stats(bake))
+        if bake.composite is not None:
+            print(f"inner parts: {bake.composite.describe()}"
+                  + (f"; cavity exchange between {bake.composite.exchange.m} wall nodes" if bake.composite.exchange
+                     else ""))
+        if bake.voxel_number_map is not None:
+            from .voxel_number_map import format_stats as vnm_stats
+
+            print(vnm_stats(bake.voxel_number_map))
         if ss is not None:
             t = ss.stats["time"]
             print(f"single scattering: {ss.n_samples} samples, {ss.n_dirs} directions, SH order {ss.order}, "
@@ -264,6 +298,12 @@ def cmd_solve(a) -> int:
         field_values = [evaluate_field(spec, lv.position) for lv in bake.levels]
     lights, env = lights_from_args(a)
     deformation = None
+    if a.deformed and bake.composite is not None:
+        from .errors import DeformationError
+
+        raise DeformationError("--deformed: this cache has inner parts (cavities, media or opaque parts), whose "
+                               "cavity exchange and Voxel Number Map are baked in the rest pose and are not "
+                               "deformed; re-bake the posed mesh instead")
     if a.deformed:  # after the field: the material stays attached to the rest pose
         from .deformation import deform_from_obj
 
@@ -274,18 +314,37 @@ def cmd_solve(a) -> int:
         if bake.single_scattering is not None and not a.no_single_scattering:
             print("warning: single scattering is baked in the rest pose and not deformed; left out", file=sys.stderr)
         bake = pose.bake
+    outer_material, cavity_info = material, None
+    if bake.composite is not None:  # inner parts: per-node media and the cavity exchange (composite_bake, cavity)
+        from .composite_bake import diffusion_material
+
+        material, field_values = diffusion_material(material, bake.composite, field_values)
     solver = DiffusionSolver(bake, material, field_values, SolveOptions(solver=a.solver, tol=a.tol))
     t1 = time.perf_counter()
-    result, _ = solver.solve_interreflected(lights, env, shadows=not a.no_shadows)  # = solve() without sky data
+    if bake.composite is not None and bake.composite.exchange is not None:
+        from .cavity import solve_with_cavities
+
+        result, cavity_info = solve_with_cavities(solver, bake.composite.exchange, lights, env,
+                                                  shadows=not a.no_shadows)
+    else:
+        result, _ = solver.solve_interreflected(lights, env, shadows=not a.no_shadows)  # = solve() without sky
     view_dirs = None
     if a.camera is not None:
         d = np.asarray(a.camera, dtype=np.float64)[None, :] - np.asarray(bake.mesh_vertices)
         view_dirs = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
     L = solver.vertex_radiance(result, view_dirs)
     t_diff = time.perf_counter()
-    ss_stats = _solve_single_scattering(a, bake, material, spec, lights, env)
+    ss_stats = _solve_single_scattering(a, bake, outer_material, spec, lights, env)
     if ss_stats is not None:
         L = L + ss_stats.pop("radiance")
+    vnm_stats = {"enabled": False, "reason": "turned off (--no-voxel-number-map)" if a.no_voxel_number_map
+                 else "the cache holds no Voxel Number Map (bake with --voxel-number-map)"}
+    if bake.voxel_number_map is not None and not a.no_voxel_number_map:
+        from .composite_bake import solve_voxel_number_map
+
+        view = ("PERSP", tuple(a.camera)) if a.camera is not None else None
+        L_vnm, vnm_stats = solve_voxel_number_map(bake, outer_material, lights, env, view, shadows=not a.no_shadows)
+        L = L + L_vnm
     np.save(a.output, L.astype(np.float32))
     t2 = time.perf_counter()
     stats = {
@@ -296,7 +355,10 @@ def cmd_solve(a) -> int:
         "final_relative_residual": result.residual.tolist(),
         "seconds": {"load": t_load, "setup": t1 - t0 - t_load, **result.seconds, "diffusion": t_diff - t1,
                     "single_scattering": 0.0 if ss_stats is None else ss_stats["seconds"]["total"],
+                    "voxel_number_map": vnm_stats["seconds"]["total"] if vnm_stats["enabled"] else 0.0,
                     "total": t2 - t0},
+        "voxel_number_map": vnm_stats,
+        "cavity_exchange": cavity_info,
         "single_scattering": ss_stats if ss_stats is not None else {
             "enabled": False,
             "reason": "turned off (--no-single-scattering)" if a.no_single_scattering
@@ -311,6 +373,9 @@ def cmd_solve(a) -> int:
     ss_note = ""
     if ss_stats is not None:
         ss_note = f" + single scattering ({ss_stats['n_samples']} samples, {ss_stats['seconds']['total']:.2f} s)"
+    if vnm_stats["enabled"]:
+        ss_note += (f" + Voxel Number Map ({vnm_stats['surface_voxels']} surface voxels, "
+                    f"{vnm_stats['seconds']['frame']['total'] * 1e3:.1f} ms per frame)")
     print(f"solved {sum(stats['sweeps'])} sweeps ({a.solver}), residual {max(stats['final_relative_residual']):.2e}, "
           f"{stats['seconds']['total']:.2f} s{ss_note}; wrote {a.output} ({len(L)} vertices)")
     return 0

@@ -140,6 +140,8 @@ class Bake:
     single_scattering: object | None = None  # single_scattering data, when baked
     sky: object | None = None  # sky_visibility.SkyVisibility, when baked (environment self-occlusion)
     surface_bvh: object | None = None  # a prebuilt raycast.TriangleBVH of the mesh (a deformed bake's, refitted)
+    voxel_number_map: object | None = None  # voxel_number_map.VoxelNumberMap, when baked (inner parts)
+    composite: object | None = None  # composite_bake.CompositeInfo: inner parts, node labels, cavity exchange
 
     @property
     def finest(self) -> GraphLevel:

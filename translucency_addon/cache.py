@@ -71,11 +71,17 @@ def bake_to_arrays(bake: Bake) -> dict:
         "n_levels": len(bake.levels),
         "single_scattering": bake.single_scattering is not None,
         "sky": bake.sky is not None,
+        "voxel_number_map": bake.voxel_number_map is not None,
+        "composite": bake.composite is not None,
     }
     if bake.single_scattering is not None:
         d.update(bake.single_scattering.to_arrays(prefix="ss/"))
     if bake.sky is not None:
         d.update(bake.sky.to_arrays(prefix="sky/"))
+    if bake.voxel_number_map is not None:
+        d.update(bake.voxel_number_map.to_arrays(prefix="vnm/"))
+    if bake.composite is not None:
+        d.update(bake.composite.to_arrays(prefix="composite/"))
     d["meta"] = _json_array(meta)
     return d
 
@@ -160,12 +166,22 @@ def load_bake(path, expected_key: str | None = None) -> Bake:
             from .sky_visibility import SkyVisibility
 
             sky = SkyVisibility.from_arrays(arrays, n, len(arrays["mesh/V"]), prefix="sky/")
+        vnm = None
+        if meta.get("voxel_number_map"):
+            from .voxel_number_map import VoxelNumberMap
+
+            vnm = VoxelNumberMap.from_arrays(arrays, prefix="vnm/")
+        comp = None
+        if meta.get("composite"):
+            from .composite_bake import CompositeInfo
+
+            comp = CompositeInfo.from_arrays(arrays, levels, prefix="composite/")
         bake = Bake(
             levels=levels, shepard=shepard, vertex_map=(arrays["vmap/idx"], arrays["vmap/w"]),
             mesh_vertices=arrays["mesh/V"], mesh_faces=arrays["mesh/F"], mesh_normals=arrays["mesh/N"],
             shadow_vertices=arrays["shadow/V"], shadow_faces=arrays["shadow/F"], settings=settings,
             mm_per_unit=float(meta["mm_per_unit"]), key=meta["key"], stats=meta["stats"],
-            single_scattering=ss, sky=sky,
+            single_scattering=ss, sky=sky, voxel_number_map=vnm, composite=comp,
         )
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise CacheError(f"bake cache {os.fspath(path)!r} is incomplete or inconsistent: {exc}") from exc

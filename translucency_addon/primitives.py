@@ -241,3 +241,83 @@ def squash(V, factor: float = 0.7, along: int = 2, bulge: float = 0.25):
     out = c + (V - c) * side[:, None]
     out[:, along] = lo + factor * (V[:, along] - lo)
     return out
+
+
+def revolve(profile, n_theta: int = 64):
+    """Closed surface of revolution about z from a profile ``(r, z)`` running from the bottom pole
+    (r = 0) to the top pole (r = 0); outward-oriented."""
+    prof = np.asarray(profile, dtype=np.float64)
+    if prof[0, 0] != 0.0 or prof[-1, 0] != 0.0 or np.any(prof[1:-1, 0] <= 0):
+        raise ValueError("a profile starts and ends on the axis (r = 0) and stays off it in between")
+    ring = prof[1:-1]
+    m = len(ring)
+    th = 2.0 * np.pi * np.arange(n_theta) / n_theta
+    P = np.stack([ring[:, None, 0] * np.cos(th)[None], ring[:, None, 0] * np.sin(th)[None],
+                  np.broadcast_to(ring[:, None, 1], (m, n_theta))], axis=-1).reshape(-1, 3)
+    V = np.vstack([[0.0, 0.0, prof[0, 1]], P, [0.0, 0.0, prof[-1, 1]]])
+    idx = 1 + np.arange(m * n_theta).reshape(m, n_theta)
+    nxt = np.roll(idx, -1, axis=1)
+    F = [np.stack([np.zeros(n_theta, dtype=np.int64), nxt[0], idx[0]], 1),
+         np.stack([np.full(n_theta, len(V) - 1), idx[-1], nxt[-1]], 1)]
+    for k in range(m - 1):
+        F.append(np.stack([idx[k], nxt[k], nxt[k + 1]], 1))
+        F.append(np.stack([idx[k], nxt[k + 1], idx[k + 1]], 1))
+    F = np.concatenate(F).astype(np.int64)
+    p = V[F]
+    if np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() < 0:
+        F = F[:, [0, 2, 1]]
+    return V, F
+
+
+def _resample(polyline, n: int):
+    """``n`` points evenly spaced by arc length along a polyline (its ends kept)."""
+    pts = np.asarray(polyline, dtype=np.float64)
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    t = np.linspace(0.0, s[-1], n)
+    return np.stack([np.interp(t, s, pts[:, 0]), np.interp(t, s, pts[:, 1])], axis=1)
+
+
+def _rounded_profile(radius: float, z0: float, z_body: float, neck: float, z_neck: float, z1: float,
+                     fillet: float, n: int):
+    """Bottle-like profile (r, z): flat bottom, body, cosine shoulder, neck, flat top; fillets at the rims."""
+    pts = [(0.0, z0)]
+    a = np.linspace(0.0, 0.5 * np.pi, 6)
+    pts += [(radius - fillet + fillet * np.sin(x), z0 + fillet - fillet * np.cos(x)) for x in a]
+    u = np.linspace(0.0, 1.0, 24)
+    pts += [(radius - (radius - neck) * 0.5 * (1 - np.cos(np.pi * x)), z_body + (z_neck - z_body) * x) for x in u]
+    pts += [(neck - fillet + fillet * np.cos(x), z1 - fillet + fillet * np.sin(x)) for x in a]
+    pts.append((0.0, z1))
+    return _resample(pts, n)
+
+
+def bottle_with_wine(n_theta: int = 64, wall: float = 0.4, fill: float = 7.0):
+    """A sealed bottle (outer glass surface), its inside (a cavity) and the wine in it (z up, units ~ cm).
+
+    Returns ``{"outer": (V, F), "inside": (V, F), "wine": (V, F)}``: the wine
+    lies inside the inside volume and touches it at the bottom and the sides
+    (nested, touching parts); about 10,000 vertices in all at n_theta = 64.
+    """
+    R, neck, z_body, z_neck, top = 3.0, 1.2, 10.0, 12.5, 16.0
+    outer = revolve(_rounded_profile(R, 0.0, z_body, neck, z_neck, top, 0.4, 62), n_theta)
+    inner_prof = _rounded_profile(R - wall, wall, z_body, neck - wall, z_neck, top - wall, 0.3, 62)
+    inside = revolve(inner_prof, n_theta)
+    # the wine: the inside's profile up to the fill height, closed by a flat surface
+    body = inner_prof[inner_prof[:, 1] < fill]
+    wine_prof = np.vstack([body, [[R - wall, fill]], [[0.0, fill]]])
+    wine_prof = np.vstack([_resample(wine_prof[:-1], 36), [[0.0, fill]]])
+    wine_prof[:, 0] = np.where(wine_prof[:, 0] > 0, wine_prof[:, 0], 0.0)
+    interior = wine_prof[1:-1, 0] > 1e-9
+    wine_prof = np.vstack([wine_prof[:1], wine_prof[1:-1][interior], wine_prof[-1:]])
+    wine = revolve(wine_prof, n_theta)
+    return {"outer": outer, "inside": inside, "wine": wine}
+
+
+def cube_with_sphere(size: float = 1.0, radius: float = 0.3, center=(0.0, 0.0, 0.0), n: int = 16,
+                     subdivisions: int = 3):
+    """A cube (each face n x n quads) and a sphere inside it, as two closed meshes.
+
+    The paper's first scene (about 2,000 vertices at the defaults) with the
+    sphere as a cavity; with the sphere opaque, the cube of the shadow test.
+    """
+    return box((size, size, size), n=n), icosphere(radius, subdivisions, center)

@@ -299,6 +299,11 @@ def scene_dict(scene: RefScene, channel: int, *, absorber: bool = False, variant
     obj = _object(scene, Path(ply_path))
     obj["bsdf"] = {"type": "dielectric", "int_ior": float(scene.material.eta), "ext_ior": 1.0}
     obj["interior"] = _medium(scene, channel, variant, mi, absorber, {} if _grid_cache is None else _grid_cache)
+    parts = {}
+    if scene.parts and not absorber:  # the absorber render ends every path at the outer surface
+        parts = _parts(scene, channel, variant, Path(ply_path))
+        parts["object_medium"] = obj["interior"]
+        obj["interior"] = {"type": "ref", "id": "object_medium"}
     d = {
         "type": "scene",
         "integrator": {"type": "volpath", "max_depth": int(max_depth), "rr_depth": RR_OFF},
@@ -306,7 +311,35 @@ def scene_dict(scene: RefScene, channel: int, *, absorber: bool = False, variant
         "object": obj,
     }
     d.update(_emitters(scene, channel, variant, mi))
+    d.update(parts)
     return d
+
+
+def _parts(scene: RefScene, channel: int, variant: str, ply_path: Path) -> dict:
+    """Shapes of the inner parts: a dielectric with the object's medium outside and the part's inside
+    (air in a cavity), or a black diffuse surface for an opaque part.  Parts must not touch or nest."""
+    out = {}
+    s = scene.mm_per_unit
+    eta_out = float(scene.material.eta)
+    for k, part in enumerate(scene.parts):
+        path = ply_path.with_name(f"part{k}.ply")
+        if not path.exists():
+            _write_ply(path, np.asarray(part.V) * s, np.asarray(part.F))
+        shape = {"type": "ply", "filename": str(path), "face_normals": not scene.smooth_normals,
+                 "exterior": {"type": "ref", "id": "object_medium"}}
+        if part.role == "opaque":
+            shape["bsdf"] = {"type": "diffuse", "reflectance": _grey(0.0, variant)}
+        else:
+            eta_in = 1.0 if part.role == "cavity" else float(part.eta)
+            shape["bsdf"] = ({"type": "null"} if eta_in == eta_out else
+                             {"type": "dielectric", "int_ior": eta_in, "ext_ior": eta_out})
+            if part.role == "medium":
+                sa, ss = (np.asarray(x, dtype=np.float64) for x in part.medium.arrays())
+                st = float(sa[channel] + ss[channel])
+                shape["interior"] = {"type": "homogeneous", "sigma_t": _grey(1.0, variant), "scale": st,
+                                     "albedo": _grey(float(ss[channel]) / st, variant), "phase": {"type": "isotropic"}}
+        out[f"part_{k}"] = shape
+    return out
 
 
 _SCRATCH: tempfile.TemporaryDirectory | None = None
@@ -431,6 +464,11 @@ def scene_key(scene: RefScene, **render_kwargs) -> str:
         "smooth": scene.smooth_normals, "grid": scene.grid_resolution, "sphere": repr(scene.analytic_sphere),
         "render": {k: repr(v) for k, v in sorted(render_kwargs.items())}, "version": 1,
     }
+    if scene.parts:  # added with issue 15: scenes without parts keep the keys they always had
+        desc["parts"] = [[p.name, p.role, repr(p.medium), p.eta] for p in scene.parts]
+        for p in scene.parts:
+            h.update(np.ascontiguousarray(p.V, dtype=np.float64).tobytes())
+            h.update(np.ascontiguousarray(p.F, dtype=np.int64).tobytes())
     h.update(json.dumps(desc, sort_keys=True).encode())
     return h.hexdigest()[:20]
 

@@ -140,6 +140,24 @@ class Camera:
         return col, row, z
 
 
+@dataclass(frozen=True)
+class RefPart:
+    """An inner part for the reference: a closed mesh (object units, outward) and what it is.
+
+    ``role``: ``"medium"`` (``medium`` a translucency_addon Medium, ``eta`` its refractive index),
+    ``"cavity"`` (air, eta 1) or ``"opaque"`` (a black absorber).  Interfaces are smooth
+    dielectrics with the true indices on both sides: the reference keeps the refraction at inner
+    interfaces that our passes neglect.
+    """
+
+    name: str
+    V: np.ndarray
+    F: np.ndarray
+    role: str
+    medium: object = None
+    eta: float = 1.0
+
+
 @dataclass
 class RefScene:
     """One matched scene for the reference renderer and for our solver."""
@@ -163,6 +181,9 @@ class RefScene:
     # ((cx, cy, cz), radius) in object units: the reference renders this exact sphere instead of
     # the mesh (the mesh still defines the bbox, the heterogeneity grid and our side).
     analytic_sphere: tuple | None = None
+    # Inner parts (issue 15): RefPart shapes inside the object, rendered with their own media and
+    # interfaces (mitsuba_ref._parts).  Our side reads them as a translucency_addon CompositeObject.
+    parts: tuple = ()
 
     def __post_init__(self):
         self.V = np.asarray(self.V, dtype=np.float64).reshape(-1, 3)

@@ -165,6 +165,8 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
         "mean_free_path_voxels": 1.0 / max(float(volume.sigma_t[volume.medium].max()), 1e-30)
         / (volume.h * volume.mm_per_unit),
         "medium_voxels": int(volume.medium.sum()),
+        # baked from a composite volume (voxelise_composite): the samples know the object's inner parts
+        "inner_parts": bool(getattr(volume, "labels", None) is not None and volume.labels.order),
         "n_samples": int(len(centers)),
         "poisson": pinfo,
         "pou_rms": fit_rms,
@@ -179,3 +181,4 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
     if keep_volume:
         data.volume = volume
     return data
+

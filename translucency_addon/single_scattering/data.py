@@ -25,6 +25,27 @@ from ..errors import CacheError
 FORMAT_VERSION = 1
 
 
+def read_prefixed(d, prefix: str, what: str, version: int):
+    """``(get, meta)`` for a versioned block of cache arrays under ``prefix`` (``version`` and ``meta_json``
+    entries): ``get(name)`` returns the array or raises :class:`CacheError` naming what is missing; a
+    wrong version or corrupt metadata raises too.  Shared by the data sets stored beside a bake."""
+
+    def get(name):
+        key = prefix + name
+        if key not in d:
+            raise CacheError(f"{what} is incomplete: {key!r} is missing")
+        return np.asarray(d[key])
+
+    found = int(get("version").reshape(-1)[0])
+    if found != version:
+        raise CacheError(f"{what} has format version {found}; this build reads {version}")
+    try:
+        meta = json.loads(bytes(get("meta_json").astype(np.uint8)).decode("utf-8"))
+    except (ValueError, UnicodeDecodeError) as e:
+        raise CacheError(f"{what}: metadata is corrupt: {e}") from None
+    return get, meta
+
+
 @dataclass
 class SampleGrid:
     origin: np.ndarray  # (3,) object units
@@ -149,19 +170,7 @@ class SingleScatteringData:
 
     @classmethod
     def from_arrays(cls, d, prefix: str = "ss/") -> "SingleScatteringData":
-        def get(name):
-            key = prefix + name
-            if key not in d:
-                raise CacheError(f"single-scattering data is incomplete: {key!r} is missing")
-            return np.asarray(d[key])
-
-        version = int(get("version").reshape(-1)[0])
-        if version != FORMAT_VERSION:
-            raise CacheError(f"single-scattering data has format version {version}; this build reads {FORMAT_VERSION}")
-        try:
-            meta = json.loads(bytes(get("meta_json").astype(np.uint8)).decode("utf-8"))
-        except (ValueError, UnicodeDecodeError) as e:
-            raise CacheError(f"single-scattering metadata is corrupt: {e}") from None
+        get, meta = read_prefixed(d, prefix, "single-scattering data", FORMAT_VERSION)
         centers = get("centers").astype(np.float64)
         n = len(centers)
         order = int(meta["order"])

@@ -66,6 +66,11 @@ class VoxelVolume:
     blocked: np.ndarray  # (nx, ny, nz) bool: inside an opaque blocker
     mm_per_unit: float
     fine_inside: np.ndarray | None = None  # (2nx, 2ny, 2nz) bool medium test at half voxels
+    # Composite objects (voxelise_composite): the part of every voxel and the weights of the component
+    # media (1 for a homogeneous part; 1 - f and f for the outer material's two media mixed by a field).
+    labels: object | None = None  # composite.VoxelLabels
+    components: np.ndarray | None = None  # (nx, ny, nz, C) float32
+    component_names: tuple = ()
 
     @property
     def blocker_sigma_t(self) -> float:
@@ -272,3 +277,85 @@ def _coefficients(material, field, pts):
     if np.any(sa + ss > 1e4):
         raise MaterialError(f"sigma_t = {float((sa + ss).max()):.3g}/mm is absurd; coefficients are per millimetre")
     return sa, ss
+
+
+def voxelise_composite(composite, *, resolution=48, mm_per_unit: float = 1.0, bvh=None,
+                       fine: bool = False, walls: bool = True) -> VoxelVolume:
+    """Voxelise a :class:`~translucency_addon.composite.CompositeObject`: the outer mesh and its inner parts.
+
+    Every voxel gets the coefficients of the part it lies in (nesting, touching
+    and clipping resolved by :func:`~translucency_addon.composite.label_voxels`):
+    the outer material (mixed by ``composite.field``) in the outer medium, the
+    part's medium in a medium part, 0 in a cavity, and ``BLOCKER_SIGMA_T``
+    (``blocked``) in an opaque part.  ``components`` holds, per voxel, the
+    weight of each homogeneous component medium (the outer material's one or
+    two media, then each medium part), so ``sigma_t = sum_c w_c sigma_t,c``:
+    a quantity linear in the coefficients (an optical depth) can be baked once
+    per component and weighted by coefficients chosen later.  ``walls``: see
+    :func:`~translucency_addon.composite.label_voxels`.
+    """
+    from ..composite import check_parts_against_outer, label_voxels
+    from ..raycast import TriangleBVH
+
+    mm_per_unit = float(mm_per_unit)
+    if not np.isfinite(mm_per_unit) or mm_per_unit <= 0:
+        raise MeshError(f"mm_per_unit must be a positive number, got {mm_per_unit}")
+    res = resolution_for(resolution)
+    V, F = composite.V, composite.F
+    origin, h, shape = grid_for_mesh(V, res)
+    bvh = bvh if bvh is not None else TriangleBVH(V, F)
+    warnings = check_parts_against_outer(bvh, composite.parts, tol=0.5 * h)
+    outer = column_inside(bvh, origin, h, shape)
+    part_bvhs = [TriangleBVH(np.asarray(p.V, dtype=np.float64), np.asarray(p.F, dtype=np.int64))
+                 for p in composite.parts]
+    part_inside = [column_inside(b, origin, h, shape) for b in part_bvhs]
+    labels = label_voxels(outer, part_inside, composite.parts, h_mm=h * mm_per_unit, warnings=warnings, walls=walls)
+    lab = labels.label
+    mat = composite.material
+    names = [mat.medium_a.name] + ([mat.medium_b.name] if mat.heterogeneous else [])
+    n_outer_comp = len(names)
+    media = [(k, p) for k, p in enumerate(composite.parts) if p.role == "medium"]
+    names += [f"{p.name} ({p.medium.name})" for _, p in media]
+    C = len(names)
+    comp = np.zeros(shape + (C,), dtype=np.float32)
+    st = np.zeros(shape + (3,), dtype=np.float32)
+    sg = np.zeros(shape + (3,), dtype=np.float32)
+    idx = np.flatnonzero(lab == 1)
+    if idx.size:
+        pts = origin + (np.stack(np.unravel_index(idx, shape), axis=1) + 0.5) * h
+        sa, ss = _coefficients(mat, composite.field, pts)
+        st.reshape(-1, 3)[idx] = sa + ss
+        sg.reshape(-1, 3)[idx] = ss
+        if mat.heterogeneous:
+            f = np.clip(np.asarray(composite.field(pts), dtype=np.float64).reshape(-1), 0.0, 1.0)
+            comp.reshape(-1, C)[idx, 0] = 1.0 - f
+            comp.reshape(-1, C)[idx, 1] = f
+        else:
+            comp.reshape(-1, C)[idx, 0] = 1.0
+    for c, (k, p) in enumerate(media, start=n_outer_comp):
+        idx = np.flatnonzero(lab == 2 + k)
+        sa, ss = (np.asarray(a, dtype=np.float64) for a in p.medium.arrays())
+        st.reshape(-1, 3)[idx] = sa + ss
+        sg.reshape(-1, 3)[idx] = ss
+        comp.reshape(-1, C)[idx, c] = 1.0
+    blocked = np.zeros(shape, dtype=bool)
+    for k, p in enumerate(composite.parts):
+        if p.role == "opaque":
+            blocked |= lab == 2 + k
+    medium = comp.sum(axis=-1) > 0
+    n_med = int(medium.sum())
+    if n_med < 8:
+        raise MeshError(
+            f"the object holds only {n_med} medium voxels at resolution {res}: it is too thin, not closed, "
+            "or filled by its cavities and opaque parts; raise the resolution or check the parts")
+    vol = VoxelVolume(origin=origin, h=h, shape=shape, sigma_t=st, sigma_s=sg, medium=medium, blocked=blocked,
+                      mm_per_unit=mm_per_unit, labels=labels, components=comp, component_names=tuple(names))
+    st.reshape(-1, 3)[np.flatnonzero(blocked)] = vol.blocker_sigma_t
+    if fine:
+        fshape = tuple(2 * s for s in shape)
+        fin = column_inside(bvh, origin, 0.5 * h, fshape)
+        for b, p in zip(part_bvhs, composite.parts):
+            if p.role != "medium":
+                fin &= ~column_inside(b, origin, 0.5 * h, fshape)
+        vol.fine_inside = fin
+    return vol
