@@ -51,8 +51,9 @@ class DeformationState:
             return f"{at}: refused; {kept}"
         if self.report is None:
             return at
-        return (f"{at}: worst link stretch {_stretch(self.report)} (limit {self.report.stretch_limit:g}x), "
-                f"{self.report.inverted_tets} sliver tets turned")
+        slivers = self.report.inverted_tets
+        return (f"{at}: worst link stretch {_stretch(self.report)} (limit {self.report.stretch_limit:g}x)"
+                + (f", {slivers} sliver tets turned over (tolerated)" if slivers else ""))
 
 
 def _stretch(report) -> str:

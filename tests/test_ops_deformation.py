@@ -326,6 +326,10 @@ def test_refused_poses_keep_the_last_valid_frame(blender, addon, cache_dir, memo
     assert "tets inverted" in message and "worst link stretch" in message and "re-bake in this pose or at rest" in message
     report = state.get_state(obj).deformation.report
     assert report.folded and report.inverted_volume > 1e-3
+    activate(obj)
+    with pytest.raises(RuntimeError, match="Cannot solve 'Bar': the deformation at frame 37 folds the baked graph"):
+        bpy.ops.translucency.solve()  # the operator's report: the Info log
+    np.testing.assert_array_equal(radiance(obj), valid)
 
     scene.frame_set(20)
     np.testing.assert_array_equal(radiance(obj), valid)  # solved again (the same frame, the same radiance)
@@ -390,3 +394,27 @@ def test_animation_render_follows_the_pose(blender, addon, cache_dir, memo_bakes
     on = [rgb.max(axis=2) > 0.0 for rgb in aov.values()]
     rows = [np.nonzero(mask.any(axis=1))[0] for mask in on]
     assert rows[1].min() < rows[0].min() - 2  # the bent tip rises above the straight bar in the image
+
+
+def test_a_pose_may_split_its_quads_the_other_way(blender, addon):
+    """Blender triangulates a quad that a pose turns concave along its other diagonal: still the same
+    polygons (a pose).  Fewer triangles, or other vertices at a triangle's place, are not."""
+    from translucency.ops.cache_files import same_polygons
+
+    bpy.ops.mesh.primitive_cube_add(size=1.0)
+    obj = bpy.context.object
+    obj.scale = (4.0, 1.0, 1.0)
+    bpy.ops.object.transform_apply(scale=True)
+    bpy.ops.object.mode_set(mode='EDIT')
+    bpy.ops.mesh.subdivide(number_cuts=7)
+    bpy.ops.object.mode_set(mode='OBJECT')
+    _, F0 = evaluated(obj)
+    for method, axis in (('TWIST', 'X'), ('BEND', 'Z')):
+        mod = obj.modifiers.new(method, 'SIMPLE_DEFORM')
+        mod.deform_method, mod.deform_axis, mod.angle = method, axis, math.radians(300.0)
+    _, F1 = evaluated(obj)
+    assert not np.array_equal(F0, F1)  # some quads took their other diagonal
+    assert same_polygons(F0, F1) and same_polygons(F0, F0)
+    moved = F1.copy()
+    moved[[0, -1]] = moved[[-1, 0]]  # other vertices at the first and last places (conservatively: a change)
+    assert not same_polygons(F0, moved) and not same_polygons(F0, F1[:-2])
