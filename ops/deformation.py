@@ -72,15 +72,15 @@ def diffuse(st: state.ObjectState, frame: FrameInputs, number: int, solve_sig, f
 
     d = st.deformation
     d.frame = number
-    frames = _frames(st, frame)
-    last = frames.last
-    if not force and last is not None and d.solve_sig == solve_sig:
-        d.report, d.refused = last.report, ""
-        return _radiance(st, last, frame), last.solver, False, 0.0, last.result
     V = st.pose
     same = frame.mapping.same
     t0 = time.perf_counter()
     try:
+        frames = _frames(st, frame)  # a cache without the tet mesh (format 1) cannot deform: re-bake
+        last = frames.last
+        if not force and last is not None and d.solve_sig == solve_sig:
+            d.report, d.refused = last.report, ""
+            return _radiance(st, last, frame), last.solver, False, 0.0, last.result
         out = frames.solve(V, list(frame.lights), frame.environment, frame=number,
                            view_dirs=view_directions(frame.view, V) if same else None, shadows=True,
                            occluders=_shadow_bvh(d, V, st.bake.mesh_faces, frame), channels=frame.ms_channels)

@@ -396,6 +396,27 @@ def test_animation_render_follows_the_pose(blender, addon, cache_dir, memo_bakes
     assert rows[1].min() < rows[0].min() - 2  # the bent tip rises above the straight bar in the image
 
 
+def test_a_cache_without_the_tet_mesh_asks_for_a_rebake_to_deform(blender, addon, cache_dir, memo_bakes):
+    """A bake from before deformation support (cache format 1: no tetrahedral mesh) still solves at the
+    baked pose; a pose says that it needs a re-bake, and writes nothing."""
+    from dataclasses import replace
+
+    from translucency.ops import state
+
+    obj, rig = baked_bar()
+    key_bend(rig, 10, 30.0)
+    st = state.get_state(obj)
+    st.bake = replace(st.bake, levels=[replace(lv, tets=None, tet_vertices=None) for lv in st.bake.levels])
+    scene = bpy.context.scene
+    scene.frame_set(1)
+    rest = radiance(obj)
+    scene.frame_set(10)
+    np.testing.assert_array_equal(radiance(obj), rest)
+    message = state.ERRORS["Bar"]
+    assert message.startswith("this bake was written before deformation support (cache format 1") and \
+        "re-bake the object to deform it" in message and "the object keeps frame 1's radiance" in message
+
+
 def test_a_pose_may_split_its_quads_the_other_way(blender, addon):
     """Blender triangulates a quad that a pose turns concave along its other diagonal: still the same
     polygons (a pose).  Fewer triangles, or other vertices at a triangle's place, are not."""
