@@ -2,7 +2,7 @@
 """Deforming a baked object in Blender without a re-bake (issue 16; ``ops/deformation.py``).
 
 A Draft bake of a 40 mm bar (4 x 1 x 1 units at 10 mm per unit) posed by a two-bone armature, an
-icosphere squashed by a shape key and the bar twisted by a Simple Deform modifier: the add-on's
+icosphere squashed by a shape key and the bar twisted (Simple Deform) and widened (Lattice): the add-on's
 frame handlers solve on the baked graph deformed to Blender's evaluated mesh.  Each result is
 checked against something the Blender side does not compute: the engine's ``DeformationFrames``
 on the same positions, and a fresh engine bake of the posed mesh (within the engine tests' bound,
@@ -218,9 +218,10 @@ def test_shape_key_squashes_a_sphere(blender, addon, cache_dir, memo_bakes):
     assert 1.0 < st.deformation.report.worst_stretch < 3.0
 
 
-def test_simple_deform_twist_added_after_the_bake(blender, addon, cache_dir, memo_bakes):
-    """A modifier added after the bake that keeps the vertices and polygons (Simple Deform, Twist 90 degrees
-    about the bar) deforms the graph; turning it off returns to the baked pose and its own solver."""
+def test_deform_modifiers_added_after_the_bake(blender, addon, cache_dir, memo_bakes):
+    """A modifier stack added after the bake that keeps the vertices and polygons (Simple Deform: Twist by
+    90 degrees about the bar, then a Lattice that widens the tip) deforms the graph; turning the
+    modifiers off returns to the baked pose and its own solver, nothing re-solved."""
     from translucency.ops import live, state
 
     obj, _rig = baked_bar()
@@ -229,17 +230,27 @@ def test_simple_deform_twist_added_after_the_bake(blender, addon, cache_dir, mem
     rest_solver = st.solver
     twist = obj.modifiers.new("Twist", 'SIMPLE_DEFORM')
     twist.deform_method, twist.deform_axis, twist.angle = 'TWIST', 'X', math.radians(90.0)
+    lattice = bpy.data.objects.new("Lattice", bpy.data.lattices.new("Lattice"))
+    bpy.context.scene.collection.objects.link(lattice)
+    lattice.scale = (4.4, 1.4, 1.4)
+    lattice.data.points_u = lattice.data.points_v = lattice.data.points_w = 2
+    for point in lattice.data.points:
+        if point.co.x > 0.0:
+            point.co_deform.y *= 1.5
+    cage = obj.modifiers.new("Lattice", 'LATTICE')
+    cage.object = lattice
     bpy.context.view_layer.update()
     live.flush()
     V, _ = evaluated(obj)
-    assert st.pose is not None and np.array_equal(st.pose, V)
-    twisted = radiance(obj)
+    assert st.pose is not None and np.array_equal(st.pose, V) and np.ptp(V[:, 1]) > 1.6  # wider than the twist alone (1.41)
+    deformed = radiance(obj)
     out, _ = engine_frames(obj, V)
-    assert rel_rms(twisted, out.radiance) < 1e-4 and rel_rms(twisted, rest) > 0.05
-    twist.show_viewport = False  # back at the baked pose: the object's own solver, nothing re-solved
+    assert rel_rms(deformed, out.radiance) < 1e-4 and rel_rms(deformed, rest) > 0.05
+    solves = st.solves
+    twist.show_viewport = cage.show_viewport = False  # back at the baked pose
     bpy.context.view_layer.update()
     live.flush()
-    assert st.pose is None and st.solver is rest_solver
+    assert st.pose is None and st.solver is rest_solver and st.solves == solves
     np.testing.assert_array_equal(radiance(obj), rest)
 
 
