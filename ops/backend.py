@@ -5,8 +5,9 @@ Every GPU-to-CPU decision of the Blender side is taken here, and each says
 why, with names and numbers:
 
 * :func:`placement`: before anything is built -- the scene's Solver setting,
-  the thread (Blender's GPU context belongs to the main thread; a render job
-  runs elsewhere), the solver kind (sparse LU has no GPU form), an earlier
+  a deformed frame (its graph changes every frame; the GPU solver packs it
+  once), the thread (Blender's GPU context belongs to the main thread; a
+  render job runs elsewhere), the solver kind (sparse LU has no GPU form), an earlier
   GPU failure in this render, the GPU layer importing, a GPU context with
   compute shaders (``gpu_shaders.available``) and, for the single-scattering
   ray pass in "Auto", a software rasteriser (where numpy is faster).
@@ -49,7 +50,7 @@ def off_main_thread() -> bool:
 
 
 def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "fast", off_main: bool | None = None,
-              failed_in_render: str = "", built: bool = False) -> Placement:
+              failed_in_render: str = "", built: bool = False, deformed_nodes: int = 0) -> Placement:
     """Where a pass of ``kind`` (``"diffusion"`` or ``"single scattering"``) may run.
 
     ``prefer``: the scene's Solver setting (AUTO, GPU, CPU); ``solver``: the
@@ -57,11 +58,20 @@ def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "f
     (default: the current thread's); ``failed_in_render``: why an earlier GPU
     solve of this object failed in a render ('' when none did); ``built``: the
     GPU solver exists already (a frame asks whether it may use it), so only
-    the rules that change from frame to frame apply (thread, render failure).
+    the rules that change from frame to frame apply (thread, render failure);
+    ``deformed_nodes``: the node count of a deformed frame's graph (0: the
+    rest pose).
     """
     prefer = (prefer or "AUTO").upper()
     if prefer == "CPU":
         return Placement("CPU")
+    if deformed_nodes:
+        # The GPU solver uploads a bake's links, faces and volumes into textures once (gpu_shaders.pack)
+        # and per frame only q; a pose changes all of them, and its solver is a new one every frame.
+        return Placement("CPU", f"deformed frames solve on the CPU: a pose changes the link lengths, face areas "
+                                f"and cell volumes of all {deformed_nodes:,} nodes, and the GPU solver packs a "
+                                "graph into textures once per bake (re-packing every pose is not built); the rest "
+                                "pose keeps the Solver setting")
     if off_main is None:
         off_main = off_main_thread()
     if off_main:

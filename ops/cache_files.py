@@ -3,6 +3,13 @@
 
 A render farm shares the folder: paths are stored blend-relative when the
 .blend is saved; an unsaved .blend uses the temporary folder and says so.
+
+Staleness tells a **pose** from a change: an evaluated mesh with the baked
+vertices and polygons at other positions (an armature, shape keys, a lattice,
+simple/mesh/surface deform, any modifier stack that keeps them, or moved
+vertices) is the bake deformed, solved on the deformed graph
+(:mod:`.deformation`), and is not stale; another vertex count or other
+polygons (a subdivision added after the bake) is, and asks for a re-bake.
 """
 
 from __future__ import annotations
@@ -12,6 +19,7 @@ import re
 import tempfile
 
 import bpy
+import numpy as np
 
 from . import scene_inputs
 from .state import _FAILED, _LOCK, _STATES, CACHE_STATUS, COUNTERS, ObjectState, drop_state, get_state, log
@@ -112,10 +120,12 @@ def check_cache(obj, depsgraph=None) -> str:
                 f"{str(meta.get('key'))[:12]} != {settings.bake_key[:12]}); re-bake")
     if depsgraph is not None:
         from ..translucency_addon.bake import BakeSettings
+        from ..translucency_addon.cache import read_mesh_topology
 
         try:
             baked = BakeSettings(**meta["settings"])
-            message = _staleness(obj, depsgraph, (meta.get("stats") or {}).get("graph_key") or meta["key"], baked)
+            message, _pose = _staleness(obj, depsgraph, (meta.get("stats") or {}).get("graph_key") or meta["key"],
+                                        baked, read_mesh_topology(path))
         except Exception as ex:  # noqa: BLE001 - a status line must not raise
             message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
         if message:
@@ -123,24 +133,58 @@ def check_cache(obj, depsgraph=None) -> str:
     return f"Baked (cache found: {os.path.basename(path)})"
 
 
-def _staleness(obj, depsgraph, key: str, baked_settings) -> str:
-    """Why the bake no longer matches the object (empty when it still does).
+def same_polygons(baked_faces, faces) -> bool:
+    """Whether two triangulations of meshes with the same vertices have the same polygons.
+
+    Blender re-splits a polygon as it bends (a quad that turns concave takes its other diagonal),
+    so a pose may triangulate differently from the bake.  A polygon's triangles are consecutive
+    in both lists: every run of triangles that differ must cover the same vertices in both.
+    """
+    A, B = np.asarray(baked_faces), np.asarray(faces)
+    if A.shape != B.shape:
+        return False
+    differ = np.any(A != B, axis=1)
+    if not differ.any():
+        return True
+    edges = np.diff(np.concatenate([[0], differ.astype(np.int8), [0]]))
+    for start, stop in zip(np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]):
+        if not np.array_equal(np.unique(A[start:stop]), np.unique(B[start:stop])):
+            return False
+    return True
+
+
+def _staleness(obj, depsgraph, key: str, baked_settings, baked_mesh=None) -> tuple[str, np.ndarray | None]:
+    """``(why the bake no longer matches the object ('' when it still does), the pose)``.
 
     ``key``: the QuadGraph key (``single_scattering.graph_key``: a bake holding
-    single scattering has a combined key of its own)."""
+    single scattering has a combined key of its own).  ``baked_mesh``: the
+    baked ``(vertex count, triangles)``; an evaluated mesh with those vertices
+    and polygons (:func:`same_polygons`) at other positions is a pose, returned
+    as its positions (object space, the baked order), and not stale.
+    """
     from dataclasses import replace
 
     from ..translucency_addon.bake import mesh_key
 
     V, F = scene_inputs.evaluated_triangles(obj, depsgraph)
+    pose = None
     if mesh_key(V, F, baked_settings) != key:
-        return "the mesh changed since it was baked (modifiers included); re-bake to update the graph"
+        if baked_mesh is None:
+            return "the mesh changed since it was baked (modifiers included); re-bake to update the graph", None
+        if len(V) != baked_mesh[0] or not same_polygons(baked_mesh[1], F):
+            what = (f"{baked_mesh[0]:,} vertices baked, {len(V):,} now" if len(V) != baked_mesh[0] else
+                    f"the same {len(V):,} vertices in other polygons ({len(baked_mesh[1]):,} triangles baked, "
+                    f"{len(F):,} now)")
+            return (f"the mesh changed since it was baked (modifiers included): {what}. A deformation (armature, "
+                    "shape keys, lattice, deform modifiers) keeps the vertices and polygons and needs no re-bake; "
+                    "this change of topology does: re-bake to update the graph"), None
+        pose = V
     s = obj.translucency
     wanted = replace(baked_settings, quality=s.quality.lower(), levels=int(s.levels))
     if (wanted.quality, wanted.levels) != (baked_settings.quality, baked_settings.levels):
         return (f"the bake settings changed (baked: {baked_settings.quality}, {baked_settings.levels} levels); "
-                "re-bake to apply them")
-    return ""
+                "re-bake to apply them"), pose
+    return "", pose
 
 
 def update_staleness(obj, st: ObjectState, depsgraph) -> str:
@@ -152,9 +196,11 @@ def update_staleness(obj, st: ObjectState, depsgraph) -> str:
         try:
             from ..translucency_addon.single_scattering import graph_key
 
-            st.stale_message = _staleness(obj, depsgraph, graph_key(st.bake), st.bake.settings)
+            st.stale_message, st.pose = _staleness(obj, depsgraph, graph_key(st.bake), st.bake.settings,
+                                                   (len(st.bake.mesh_vertices), st.bake.mesh_faces))
         except Exception as ex:  # noqa: BLE001
             st.stale_message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
+            st.pose = None
         if st.stale_message:
             log(f"'{obj.name}': {st.stale_message}", once_key=("stale", obj.name, st.stale_message))
     return st.stale_message

@@ -89,6 +89,12 @@ class FrameInputs:
     def env_sig(self) -> tuple | None:
         return None if self.environment is None else tuple(self.environment.radiance)
 
+    def solve_options(self):
+        """The diffusion solver's options for this frame (the scene's tolerance)."""
+        from ..translucency_addon.diffusion import SolveOptions
+
+        return SolveOptions(solver="fast", tol=self.tolerance)
+
     def weights(self, kind: str) -> np.ndarray:
         """The planner's per-vertex weight of a pass (``"multiple"``/``"single"``), on ``obj.data``'s vertices."""
         return self.plan.vertex_weights(kind, self.mapping.idx, self.mapping.w)
@@ -145,14 +151,15 @@ def gather(obj, scene, depsgraph, st: ObjectState, use_camera: bool) -> FrameInp
 def _field(obj, settings, depsgraph, st: ObjectState, want_ms: bool):
     """The field's signature; its values at every level's nodes are re-sampled into ``st`` when it changed."""
     epoch = (GEOMETRY_EPOCH.get(obj.name, 0), GEOMETRY_EPOCH.get(FRAME_EPOCH, 0))
-    field_sig = scene_inputs.field_signature(obj, settings, depsgraph, epoch)
+    rest = st.bake.mesh_vertices if st.pose is not None else None  # a pose: the field stays at rest
+    field_sig = scene_inputs.field_signature(obj, settings, depsgraph, epoch, rest)
     changed = field_sig != st.field_sig or (field_sig is not None and st.field_values is None)
     if changed and want_ms:
         if field_sig is None:
             st.field_values = None
         else:
             st.field_values = scene_inputs.sample_field(obj, settings, [lv.position for lv in st.bake.levels],
-                                                        depsgraph)
+                                                        depsgraph, rest)
             COUNTERS["field_samples"] += 1
         st.field_sig = field_sig
     return field_sig

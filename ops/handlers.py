@@ -18,6 +18,10 @@
   depsgraph passed to ``frame_change_post`` has them, and an attribute
   written there is picked up by the frame being rendered (Cycles, tested).
   ``frame_change_pre`` therefore only invalidates cached geometry.
+  An object animated by an armature, shape keys or deform modifiers needs
+  nothing else here: each solve compares the evaluated mesh with the bake
+  (``cache_files``) and solves a pose on the deformed graph
+  (``deformation``), or reports a change of topology.
 * ``render_init``/``render_pre``/``render_post``/``render_cancel``/
   ``render_complete``: track whether a render is running (for the log).
 * ``load_post``: drop all runtime state (GPU memory too), move the status a

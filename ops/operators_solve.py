@@ -68,8 +68,8 @@ class TRANSLUCENCY_OT_solve(bpy.types.Operator):
                 continue
             st = state.get_state(obj)
             self.report({'WARNING'} if report.skipped else {'INFO'}, report.describe())
-            if st is not None and st.backend_message and not getattr(st, "_message_reported", False):
-                self.report({'INFO'}, f"'{obj.name}': {st.backend_message}")
+            if st is not None and st.frame_backend_message and not getattr(st, "_message_reported", False):
+                self.report({'INFO'}, f"'{obj.name}': {st.frame_backend_message}")
                 st._message_reported = True
             for warning in (st.warnings if st is not None else ()):
                 self.report({'WARNING'}, f"'{obj.name}': {warning}")

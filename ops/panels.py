@@ -11,7 +11,8 @@ Scattering, bake status and statistics (the saved ``translucency.status``: N_s
 and N_i per level, graph memory, bake time, single-scattering samples and time
 per stage, warnings; cache problems found after a file load), material,
 heterogeneity field, Solve with the last solve time, iterations, residual,
-backend and fallback message, the single-scattering time and backend and why
+backend and fallback message, on a deformed frame the pose's worst link
+stretch (or that it was refused), the single-scattering time and backend and why
 it needs a re-bake (``status.solve_status``: runtime state, never saved), the
 cache file, then the hooks of the optional modules (``overlay.draw_settings``
 and ``render_pass.draw_settings``, see :func:`_draw_hooks`) and the scene
@@ -154,6 +155,10 @@ def _draw_object_settings(layout, obj, context=None) -> None:
     if solved.backend:
         box.label(text=f"Last solve: {solved.seconds * 1000:.1f} ms on the {solved.backend}, "
                        f"{solved.iterations} iterations, residual {solved.residual:.2e}")
+    if solved.deformation:  # the current frame's pose (runtime state, like the rest of the solve status)
+        sub = box.column()
+        sub.alert = "refused" in solved.deformation
+        _draw_multiline(sub, solved.deformation, icon='MOD_ARMATURE')
     if solved.message:
         _draw_multiline(box, solved.message, icon='INFO')
     if solved.ss_backend:

@@ -53,7 +53,7 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
-from . import attributes, backend, cache_files, state, status
+from . import attributes, backend, cache_files, deformation, state, status
 from .frame import FrameInputs, gather
 
 
@@ -71,6 +71,7 @@ class SolveReport:
     ss_backend: str = ""
     skipped: str = ""  # why no pass ran (the planner's reason, with its numbers); "" when one ran
     ms_ran: bool = True  # the diffusion pass ran (False: single scattering only, or skipped)
+    deformed: str = ""  # a deformed frame: its pose's line (worst link stretch); "" at the baked pose
 
     def describe(self) -> str:
         """One line for the Info log and the status bar; a skip never reads as a solve."""
@@ -85,6 +86,8 @@ class SolveReport:
             parts.append(f"single scattering {1000 * self.ss_seconds:.1f} ms on the {self.ss_backend}")
         if not parts:
             parts.append("diffusion turned off; nothing else to evaluate")
+        if self.deformed:
+            parts.append(self.deformed[0].lower() + self.deformed[1:])
         return f"'{self.name}' " + "; ".join(parts)
 
 
@@ -97,6 +100,7 @@ class Diffusion:
     solved: bool  # False: the last solution was reused
     seconds: float
     result: object = None
+    backend: str = ""  # where it ran when not on the object's own solver or its CPU twin (a deformed frame)
 
 
 def solve_object(obj, scene=None, depsgraph=None, *, use_camera: bool = False, force: bool = False,
@@ -122,25 +126,34 @@ def solve_object(obj, scene=None, depsgraph=None, *, use_camera: bool = False, f
 
 def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     st = cache_files.ensure_state(obj, retry=retry_load)
-    cache_files.update_staleness(obj, st, depsgraph)
+    cache_files.update_staleness(obj, st, depsgraph)  # and whether the evaluated mesh is a pose of the bake
     frame = gather(obj, scene, depsgraph, st, use_camera)
     st.plan = state.PLANS[obj.name] = frame.plan
     if frame.unseen:
         state.COUNTERS["planner_skips"] += 1
         return None  # unseen in this render: no work at all
+    deformed = st.pose is not None  # solved on the baked graph deformed to the pose (ops.deformation)
+    if deformed:
+        frame = deformation.at_pose(st, frame)
     st.ss_stale = frame.ss_stale
-    solver = _prepare_solver(st, frame) if frame.want_ms else None
+    solver = _prepare_solver(st, frame) if frame.want_ms and not deformed else None
     solve_sig, view_sig = _signatures(st, frame)
     for w in frame.warnings:
         state.log(f"'{obj.name}': {w}", once_key=("warn", obj.name, w))
-    if _up_to_date(obj, st, frame, solver, solve_sig, view_sig, force):
+    previous_sig = st.deformation.solve_sig if deformed else _previous(st, solver)[1]
+    if _up_to_date(obj, st, frame, previous_sig, solve_sig, view_sig, force):
         return None
-    if frame.use_ms:
+    if frame.use_ms and deformed:
+        rgb, pose_solver, solved, seconds, result = deformation.diffuse(st, frame, scene.frame_current, solve_sig,
+                                                                        force)
+        ms = Diffusion(_weighted(frame, rgb), pose_solver, solved, seconds, result, backend=st.frame_backend)
+    elif frame.use_ms:
         ms = _diffuse(st, frame, solver, solve_sig, force)
     else:
         ms = Diffusion(np.zeros((frame.n_vertices, 3)), None, False, 0.0)
     ss_rgb = _single_scatter(st, frame) if frame.use_ss else None
     _write(obj, frame, ms.rgb + ss_rgb if ss_rgb is not None else ms.rgb, ss_rgb)
+    st.deformation.solved_frame = scene.frame_current
     _record(st, frame, view_sig, ms, ss_rgb)
     if not frame.off_main:
         status.publish(st)
@@ -148,12 +161,6 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
 
 
 # ------------------------------------------------------------------ the steps
-
-
-def _options(frame: FrameInputs):
-    from ..translucency_addon.diffusion import SolveOptions
-
-    return SolveOptions(solver="fast", tol=frame.tolerance)
 
 
 def _solver_sig(frame: FrameInputs) -> tuple:
@@ -170,7 +177,7 @@ def _prepare_solver(st: state.ObjectState, frame: FrameInputs):
     if st.solver is None or st.solver_sig != solver_sig:
         _free_solvers(st)
         solver, name, message = backend.make_solver(st.bake.with_scale(frame.mm), frame.material, frame.field_values,
-                                                    _options(frame), frame.prefer, off_main=frame.off_main)
+                                                    frame.solve_options(), frame.prefer, off_main=frame.off_main)
         st.solver, st.backend, st.backend_message = solver, name, message
         st.solver_sig, st.material, st.solver_field = solver_sig, frame.material, frame.field_values
         st.result = st.result_solver = st.solve_sig = st.view_sig = None
@@ -207,7 +214,7 @@ def _cpu_twin(st: state.ObjectState, frame: FrameInputs):
     """The CPU solver used where the GPU one cannot run (render thread, no GPU context)."""
     if st.render_solver is None:
         st.render_solver = backend.cpu_solver(st.bake.with_scale(frame.mm), frame.material, frame.field_values,
-                                              _options(frame))
+                                              frame.solve_options())
         st.render_result = st.render_solve_sig = None
     return st.render_solver
 
@@ -221,7 +228,8 @@ def _signatures(st: state.ObjectState, frame: FrameInputs) -> tuple:
         reaching = set(frame.plan.facts.get("lights_reaching", ()))
         lights_sig = tuple(light for light in frame.lights if light.name in reaching)
         solve_sig = (_solver_sig(frame), frame.material, frame.field_sig,
-                     lights_sig, frame.env_sig, frame.occ_sig, frame.ms_channels)
+                     lights_sig, frame.env_sig, frame.occ_sig, frame.ms_channels,
+                     st.geometry_digest if st.pose is not None else None)  # a pose: its positions
     ss_sig = (frame.want_ss, frame.use_ss, frame.split)
     if frame.use_ss:
         ss_sig += (st.bake.key, frame.ss_order, frame.prefer, float(frame.material.eta), round(frame.mm, 9),
@@ -239,16 +247,18 @@ def _previous(st: state.ObjectState, solver) -> tuple:
     return (st.result, st.solve_sig) if st.result_solver is solver else (None, None)
 
 
-def _up_to_date(obj, st, frame: FrameInputs, solver, solve_sig, view_sig, force: bool) -> bool:
-    """Nothing this frame depends on changed and the attributes hold the last frame's values."""
+def _up_to_date(obj, st, frame: FrameInputs, previous_sig, solve_sig, view_sig, force: bool) -> bool:
+    """Nothing this frame depends on changed and the attributes hold the last frame's values.
+
+    ``previous_sig``: what the last diffusion solution this frame would reuse was solved for (None: none).
+    """
     if force or view_sig != st.view_sig or not attributes.attribute_ok(obj):
         return False
     if frame.use_ss and frame.split and not attributes.attribute_ok(obj, attributes.SS_ATTRIBUTE_NAME):
         return False
     if not frame.use_ms:
         return True
-    previous, previous_sig = _previous(st, solver)
-    return previous is not None and solve_sig == previous_sig
+    return previous_sig is not None and solve_sig == previous_sig
 
 
 def _diffuse(st: state.ObjectState, frame: FrameInputs, solver, solve_sig, force: bool) -> Diffusion:
@@ -282,12 +292,19 @@ def _diffuse(st: state.ObjectState, frame: FrameInputs, solver, solve_sig, force
             st.render_result, st.render_solve_sig = result, solve_sig
         else:
             st.result, st.result_solver, st.solve_sig = result, solver, solve_sig
+    return Diffusion(_weighted(frame, rgb), solver, solved, seconds, result)
+
+
+def _weighted(frame: FrameInputs, rgb) -> np.ndarray:
+    """The diffusion radiance weighted by the planner's region; NaN or Inf is refused, never written."""
+    from ..translucency_addon.errors import TranslucencyError
+
     rgb = np.asarray(rgb, dtype=np.float64)
     if frame.plan.multiple.weights is not None:  # diffusion only where the planner keeps it
         rgb = rgb * frame.weights("multiple")
     if not np.all(np.isfinite(rgb)):
         raise TranslucencyError(f"'{frame.name}': the solve produced NaN or Inf radiance; check the material")
-    return Diffusion(rgb, solver, solved, seconds, result)
+    return rgb
 
 
 def _retry_on_the_cpu(st: state.ObjectState, frame: FrameInputs, where):
@@ -297,7 +314,8 @@ def _retry_on_the_cpu(st: state.ObjectState, frame: FrameInputs, where):
         st.gpu_failed_in_render = where.reason
         return _cpu_twin(st, frame)
     backend.free_solver(st.solver)
-    st.solver = backend.cpu_solver(st.bake.with_scale(frame.mm), frame.material, frame.field_values, _options(frame))
+    st.solver = backend.cpu_solver(st.bake.with_scale(frame.mm), frame.material, frame.field_values,
+                                   frame.solve_options())
     st.backend, st.backend_message = "CPU", where.reason
     st.result = st.result_solver = None
     return st.solver
@@ -399,7 +417,7 @@ def _record(st: state.ObjectState, frame: FrameInputs, view_sig, ms: Diffusion, 
 
 def _report(st: state.ObjectState, frame: FrameInputs, ms: Diffusion) -> SolveReport:
     if frame.use_ms:
-        report_backend = "CPU" if ms.solver is st.render_solver else st.backend
+        report_backend = ms.backend or ("CPU" if ms.solver is st.render_solver else st.backend)
     else:
         report_backend = st.ss_backend if frame.use_ss else ""
     return SolveReport(name=frame.name, backend=report_backend, seconds=st.seconds if frame.use_ms else 0.0,
@@ -408,7 +426,8 @@ def _report(st: state.ObjectState, frame: FrameInputs, ms: Diffusion) -> SolveRe
                        view="CAMERA" if frame.view is not None else "NORMAL", vertices=frame.n_vertices,
                        ss_seconds=st.ss_seconds if frame.use_ss else 0.0,
                        ss_backend=st.ss_backend if frame.use_ss else "",
-                       skipped="" if frame.plan.run else frame.plan.reason, ms_ran=frame.use_ms)
+                       skipped="" if frame.plan.run else frame.plan.reason, ms_ran=frame.use_ms,
+                       deformed=st.deformation.describe() if st.pose is not None else "")
 
 
 # ------------------------------------------------------------------ every object of a scene

@@ -493,11 +493,14 @@ def _vertex_group_values(obj, mesh, name: str):
     return values
 
 
-def mesh_field(obj, settings, depsgraph) -> tuple[np.ndarray, np.ndarray]:
+def mesh_field(obj, settings, depsgraph, rest=None) -> tuple[np.ndarray, np.ndarray]:
     """``(positions (n, 3) object space, values (n,))`` of an attribute or vertex-group field.
 
     Read from the evaluated mesh (modifiers carry attributes and groups), or
-    from the original mesh when the evaluated one lost the layer.
+    from the original mesh when the evaluated one lost the layer.  ``rest``:
+    the baked positions of the evaluated mesh's vertices when it is a pose of
+    the bake (``ops.deformation``): the field stays attached to the rest pose,
+    so its values are placed there.
     """
     from ..translucency_addon.errors import MaterialError
 
@@ -519,7 +522,8 @@ def mesh_field(obj, settings, depsgraph) -> tuple[np.ndarray, np.ndarray]:
             # An evaluated mesh whose modifiers dropped the weights has no groups at all.
             values = _vertex_group_values(obj, mesh, name) if is_original or _has_groups(mesh) else None
         if values is not None:
-            return vertex_positions(mesh), values
+            at_rest = rest is not None and not is_original and len(rest) == len(mesh.vertices)
+            return (np.asarray(rest) if at_rest else vertex_positions(mesh)), values
     raise MaterialError(f"'{obj.name}' has no mesh attribute {name!r} for the heterogeneity field")
 
 
@@ -545,12 +549,13 @@ def interpolate_to_nodes(positions: np.ndarray, values: np.ndarray, nodes: np.nd
     return np.clip(np.nan_to_num(out, nan=0.0), 0.0, 1.0)
 
 
-def field_signature(obj, settings, depsgraph, vertex_group_epoch=0):
+def field_signature(obj, settings, depsgraph, vertex_group_epoch=0, rest=None):
     """A hashable key of the field's inputs (``None`` for a homogeneous material).
 
     Vertex-group weights cannot be read in bulk (one Python loop over the
     vertices), so they are not hashed on every check: ``vertex_group_epoch``
     (bumped by the handlers on mesh edits and frame changes) stands for them.
+    ``rest``: as in :func:`mesh_field`.
     """
     from ..translucency_addon.errors import MaterialError
 
@@ -563,15 +568,15 @@ def field_signature(obj, settings, depsgraph, vertex_group_epoch=0):
             raise MaterialError(f"'{obj.name}': Heterogeneous is on but no texture is chosen for the field")
         return ('TEXTURE', texture_signature(tex), round(float(settings.field_scale), 9))
     if source == 'ATTRIBUTE':
-        positions, values = mesh_field(obj, settings, depsgraph)
+        positions, values = mesh_field(obj, settings, depsgraph, rest)
         return ('ATTRIBUTE', settings.field_attribute, array_digest(positions, values))
     return ('VERTEX_GROUP', settings.field_vertex_group, len(obj.data.vertices), vertex_group_epoch)
 
 
-def sample_field(obj, settings, node_positions, depsgraph) -> list[np.ndarray] | None:
+def sample_field(obj, settings, node_positions, depsgraph, rest=None) -> list[np.ndarray] | None:
     """The mixing weight (0..1) at every level's nodes, or ``None`` when homogeneous.
 
-    ``node_positions``: one (N_l, 3) array per level, object space.
+    ``node_positions``: one (N_l, 3) array per level, object space; ``rest``: as in :func:`mesh_field`.
     """
     if not settings.use_heterogeneity:
         return None
@@ -583,7 +588,7 @@ def sample_field(obj, settings, node_positions, depsgraph) -> list[np.ndarray] |
             raise MaterialError(f"'{obj.name}': Heterogeneous is on but no texture is chosen for the field")
         scale = float(settings.field_scale)
         return [evaluate_texture(tex, np.asarray(p) * scale) for p in node_positions]
-    positions, values = mesh_field(obj, settings, depsgraph)
+    positions, values = mesh_field(obj, settings, depsgraph, rest)
     return [interpolate_to_nodes(positions, values, np.asarray(p)) for p in node_positions]
 
 

@@ -18,6 +18,50 @@ _LOCK = threading.RLock()
 
 
 @dataclass
+class DeformationState:
+    """One object's deformed frames (:mod:`.deformation`): kept between frames, never saved.
+
+    ``frames`` is the engine's ``DeformationFrames`` (its rig is built once per loaded bake, on the
+    first deformed frame); the rest is what the panel and the log say about the current frame.
+    """
+
+    rig: object | None = None  # translucency_addon.deformation.DeformationRig of the loaded bake
+    rig_seconds: float = 0.0
+    frames: object | None = None  # translucency_addon.deformation_frames.DeformationFrames at the frame's scale
+    frames_sig: tuple | None = None  # (mm per unit, tolerance) the frames were made for
+    backend: str = "CPU"  # where deformed frames solve (ops.backend.placement)
+    reason: str = ""  # why not on the GPU
+    frame: int | None = None  # the scene frame of the current pose
+    report: object | None = None  # its DeformationReport (None when the pose could not be deformed at all)
+    refused: str = ""  # why the current pose was not solved ('' when it was)
+    solved_frame: int | None = None  # the frame whose radiance the attribute holds
+    solve_sig: tuple | None = None  # what frames.last was solved for
+    occluders: tuple | None = None  # (occluder signature, their vertices, BVH of the posed object + them)
+
+    def describe(self) -> str:
+        """The panel's line about the current pose ('' before the first deformed frame)."""
+        if self.frame is None:
+            return ""
+        at = f"Deformed, frame {self.frame}"
+        if self.refused:
+            kept = (f"the attribute keeps frame {self.solved_frame}" if self.solved_frame is not None
+                    else "the attribute keeps its last values")
+            if self.report is not None:
+                return f"{at}: refused (worst link stretch {_stretch(self.report)}); {kept}"
+            return f"{at}: refused; {kept}"
+        if self.report is None:
+            return at
+        slivers = self.report.inverted_tets
+        return (f"{at}: worst link stretch {_stretch(self.report)} (limit {self.report.stretch_limit:g}x)"
+                + (f", {slivers} sliver tets turned over (tolerated)" if slivers else ""))
+
+
+def _stretch(report) -> str:
+    w = report.worst_stretch
+    return f"{w:.2f}x" if w < 1e6 else "unbounded"
+
+
+@dataclass
 class ObjectState:
     """What one baked object keeps between solves (never a bpy reference)."""
 
@@ -47,6 +91,9 @@ class ObjectState:
     geometry_digest: str = ""
     stale_message: str = ""
     orig_map: tuple | None = None  # (digest, idx, w, positions, normals) for obj.data vertices
+    # the evaluated mesh's positions when they are a pose of the bake (ops.cache_files; None at rest)
+    pose: object | None = None
+    deformation: DeformationState = field(default_factory=DeformationState)
     # the solve status the panel shows (ops.status.solve_status; never saved)
     seconds: float = 0.0
     residual: float = 0.0
@@ -64,6 +111,16 @@ class ObjectState:
     ss_rgb: object | None = None  # last single-scattering radiance (n_vertices, 3)
     plan: object | None = None  # translucency_addon.planner.Plan of the last solve
 
+    @property
+    def frame_backend(self) -> str:
+        """Where this frame's diffusion runs: the deformed frames' backend at a pose, the object's solver's
+        otherwise."""
+        return self.deformation.backend if self.pose is not None else self.backend
+
+    @property
+    def frame_backend_message(self) -> str:
+        return self.deformation.reason if self.pose is not None else self.backend_message
+
     def free(self) -> None:
         for solver in (self.solver, self.render_solver):
             if solver is not None:
@@ -76,6 +133,7 @@ class ObjectState:
             except Exception as ex:  # noqa: BLE001 - freeing must not break cleanup paths
                 print(f"Translucency: freeing the single-scattering data failed: {type(ex).__name__}: {ex}")
         self.ss = self.ss_key = self.ss_rgb = None
+        self.deformation = DeformationState()
 
 
 _STATES: dict[str, ObjectState] = {}

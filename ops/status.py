@@ -9,7 +9,8 @@
   :func:`clear_bake_status` resets it; nothing else writes it.
 * The **solve status** (:func:`solve_status`): where and how fast the last
   solve ran, its residual, the fallback reason or the last error, the
-  single-scattering time, backend and staleness.  It changes every frame, so
+  single-scattering time, backend and staleness, and on a deformed frame the
+  pose's worst link stretch (or why the pose was refused).  It changes every frame, so
   it lives in the object's runtime state (:mod:`.state`) and is never saved:
   a solve writes no property and so causes no depsgraph update of its own.
   :func:`publish` tells the panels to redraw after a solve.
@@ -150,6 +151,7 @@ class SolveStatus:
     ss_backend: str  # where the last single-scattering ray pass ran ('' when it did not run)
     ss_seconds: float
     ss_message: str  # why single scattering needs a re-bake, else why it is not on the GPU
+    deformation: str = ""  # a deformed frame: the pose's worst link stretch, or that it was refused
 
 
 def solve_status(obj) -> SolveStatus:
@@ -158,14 +160,15 @@ def solve_status(obj) -> SolveStatus:
     error = state.ERRORS.get(obj.name, "")
     if st is None:
         return SolveStatus("", 0.0, 0.0, 0, error, "", 0.0, "")
-    message = st.backend_message
+    message = st.frame_backend_message
     if st.stale_message:
         message = (message + "; " if message else "") + "stale bake: " + st.stale_message
     ss_ran = st.ss_rgb is not None
     return SolveStatus(
-        backend=st.backend, seconds=float(st.seconds), residual=float(st.residual), iterations=int(st.iterations),
-        message=error or message, ss_backend=st.ss_backend if ss_ran else "",
-        ss_seconds=float(st.ss_seconds), ss_message=st.ss_stale or (st.ss_backend_message if ss_ran else ""))
+        backend=st.frame_backend, seconds=float(st.seconds), residual=float(st.residual),
+        iterations=int(st.iterations), message=error or message, ss_backend=st.ss_backend if ss_ran else "",
+        ss_seconds=float(st.ss_seconds), ss_message=st.ss_stale or (st.ss_backend_message if ss_ran else ""),
+        deformation=st.deformation.describe() if st.pose is not None else "")
 
 
 def last_solve() -> dict:
@@ -184,7 +187,8 @@ def plan_summary(name: str) -> str:
 def publish(st: state.ObjectState) -> None:
     """After a solve on the main thread: record it as the scene's last and redraw the panels showing it."""
     state.ERRORS.pop(st.name, None)
-    state.LAST_SOLVE.update(name=st.name, seconds=float(st.seconds), residual=float(st.residual), backend=st.backend)
+    state.LAST_SOLVE.update(name=st.name, seconds=float(st.seconds), residual=float(st.residual),
+                            backend=st.frame_backend)
     if st.stale_message:
         state.CACHE_STATUS[st.name] = f"Stale: {st.stale_message}"
     else:

@@ -318,12 +318,17 @@ def test_stale_cache_is_reported(blender, addon, tmp_path, memo_bakes):
     obj = sphere()
     add_light()
     assert bake(obj) == {'FINISHED'}
-    obj.data.vertices[0].co.z += 0.2  # the mesh changes after the bake
+    obj.data.vertices[0].co.z += 0.2  # the same vertices and polygons elsewhere: a pose of the bake, not stale
     obj.data.update()
     bpy.ops.wm.save_mainfile()
     bpy.ops.wm.open_mainfile(filepath=str(blend))
+    assert "Blob" not in state.CACHE_STATUS
+    bpy.data.objects["Blob"].modifiers.new("Subdivision", 'SUBSURF')  # the topology changes after the bake
+    bpy.ops.wm.save_mainfile()
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
     obj = bpy.data.objects["Blob"]
-    assert state.CACHE_STATUS["Blob"].startswith("Stale: the mesh changed")
+    assert state.CACHE_STATUS["Blob"].startswith("Stale: the mesh changed since it was baked (modifiers "
+                                                 "included): 42 vertices baked, 242 now")
     # It still solves (on the old graph), and says why the result may be off.
     activate(obj)
     assert bpy.ops.translucency.solve() == {'FINISHED'}

@@ -16,6 +16,7 @@ FLOORS = (
     ("operators_bake", "operators_solve", "panels", "overlay", "render_pass"),
     ("live",),
     ("runtime",),
+    ("deformation",),
     ("frame", "status", "cache_files", "attributes"),
     ("state",),
     ("scene_inputs", "backend"),

@@ -111,6 +111,17 @@ def read_meta(path) -> dict:
         return _meta(z, path)
 
 
+def read_mesh_topology(path) -> tuple[int, np.ndarray]:
+    """``(vertex count, triangles)`` of the baked mesh, without loading the graph: whether a mesh
+    with other vertex positions is this bake deformed (the Blender side's staleness after a load)."""
+    with _open(path) as z:
+        _meta(z, path)
+        try:
+            return int(z["mesh/V"].shape[0]), np.asarray(z["mesh/F"], dtype=np.int64)
+        except (KeyError, zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as exc:
+            raise CacheError(f"bake cache {path!r} is corrupt or truncated: {exc}") from exc
+
+
 def _open(path):
     path = os.fspath(path)
     if not os.path.exists(path):

@@ -98,6 +98,7 @@ way; :class:`~.deformation_frames.DeformationFrames` keeps the last valid frame.
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field, replace
 
@@ -330,6 +331,13 @@ class DeformationRig:
         ext = np.ptp(self.V[self.used], axis=0)
         self.rest_diagonal = float(np.linalg.norm(ext))
         self.seconds = time.perf_counter() - t0
+
+    def with_scale(self, mm_per_unit: float) -> "DeformationRig":
+        """The same rig for the bake at another scene scale (``Bake.with_scale``): poses are in object
+        units and nothing the rig holds depends on the scale, so nothing is rebuilt."""
+        rig = copy.copy(self)
+        rig.bake = self.bake.with_scale(mm_per_unit)
+        return rig
 
     # -- input checks ---------------------------------------------------------------------------
     def check_pose(self, V) -> np.ndarray:
