@@ -315,11 +315,13 @@ class OccluderCache:
     value: tuple | None = None
 
 
-def collect_occluders(depsgraph, obj, obj_matrix, cache: OccluderCache | None = None):
+def collect_occluders(depsgraph, obj, obj_matrix, cache: OccluderCache | None = None, exclude=()):
     """Other visible mesh objects' evaluated triangles in ``obj``'s space.
 
-    Returns ``((V, F) or None, signature)``; the signature changes when an
-    occluder moves (relative to ``obj``), deforms, appears or disappears.
+    ``exclude``: names of further objects that cast no shadow on ``obj`` (a
+    fluid's emitter).  Returns ``((V, F) or None, signature)``; the signature
+    changes when an occluder moves (relative to ``obj``), deforms, appears or
+    disappears.
     """
     to_object = matrix_to_numpy(obj_matrix.inverted_safe())
     own = obj.original if obj.original is not None else obj
@@ -330,7 +332,7 @@ def collect_occluders(depsgraph, obj, obj_matrix, cache: OccluderCache | None = 
         if ob.type != 'MESH':
             continue
         orig = ob.original if ob.original is not None else ob
-        if orig == own:
+        if orig == own or orig.name in exclude:
             continue
         mesh = ob.data
         if mesh is None or len(mesh.vertices) == 0:
