@@ -11,6 +11,17 @@ signature of each solve's inputs with the last one, so a check after an
 unrelated edit costs little.  Timers never fire in background mode:
 :func:`flush` runs a pending check at once (tests, scripts).
 
+Fluid sources (no bake, a fresh solve every frame) that take longer per
+frame than ``status.FLUID_LIVE_BUDGET`` are not solved by the frame-change
+handler while the viewport plays the animation: :func:`defer_fluids` leaves
+them to this throttled check and says so in the status bar, which
+:func:`check_now` gives back once playback has stopped.
+
+Handlers and timers are not operators, so they cannot write to Blender's
+Info log themselves: :func:`report_info` hands the messages the runtime
+queued (``state.INFO``: a failed solve, a fluid without particles) to the
+``translucency.report`` operator from a one-shot timer.
+
 Nothing is scheduled while the add-on is not registered (:func:`enable` /
 :func:`disable`, called by ``handlers``).
 """
@@ -21,12 +32,12 @@ import time
 
 import bpy
 
-from . import runtime, state
+from . import runtime, state, status
 
 MIN_INTERVAL = 0.05  # seconds between live checks at least
 MAX_INTERVAL = 1.0
 
-_state = {"enabled": False, "last_check": 0.0, "checks": 0}
+_state = {"enabled": False, "last_check": 0.0, "checks": 0, "status_bar": False}
 
 
 def enable() -> None:
@@ -35,8 +46,9 @@ def enable() -> None:
 
 def disable() -> None:
     _state["enabled"] = False
-    if bpy.app.timers.is_registered(_on_timer):
-        bpy.app.timers.unregister(_on_timer)
+    for timer in (_on_timer, _report_timer):
+        if bpy.app.timers.is_registered(timer):
+            bpy.app.timers.unregister(timer)
 
 
 def request_update(delay: float | None = None) -> None:
@@ -50,7 +62,7 @@ def request_update(delay: float | None = None) -> None:
     if not _state["enabled"] or bpy.app.timers.is_registered(_on_timer):
         return
     if delay is None:
-        last = max((st.seconds for st in list(state._STATES.values())), default=0.0)
+        last = max((st.seconds for st in list(state._STATES.values()) + list(state._FLUIDS.values())), default=0.0)
         delay = min(MAX_INTERVAL, max(MIN_INTERVAL, last))
     bpy.app.timers.register(_on_timer, first_interval=delay)
 
@@ -69,7 +81,41 @@ def check_now(scene=None, depsgraph=None) -> list:
     _state["checks"] += 1
     _state["last_check"] = time.perf_counter()
     state.prune(o.name for o in bpy.data.objects)
-    return runtime.solve_scene(scene, depsgraph)
+    reports = runtime.solve_scene(scene, depsgraph)
+    if _state["status_bar"] and not status.playing():
+        status.status_bar(None)
+        _state["status_bar"] = False
+    report_info()
+    return reports
+
+
+def defer_fluids(reports) -> None:
+    """Leave the fluid frames ``runtime.solve_scene(playback=True)`` deferred to this check; say so."""
+    deferred = [r for r in reports if getattr(r, "deferred", False)]
+    if not deferred:
+        return
+    slowest = max(deferred, key=lambda r: r.seconds)
+    status.status_bar(f"Translucency: fluid '{slowest.name}' takes {slowest.seconds:.1f} s per frame, so playback "
+                      f"does not wait for it: its radiance follows about every {min(slowest.seconds, MAX_INTERVAL):.1f} "
+                      "s (renders solve every frame)")
+    _state["status_bar"] = True
+    request_update()
+
+
+def report_info() -> None:
+    """Hand the queued Info-log messages to the ``translucency.report`` operator (from a timer)."""
+    if state.INFO and _state["enabled"] and not bpy.app.timers.is_registered(_report_timer):
+        bpy.app.timers.register(_report_timer, first_interval=0.0)
+
+
+def _report_timer():
+    while state.INFO:
+        level, message = state.INFO.pop(0)
+        try:
+            bpy.ops.translucency.report(level=level, message=message)
+        except Exception as ex:  # noqa: BLE001 - no window to report to: the console has it already
+            state.log(f"could not show in the Info log ({type(ex).__name__}): {message}")
+    return None
 
 
 def flush() -> list:

@@ -16,8 +16,9 @@ FLOORS = (
     ("operators_bake", "operators_solve", "panels", "overlay", "render_pass"),
     ("live",),
     ("runtime",),
+    ("fluid_runtime",),
     ("frame", "status", "cache_files", "attributes"),
-    ("state",),
+    ("state", "fluid_sources"),
     ("scene_inputs", "backend"),
     ("compat", "dependencies", "quality_costs"),
 )
