@@ -140,6 +140,7 @@ def solve_fluid(obj, scene=None, depsgraph=None, *, use_camera: bool = False, fo
     with state._LOCK:
         st = state.fluid_state(obj)
         frame = gather(obj, scene, depsgraph, st, use_camera)
+        state.PLANS.pop(obj.name, None)
         if frame.plan is not None:
             state.PLANS[obj.name] = frame.plan
             if not frame.plan.run and frame.plan.reason.startswith("outside the camera view"):

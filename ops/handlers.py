@@ -11,7 +11,7 @@
 * ``frame_change_post``: re-solve for the new frame (Fluid sources too: a
   fresh solve of their particles every frame; while the viewport plays, a
   fluid slower than ``status.FLUID_LIVE_BUDGET`` per frame is left to the
-  throttled live check, ``live.defer_fluids``).  With a *render*
+  throttled live check, ``live.announce_fluids``).  With a *render*
   depsgraph (``depsgraph.mode == 'RENDER'``: F12, ``-f``/``-a``, and
   ``bpy.ops.render.render``) the radiance is evaluated towards the render
   camera.  Measured in Blender 5.0: in ``frame_change_pre`` neither the
@@ -110,7 +110,7 @@ def on_frame_change_post(scene, depsgraph=None):
         for r in reports:
             state.log(f"frame {scene.frame_current}: {r.describe()}, view towards the camera")
     else:
-        live.defer_fluids(reports)
+        live.announce_fluids(reports)
     live.report_info()
 
 

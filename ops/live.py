@@ -13,9 +13,9 @@ unrelated edit costs little.  Timers never fire in background mode:
 
 Fluid sources (no bake, a fresh solve every frame) that take longer per
 frame than ``status.FLUID_LIVE_BUDGET`` are not solved by the frame-change
-handler while the viewport plays the animation: :func:`defer_fluids` leaves
-them to this throttled check and says so in the status bar, which
-:func:`check_now` gives back once playback has stopped.
+handler while the viewport plays the animation: :func:`announce_fluids`
+leaves them to this throttled check and says in the status bar what a frame
+costs; the text goes once playback has stopped and no fluid frame is slow.
 
 Handlers and timers are not operators, so they cannot write to Blender's
 Info log themselves: :func:`report_info` hands the messages the runtime
@@ -33,6 +33,7 @@ import time
 import bpy
 
 from . import runtime, state, status
+from .fluid_runtime import FluidReport
 
 MIN_INTERVAL = 0.05  # seconds between live checks at least
 MAX_INTERVAL = 1.0
@@ -82,24 +83,28 @@ def check_now(scene=None, depsgraph=None) -> list:
     _state["last_check"] = time.perf_counter()
     state.prune(o.name for o in bpy.data.objects)
     reports = runtime.solve_scene(scene, depsgraph)
-    if _state["status_bar"] and not status.playing():
-        status.status_bar(None)
-        _state["status_bar"] = False
+    announce_fluids(reports)
     report_info()
     return reports
 
 
-def defer_fluids(reports) -> None:
-    """Leave the fluid frames ``runtime.solve_scene(playback=True)`` deferred to this check; say so."""
+def announce_fluids(reports) -> None:
+    """Say in the status bar when fluid frames are slow: what one costs, and that playback does not wait for
+    them (the frames ``runtime.solve_scene(playback=True)`` deferred, scheduled here for this check).  The
+    text goes away at the first check or frame change without a slow fluid once playback has stopped."""
     deferred = [r for r in reports if getattr(r, "deferred", False)]
-    if not deferred:
-        return
-    slowest = max(deferred, key=lambda r: r.seconds)
-    status.status_bar(f"Translucency: fluid '{slowest.name}' takes {slowest.seconds:.1f} s per frame, so playback "
-                      f"does not wait for it: its radiance follows about every {min(slowest.seconds, MAX_INTERVAL):.1f} "
-                      "s (renders solve every frame)")
-    _state["status_bar"] = True
-    request_update()
+    slow = [r for r in reports if isinstance(r, FluidReport) and r.seconds > status.FLUID_LIVE_BUDGET]
+    if deferred:
+        request_update()
+    if slow:
+        r = max(slow, key=lambda r: r.seconds)
+        status.status_bar(f"Translucency: a frame of the fluid '{r.name}' takes {r.seconds:.1f} s ({r.particles:,} "
+                          "particles); while the animation plays, its radiance follows about every "
+                          f"{min(r.seconds, MAX_INTERVAL):.1f} s instead of every frame (renders solve every frame)")
+        _state["status_bar"] = True
+    elif _state["status_bar"] and not status.playing():
+        status.status_bar(None)
+        _state["status_bar"] = False
 
 
 def report_info() -> None:

@@ -222,7 +222,7 @@ def test_generated_geometry_gets_the_radiance_through_the_carrier(blender, addon
     np.testing.assert_allclose(rgba.reshape(-1, 4)[:, :3], want, rtol=1e-3, atol=1e-5)
     assert target.data.attributes.get("translucency_radiance") is None
     carrier = bpy.data.objects[f"Milk {attributes.CARRIER_MODIFIER}"]
-    assert carrier.users_collection == () and not carrier.hide_render is None  # in no scene: never rendered
+    assert carrier.users_collection == ()  # in no scene: never rendered itself
     # A modifier added after ours: ours moves back to the end.
     target.modifiers.new("Smooth", 'SMOOTH')
     assert bpy.ops.translucency.solve() == {'FINISHED'}
@@ -238,13 +238,18 @@ def test_generated_geometry_gets_the_radiance_through_the_carrier(blender, addon
 
 
 def test_geometry_nodes_points_are_a_source(blender, addon):
-    """The points a Geometry Nodes object outputs (its evaluated point cloud), read from the evaluated object."""
+    """The points a Geometry Nodes object outputs (its evaluated point cloud, here Mesh to Points of loose
+    vertices), with their 'id' attribute: the same frame as the engine's for those points."""
     from translucency.ops import state
+    from translucency.ops.scene_inputs import mesh_arrays
+    from translucency.translucency_addon.fluid import suggest_radius
 
-    bpy.ops.mesh.primitive_cube_add(size=0.6)
-    gn = bpy.context.object
-    gn.name = "Points GN"
-    gn.modifiers.new("Grid", 'REMESH').octree_depth = 3  # a dense vertex lattice inside the node tree's input
+    P = blob()
+    mesh = bpy.data.meshes.new("Points GN")
+    mesh.from_pydata(P.tolist(), [], [])
+    mesh.attributes.new("id", 'INT', 'POINT').data.foreach_set("value", np.arange(len(P), dtype=np.int32) * 7)
+    gn = bpy.data.objects.new("Points GN", mesh)
+    bpy.context.scene.collection.objects.link(gn)
     group = bpy.data.node_groups.new("Mesh To Points", 'GeometryNodeTree')
     group.interface.new_socket("Geometry", in_out='INPUT', socket_type='NodeSocketGeometry')
     group.interface.new_socket("Geometry", in_out='OUTPUT', socket_type='NodeSocketGeometry')
@@ -253,14 +258,20 @@ def test_geometry_nodes_points_are_a_source(blender, addon):
     group.links.new(inp.outputs[0], to_points.inputs[0])
     group.links.new(to_points.outputs[0], out.inputs[0])
     gn.modifiers.new("Points", 'NODES').node_group = group
-    target = as_fluid(target_sphere(radius=0.45), kind='GEOMETRY_NODES', source=gn)
-    sun()
+    target = as_fluid(target_sphere(), kind='GEOMETRY_NODES', source=gn)
+    light = sun()
     activate(target)
-    # The remeshed cube's vertices are a surface, a single layer: a planar-in-places sheet; the solve must run.
-    result = bpy.ops.translucency.solve()
+    assert bpy.ops.translucency.solve() == {'FINISHED'}, state.ERRORS
     st = state._FLUIDS["Milk"]
-    assert result == {'FINISHED'}, state.ERRORS
-    assert st.source == "points of 'Points GN'" and st.particles > 50 and radiance(target).max() > 0
+    assert st.source == "points of 'Points GN'" and st.particles == len(P)
+    V, F = mesh_arrays(target.data)
+    want = engine_solve(P, suggest_radius(P), 1000.0, ids=np.arange(len(P)) * 7, surface=(V, F),
+                        light_dir=sun_direction(light)).vertex_radiance
+    np.testing.assert_allclose(radiance(target), want, rtol=1e-4, atol=1e-6)
+    # A Geometry Nodes object that outputs no points is refused with what to do.
+    to_points.mute = True
+    with pytest.raises(RuntimeError, match="'Points GN' outputs no points: its Geometry Nodes must output a point"):
+        bpy.ops.translucency.solve()
 
 
 # --------------------------------------------------------------------------- frames, renders, playback
@@ -347,14 +358,18 @@ def test_slow_fluid_frames_are_left_to_the_live_check_during_playback(blender, a
     st = state._FLUIDS["Milk"]
     st.seconds = 2.5  # as a 10k-particle frame on 2 cores
     monkeypatch.setattr(status, "playing", lambda: True)
+    said = []
+    monkeypatch.setattr(status, "status_bar", said.append)
     solves = st.solves
     set_points(obj.data, blob() + (0.05, 0.0, 0.0))
     bpy.context.scene.frame_set(2)
     assert st.solves == solves and st.deferred == 1 and live.pending()
     assert any("left to the live check" in line for line in status.fluid_lines(obj))
+    assert said and said[-1].startswith("Translucency: a frame of the fluid 'Milk' takes 2.5 s")
     monkeypatch.setattr(status, "playing", lambda: False)
     live.flush()
     assert st.solves == solves + 1 and st.frame == 2
+    assert said[-1] is None  # playback stopped and the frame was fast: the status bar is Blender's again
     # Not playing (a frame step, a script, a render): solved at once, however slow.
     st.seconds = 2.5
     set_points(obj.data, blob())
