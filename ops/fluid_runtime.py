@@ -89,7 +89,7 @@ class FluidReport:
     seconds: float
     particles: int
     output: str
-    solved: bool = True
+    solved: bool = True  # False: the radiance was re-evaluated towards a new view, or the frame deferred
     sweeps: int = 0
     residual: float = 0.0
     warm: bool = False
@@ -108,6 +108,9 @@ class FluidReport:
             return f"'{self.name}' skipped, nothing computed: {self.skipped}"
         if self.empty:
             return f"'{self.name}' fluid frame {self.frame}: {self.empty}; radiance 0"
+        if not self.solved:
+            return (f"'{self.name}' fluid frame {self.frame}: radiance re-evaluated towards the camera (the particles, "
+                    "lights and material are those of the last solve)")
         stages = self.stages or {}
         parts = ", ".join(f"{k} {stages[k]:.2f} s" for k in ("cells", "solve", "light", "output") if k in stages)
         return (f"'{self.name}' fluid frame {self.frame}: {self.particles:,} particles -> {self.output}, solved on the "
@@ -146,13 +149,20 @@ def solve_fluid(obj, scene=None, depsgraph=None, *, use_camera: bool = False, fo
             if not frame.plan.run and frame.plan.reason.startswith("outside the camera view"):
                 state.COUNTERS["planner_skips"] += 1
                 return None
-        sig = _signature(frame)
+        solve_sig = _signature(frame)
+        sig = (solve_sig, frame.view)
         if not force and sig == st.sig and _written(obj, frame):
             return None
+        if not force and solve_sig == st.solve_sig and st.result is not None:
+            _write(obj, frame, _towards_the_view(frame, st.result))  # only the view changed: no new cells
+            st.sig = sig
+            return _report(st, frame, None, solved=False)
         result = _solve(st, frame) if not frame.empty and frame.plan.run else None
         rgb = _radiance(frame, result)
         _write(obj, frame, rgb)
         _record(st, frame, sig, result, time.perf_counter() - t0)
+        st.solve_sig = solve_sig
+        st.result = result if result is not None and not frame.use_points else None
         if not frame.off_main:
             status.publish(st)
         return _report(st, frame, result)
@@ -236,12 +246,12 @@ def _digest(a) -> str | None:
 
 
 def _signature(frame: FluidInputs) -> tuple:
-    """What the written attribute depends on: a frame with the same inputs is not solved again."""
+    """What the solve depends on (all but the view): a frame with the same inputs is not solved again."""
     plan = frame.plan
     reaching = set(plan.facts.get("lights_reaching", ())) if plan is not None else set()
     return (_digest(frame.points), _digest(frame.particles.ids), _digest(frame.field), round(frame.radius, 12),
             frame.material, round(frame.mm, 9), tuple(light for light in frame.lights if light.name in reaching),
-            None if frame.environment is None else tuple(frame.environment.radiance), frame.occ_sig, frame.view,
+            None if frame.environment is None else tuple(frame.environment.radiance), frame.occ_sig,
             _digest(frame.output.positions), frame.carried, frame.tolerance, frame.empty,
             None if plan is None else (plan.run, plan.multiple.channels if plan.multiple is not None else None))
 
@@ -298,6 +308,17 @@ def _radiance(frame: FluidInputs, result) -> np.ndarray:
     return rgb
 
 
+def _towards_the_view(frame: FluidInputs, result) -> np.ndarray:
+    """The last solve's radiance at the mesh's vertices towards this frame's view (corrected eq. 4/7 through
+    the solver's ``radiance_at``, as the solve's own output): a render after the viewport's solve of the same
+    frame does not rebuild the cells."""
+    solver = result.diffusion
+    idx, w = solver.bake.vertex_map
+    rgb = solver.radiance_at(result.solve, idx, w, solver.bake.mesh_normals,
+                             scene_inputs.view_directions(frame.view, frame.output.positions))
+    return np.asarray(rgb, dtype=np.float64) * frame.plan.channel_mask("multiple")
+
+
 def _write(obj, frame: FluidInputs, rgb: np.ndarray) -> None:
     """The attribute on ``obj.data``, or through the carrier where modifiers generate the geometry."""
     if frame.carried:
@@ -341,11 +362,11 @@ def _record(st: state.FluidObjectState, frame: FluidInputs, sig, result, seconds
         state.log(f"'{frame.name}': {w}", once_key=("fluid-warn", frame.name, w))
 
 
-def _report(st: state.FluidObjectState, frame: FluidInputs, result) -> FluidReport:
+def _report(st: state.FluidObjectState, frame: FluidInputs, result, solved: bool = True) -> FluidReport:
     plan = frame.plan
     return FluidReport(name=frame.name, frame=frame.frame, seconds=st.seconds, particles=frame.particles.n,
                        output=st.output + (" (through the carrier modifier)" if frame.carried else ""),
-                       solved=result is not None, sweeps=st.iterations, residual=st.residual, warm=st.warm_started,
+                       solved=solved, sweeps=st.iterations, residual=st.residual, warm=st.warm_started,
                        stages=st.stages, view="CAMERA" if frame.view is not None else "NORMAL",
                        skipped="" if plan is None or plan.run else plan.reason, empty=frame.empty)
 

@@ -222,19 +222,7 @@ def _point_attribute(pc, attribute: str, name: str) -> np.ndarray:
     attr = pc.attributes.get(attribute)
     if attr is None or attr.domain != 'POINT':
         raise MaterialError(f"'{name}' has no point attribute {attribute!r} for the heterogeneity field")
-    n = len(attr.data)
-    if attr.data_type in {'FLOAT', 'INT', 'BOOLEAN', 'INT8'}:
-        raw = np.empty(n, dtype={'FLOAT': np.float32, 'BOOLEAN': bool}.get(attr.data_type, np.int32))
-        attr.data.foreach_get("value", raw)
-        values = raw.astype(np.float64)
-    elif attr.data_type in {'FLOAT_COLOR', 'BYTE_COLOR'}:
-        raw = np.empty(4 * n, dtype=np.float32)
-        attr.data.foreach_get("color", raw)
-        rgba = raw.reshape(-1, 4)
-        values = 0.2126 * rgba[:, 0] + 0.7152 * rgba[:, 1] + 0.0722 * rgba[:, 2]
-    else:
-        raise MaterialError(f"point attribute {attribute!r} of '{name}' has type {attr.data_type}; the field needs a "
-                            "float, integer, boolean or colour attribute")
+    values = scene_inputs.attribute_values(attr, f"point attribute {attribute!r} of '{name}'")
     return np.clip(np.nan_to_num(values, nan=0.0), 0.0, 1.0)
 
 

@@ -91,7 +91,9 @@ class FluidObjectState:
     name: str
     backend: str = "CPU"  # fluid cells have 15-25 links; the GPU layer packs 4 (gpu_shaders/pack.py)
     stale_message: str = ""
-    sig: tuple | None = None  # the inputs of the frame the attribute holds
+    sig: tuple | None = None  # the inputs of the frame the attribute holds (the solve's and the view)
+    solve_sig: tuple | None = None  # the inputs of the last solve (all but the view)
+    result: object | None = None  # its FluidResult (mesh outputs): a new view only re-evaluates the radiance
     solver_sig: tuple | None = None  # material, field and scale the warm start was solved with
     warm: object | None = None  # translucency_addon.fluid.FluidState of the last frame
     frame: int = 0  # the scene frame of the last solve
@@ -114,7 +116,7 @@ class FluidObjectState:
     occluders: scene_inputs.OccluderCache = field(default_factory=scene_inputs.OccluderCache)
 
     def free(self) -> None:
-        self.warm = None
+        self.warm = self.result = None
 
 
 _STATES: dict[str, ObjectState] = {}
@@ -199,7 +201,7 @@ def invalidate_views() -> None:
             st.view_sig = None
             st.geometry_digest = ""
         for fl in _FLUIDS.values():
-            fl.sig = None
+            fl.sig = fl.solve_sig = None
         GEOMETRY_EPOCH.update({k: v + 1 for k, v in GEOMETRY_EPOCH.items()})
 
 
