@@ -83,11 +83,11 @@ def parse_args(argv=None):
                                                                         "--quick: 8 14)")
     ap.add_argument("--resolution", type=int, nargs=2, default=None, metavar=("W", "H"),
                     help="render size (default 480 360; --quick: 96 72)")
-    ap.add_argument("--samples", type=int, default=None, help="Cycles samples (default 32; --quick: 4)")
+    ap.add_argument("--samples", type=int, default=None, help="Cycles samples (default 16; --quick: 4)")
     args = ap.parse_args(argv)
     args.frames = args.frames or ([8, 14] if args.quick else [6, 14, 20])
     args.resolution = args.resolution or ((96, 72) if args.quick else (480, 360))
-    args.samples = args.samples or (4 if args.quick else 32)
+    args.samples = args.samples or (4 if args.quick else 16)
     return args
 
 
