@@ -132,19 +132,21 @@ def sun_direction(light):
 
 def test_point_cloud_fluid_matches_the_engine(blender, addon):
     """A point cloud that is its own source: the point attribute is the engine's frame for the same
-    particles, radius (Auto: the spacing), scale (1 unit = 1 m) and sun, so units and lights arrive intact."""
+    particles, radius (Auto: the spacing), scale (the scene's unit scale: 1 unit = 10 mm) and sun, so units
+    and lights arrive intact."""
     from translucency.ops import state, status
     from translucency.translucency_addon.fluid import suggest_radius
 
     P = blob()
     obj = as_fluid(point_cloud("Milk", P))
+    bpy.context.scene.unit_settings.scale_length = 0.01  # 1 unit = 10 mm: a 6 mm drop, a few mean free paths
     light = sun()
     activate(obj)
     assert bpy.ops.translucency.solve() == {'FINISHED'}
     attr = obj.data.attributes["translucency_radiance"]
     assert (attr.domain, attr.data_type, len(attr.data)) == ('POINT', 'FLOAT_COLOR', len(P))
     got = radiance(obj)
-    want = engine_solve(P, suggest_radius(P), 1000.0, ids=np.arange(len(P)),
+    want = engine_solve(P, suggest_radius(P), 10.0, ids=np.arange(len(P)),
                         light_dir=sun_direction(light)).point_radiance
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)
     assert got.max() > 0 and got[P[:, 0] > 0.15].mean() > 2 * got[P[:, 0] < -0.15].mean()  # lit from +x
@@ -259,13 +261,16 @@ def test_geometry_nodes_points_are_a_source(blender, addon):
     group.links.new(to_points.outputs[0], out.inputs[0])
     gn.modifiers.new("Points", 'NODES').node_group = group
     target = as_fluid(target_sphere(), kind='GEOMETRY_NODES', source=gn)
+    target.scale = (0.5, 0.5, 0.5)  # the target's space: the points arrive scaled, and 1 unit = 2.5 mm
+    bpy.context.scene.unit_settings.scale_length = 0.005
     light = sun()
     activate(target)
     assert bpy.ops.translucency.solve() == {'FINISHED'}, state.ERRORS
     st = state._FLUIDS["Milk"]
     assert st.source == "points of 'Points GN'" and st.particles == len(P)
     V, F = mesh_arrays(target.data)
-    want = engine_solve(P, suggest_radius(P), 1000.0, ids=np.arange(len(P)) * 7, surface=(V, F),
+    P = 2.0 * P
+    want = engine_solve(P, suggest_radius(P), 2.5, ids=np.arange(len(P)) * 7, surface=(V, F),
                         light_dir=sun_direction(light)).vertex_radiance
     np.testing.assert_allclose(radiance(target), want, rtol=1e-4, atol=1e-6)
     # A Geometry Nodes object that outputs no points is refused with what to do.
