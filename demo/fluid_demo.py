@@ -186,24 +186,17 @@ def surface_nodes(points_obj, material):
     return group
 
 
-def milk_material():
+def principled(name: str, color, roughness: float, ior: float | None = None):
+    """A material with its Principled BSDF set: the milk (a black base: its diffuse light is the solved
+    radiance, added by Add to Material) and the plate."""
     from translucency.ops.compat import ensure_node_tree
 
-    mat = bpy.data.materials.new("Milk")
+    mat = bpy.data.materials.new(name)
     bsdf = next(n for n in ensure_node_tree(mat).nodes if n.type == 'BSDF_PRINCIPLED')
-    bsdf.inputs["Base Color"].default_value = (0.0, 0.0, 0.0, 1.0)  # the diffuse light is the solved radiance
-    bsdf.inputs["Roughness"].default_value = 0.12
-    bsdf.inputs["IOR"].default_value = 1.35
-    return mat
-
-
-def plate_material():
-    from translucency.ops.compat import ensure_node_tree
-
-    mat = bpy.data.materials.new("Plate")
-    bsdf = next(n for n in ensure_node_tree(mat).nodes if n.type == 'BSDF_PRINCIPLED')
-    bsdf.inputs["Base Color"].default_value = (0.08, 0.11, 0.16, 1.0)
-    bsdf.inputs["Roughness"].default_value = 0.35
+    bsdf.inputs["Base Color"].default_value = (*color, 1.0)
+    bsdf.inputs["Roughness"].default_value = roughness
+    if ior is not None:
+        bsdf.inputs["IOR"].default_value = ior
     return mat
 
 
@@ -223,7 +216,7 @@ def build_scene(args):
 
     milk = bpy.data.objects.new("Milk", bpy.data.meshes.new("Milk"))
     scene.collection.objects.link(milk)
-    material = milk_material()
+    material = principled("Milk", (0.0, 0.0, 0.0), 0.12, ior=1.35)
     milk.data.materials.append(material)  # the slot that Add to Material wires the pass into
     milk.modifiers.new("Surface", 'NODES').node_group = surface_nodes(points, material)
     s = milk.translucency
@@ -237,7 +230,7 @@ def build_scene(args):
     bpy.ops.mesh.primitive_circle_add(vertices=64, radius=0.12, fill_type='NGON', location=(0.0, 0.0, 0.0))
     plate = bpy.context.object
     plate.name = "Plate"
-    plate.data.materials.append(plate_material())
+    plate.data.materials.append(principled("Plate", (0.08, 0.11, 0.16), 0.35))
 
     sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", 'SUN'))
     sun.data.energy = 4.0
@@ -307,14 +300,7 @@ def main(argv=None) -> int:
     finally:
         bpy.app.handlers.frame_change_pre.remove(_move_the_points)
 
-    demo.log(f"done in {time.perf_counter() - t_start:.1f} s. Images:")
-    for stats in results:
-        for key in ("png", "pass_png", "exr"):
-            print(f"  {stats[key]}")
-    if any(stats["max"] <= 0.0 for stats in results):
-        print("demo: a Translucency pass is black", file=sys.stderr)
-        return 1
-    return 0
+    return demo.report_files(results, t_start)
 
 
 if __name__ == "__main__":
