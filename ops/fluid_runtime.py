@@ -59,7 +59,6 @@ class FluidInputs:
     scale: float  # scene (world) units per object unit
     material: object
     particles: fluid_sources.Particles
-    points: np.ndarray  # the particles' positions, NaN ones too (the engine leaves those out, with a warning)
     field: np.ndarray | None  # the mixing field per particle (None: homogeneous)
     radius: float  # object units; 0 when there is nothing to solve
     suggested: float  # the radius Auto Radius gives at this frame, object units (0: fewer than two particles)
@@ -217,7 +216,7 @@ def gather(obj, scene, depsgraph, st: state.FluidObjectState, use_camera: bool) 
                                                                 exclude={particles.source_name})
     return FluidInputs(
         name=obj.name, frame=int(scene.frame_current), mm=mm, scale=scale, material=material, particles=particles,
-        points=particles.points, field=field, radius=radius, suggested=suggested, auto=auto, output=output,
+        field=field, radius=radius, suggested=suggested, auto=auto, output=output,
         use_points=use_points, carried=attributes.uses_carrier(obj, len(output.positions)), lights=lights,
         environment=environment, view=scene_inputs.camera_view(scene, depsgraph, matrix) if use_camera else None,
         occluders=occluders, occ_sig=occ_sig, plan=plan, empty=empty,
@@ -249,7 +248,7 @@ def _signature(frame: FluidInputs) -> tuple:
     """What the solve depends on (all but the view): a frame with the same inputs is not solved again."""
     plan = frame.plan
     reaching = set(plan.facts.get("lights_reaching", ())) if plan is not None else set()
-    return (_digest(frame.points), _digest(frame.particles.ids), _digest(frame.field), round(frame.radius, 12),
+    return (_digest(frame.particles.points), _digest(frame.particles.ids), _digest(frame.field), round(frame.radius, 12),
             frame.material, round(frame.mm, 9), tuple(light for light in frame.lights if light.name in reaching),
             None if frame.environment is None else tuple(frame.environment.radiance), frame.occ_sig,
             _digest(frame.output.positions), frame.carried, frame.tolerance, frame.empty,
@@ -279,7 +278,7 @@ def _solve(st: state.FluidObjectState, frame: FluidInputs):
     view_dirs = scene_inputs.view_directions(frame.view, out.positions)
     try:
         return FluidSolver(frame.material, frame.radius, frame.mm, options).solve(
-            frame.points, ids=frame.particles.ids, field_values=frame.field, lights=list(frame.lights),
+            frame.particles.points, ids=frame.particles.ids, field_values=frame.field, lights=list(frame.lights),
             environment=frame.environment, surface=None if frame.use_points else (out.positions, out.faces),
             view_dirs=view_dirs, occluders=frame.occluders, shadows=True, warm_start=warm)
     except ParticleError as ex:

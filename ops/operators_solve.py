@@ -1,5 +1,11 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""``translucency.solve``: solve the diffusion for the active (or every) baked object now.
+"""``translucency.solve``: solve the diffusion for the active (or every) baked object or fluid now.
+
+A Fluid source (no bake) is solved for the current frame's particles
+(``runtime.solve_object`` hands it to ``fluid_runtime``); its errors and warnings
+are reported here like a baked object's.  ``translucency.report`` is internal:
+the live updates (handlers and timers, which are not operators) hand their
+messages to it so that they reach the Info log.
 
 The result goes into the ``translucency_radiance`` attribute of the object's
 mesh (see :mod:`.runtime`): the diffusion term (when "Multiple Scattering" is
