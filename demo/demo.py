@@ -376,6 +376,11 @@ def main(argv=None) -> int:
             f"max {peak:.3g} W/(m^2 sr); Translucency pass covers {stats['covered'] * 100:.0f} % of the image")
         results.append(stats)
 
+    return report_files(results, t_start)
+
+
+def report_files(results, t_start: float) -> int:
+    """Print where every frame's files are; the exit code: 1 when a Translucency pass is black."""
     log(f"done in {time.perf_counter() - t_start:.1f} s. Images:")
     for stats in results:
         for key in ("png", "pass_png", "exr"):

@@ -16,6 +16,9 @@ default environment) and, through ``TRANSLUCENCY_BPY``, on 5.0, 4.5 and 4.2.
   warns for a ``//`` value without it; 4.2 does not know the option.
 * The compositor: 5.0 moved the scene's tree from ``scene.node_tree`` to
   ``scene.compositing_node_group``.
+* An object's evaluated point cloud (what Geometry Nodes output): 4.3 added
+  ``Object.evaluated_geometry()``; 4.2 lists the component among the
+  depsgraph's object instances.
 """
 
 from __future__ import annotations
@@ -57,6 +60,29 @@ def compositor_tree(scene):
     if hasattr(scene, "compositing_node_group"):
         return scene.compositing_node_group
     return getattr(scene, "node_tree", None)
+
+
+def read_evaluated_pointcloud(obj_eval, depsgraph, read):
+    """``read(pointcloud, world matrix)`` on an evaluated object's point-cloud component, or None without one.
+
+    A point-cloud object's own data; otherwise (a Geometry Nodes object) the
+    ``pointcloud`` of ``evaluated_geometry()`` (4.3+; the component lives only
+    as long as that geometry set, hence the callback), or in 4.2 the
+    point-cloud instance the depsgraph lists for the object.
+    """
+    if obj_eval.type == 'POINTCLOUD':
+        return read(obj_eval.data, obj_eval.matrix_world.copy())
+    if hasattr(obj_eval, "evaluated_geometry"):
+        geometry = obj_eval.evaluated_geometry()
+        pc = geometry.pointcloud
+        return None if pc is None else read(pc, obj_eval.matrix_world.copy())
+    original = obj_eval.original
+    for inst in depsgraph.object_instances:  # 4.2
+        parent = inst.parent
+        if (inst.is_instance and inst.object.type == 'POINTCLOUD' and parent is not None
+                and parent.original == original):
+            return read(inst.object.data, inst.matrix_world.copy())
+    return None
 
 
 PATH_OPTIONS = {'PATH_SUPPORTS_BLEND_RELATIVE'} if bpy.app.version >= (4, 5, 0) else set()

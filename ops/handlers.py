@@ -8,7 +8,10 @@
   Every check compares a signature of the solve's inputs with the last
   solve's, so our own attribute writes (which cause depsgraph updates too)
   never trigger another solve.
-* ``frame_change_post``: re-solve for the new frame.  With a *render*
+* ``frame_change_post``: re-solve for the new frame (Fluid sources too: a
+  fresh solve of their particles every frame; while the viewport plays, a
+  fluid slower than ``status.FLUID_LIVE_BUDGET`` per frame is left to the
+  throttled live check, ``live.announce_fluids``).  With a *render*
   depsgraph (``depsgraph.mode == 'RENDER'``: F12, ``-f``/``-a``, and
   ``bpy.ops.render.render``) the radiance is evaluated towards the render
   camera.  Measured in Blender 5.0: in ``frame_change_pre`` neither the
@@ -88,7 +91,7 @@ def on_depsgraph_update_post(scene, depsgraph=None):
         else:
             relevant = True  # lights, world, textures, scene settings, materials, collections ...
     own.clear()
-    if relevant and state.baked_objects(scene):
+    if relevant and (state.baked_objects(scene) or state.fluid_objects(scene)):
         live.request_update()
 
 
@@ -106,10 +109,13 @@ def on_frame_change_post(scene, depsgraph=None):
     rendering = depsgraph is not None and getattr(depsgraph, "mode", "VIEWPORT") == 'RENDER'
     if not rendering and not scene.translucency.live_update:
         return
-    reports = runtime.solve_scene(scene, depsgraph, use_camera=rendering)
+    reports = runtime.solve_scene(scene, depsgraph, use_camera=rendering, playback=not rendering and status.playing())
     if rendering:
         for r in reports:
             state.log(f"frame {scene.frame_current}: {r.describe()}, view towards the camera")
+    else:
+        live.announce_fluids(reports)
+    live.report_info()
 
 
 @persistent

@@ -11,6 +11,17 @@ signature of each solve's inputs with the last one, so a check after an
 unrelated edit costs little.  Timers never fire in background mode:
 :func:`flush` runs a pending check at once (tests, scripts).
 
+Fluid sources (no bake, a fresh solve every frame) that take longer per
+frame than ``status.FLUID_LIVE_BUDGET`` are not solved by the frame-change
+handler while the viewport plays the animation: :func:`announce_fluids`
+leaves them to this throttled check and says in the status bar what a frame
+costs; the text goes once playback has stopped and no fluid frame is slow.
+
+Handlers and timers are not operators, so they cannot write to Blender's
+Info log themselves: :func:`report_info` hands the messages the runtime
+queued (``state.INFO``: a failed solve, a fluid without particles) to the
+``translucency.report`` operator from a one-shot timer.
+
 Nothing is scheduled while the add-on is not registered (:func:`enable` /
 :func:`disable`, called by ``handlers``).
 """
@@ -21,12 +32,13 @@ import time
 
 import bpy
 
-from . import runtime, state
+from . import runtime, state, status
+from .fluid_runtime import FluidReport
 
 MIN_INTERVAL = 0.05  # seconds between live checks at least
 MAX_INTERVAL = 1.0
 
-_state = {"enabled": False, "last_check": 0.0, "checks": 0}
+_state = {"enabled": False, "last_check": 0.0, "checks": 0, "status_bar": False}
 
 
 def enable() -> None:
@@ -35,8 +47,9 @@ def enable() -> None:
 
 def disable() -> None:
     _state["enabled"] = False
-    if bpy.app.timers.is_registered(_on_timer):
-        bpy.app.timers.unregister(_on_timer)
+    for timer in (_on_timer, _report_timer):
+        if bpy.app.timers.is_registered(timer):
+            bpy.app.timers.unregister(timer)
 
 
 def request_update(delay: float | None = None) -> None:
@@ -50,7 +63,7 @@ def request_update(delay: float | None = None) -> None:
     if not _state["enabled"] or bpy.app.timers.is_registered(_on_timer):
         return
     if delay is None:
-        last = max((st.seconds for st in list(state._STATES.values())), default=0.0)
+        last = max((st.seconds for st in list(state._STATES.values()) + list(state._FLUIDS.values())), default=0.0)
         delay = min(MAX_INTERVAL, max(MIN_INTERVAL, last))
     bpy.app.timers.register(_on_timer, first_interval=delay)
 
@@ -69,7 +82,45 @@ def check_now(scene=None, depsgraph=None) -> list:
     _state["checks"] += 1
     _state["last_check"] = time.perf_counter()
     state.prune(o.name for o in bpy.data.objects)
-    return runtime.solve_scene(scene, depsgraph)
+    reports = runtime.solve_scene(scene, depsgraph)
+    announce_fluids(reports)
+    report_info()
+    return reports
+
+
+def announce_fluids(reports) -> None:
+    """Say in the status bar when fluid frames are slow: what one costs, and that playback does not wait for
+    them (the frames ``runtime.solve_scene(playback=True)`` deferred, scheduled here for this check).  The
+    text goes away at the first check or frame change without a slow fluid once playback has stopped."""
+    deferred = [r for r in reports if getattr(r, "deferred", False)]
+    slow = [r for r in reports if isinstance(r, FluidReport) and r.seconds > status.FLUID_LIVE_BUDGET]
+    if deferred:
+        request_update()
+    if slow:
+        r = max(slow, key=lambda r: r.seconds)
+        status.status_bar(f"Translucency: a frame of the fluid '{r.name}' takes {r.seconds:.1f} s ({r.particles:,} "
+                          "particles); while the animation plays, its radiance follows about every "
+                          f"{min(r.seconds, MAX_INTERVAL):.1f} s instead of every frame (renders solve every frame)")
+        _state["status_bar"] = True
+    elif _state["status_bar"] and not status.playing():
+        status.status_bar(None)
+        _state["status_bar"] = False
+
+
+def report_info() -> None:
+    """Hand the queued Info-log messages to the ``translucency.report`` operator (from a timer)."""
+    if state.INFO and _state["enabled"] and not bpy.app.timers.is_registered(_report_timer):
+        bpy.app.timers.register(_report_timer, first_interval=0.0)
+
+
+def _report_timer():
+    while state.INFO:
+        level, message = state.INFO.pop(0)
+        try:
+            bpy.ops.translucency.report(level=level, message=message)
+        except Exception as ex:  # noqa: BLE001 - no window to report to: the console has it already
+            state.log(f"could not show in the Info log ({type(ex).__name__}): {message}")
+    return None
 
 
 def flush() -> list:

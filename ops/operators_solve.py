@@ -1,5 +1,11 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""``translucency.solve``: solve the diffusion for the active (or every) baked object now.
+"""``translucency.solve``: solve the diffusion for the active (or every) baked object or fluid now.
+
+A Fluid source (no bake) is solved for the current frame's particles
+(``runtime.solve_object`` hands it to ``fluid_runtime``); its errors and warnings
+are reported here like a baked object's.  ``translucency.report`` is internal:
+the live updates (handlers and timers, which are not operators) hand their
+messages to it so that they reach the Info log.
 
 The result goes into the ``translucency_radiance`` attribute of the object's
 mesh (see :mod:`.runtime`): the diffusion term (when "Multiple Scattering" is
@@ -14,7 +20,7 @@ file changes) and reported as an error.
 from __future__ import annotations
 
 import bpy
-from bpy.props import BoolProperty
+from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from . import runtime, state
 
@@ -40,18 +46,18 @@ class TRANSLUCENCY_OT_solve(bpy.types.Operator):
     @classmethod
     def poll(cls, context):
         obj = context.active_object
-        return obj is not None and obj.type == 'MESH'
+        return obj is not None and (obj.type == 'MESH' or state.is_fluid(obj))
 
     def execute(self, context):
         from ..translucency_addon.errors import TranslucencyError
 
         scene = context.scene
         if self.all_objects:
-            objects = state.baked_objects(scene)
+            objects = state.baked_objects(scene) + state.fluid_objects(scene)
         else:
             objects = [context.active_object]
         if not objects:
-            self.report({'WARNING'}, "No enabled, baked object to solve")
+            self.report({'WARNING'}, "No enabled, baked object or fluid to solve")
             return {'CANCELLED'}
         depsgraph = context.evaluated_depsgraph_get()
         failed = 0
@@ -66,8 +72,13 @@ class TRANSLUCENCY_OT_solve(bpy.types.Operator):
             if report is None:  # object in Edit Mode
                 self.report({'WARNING'}, f"'{obj.name}' is in Edit Mode: switch to Object Mode to solve it")
                 continue
+            self.report({'WARNING'} if report.skipped or getattr(report, "empty", "") else {'INFO'}, report.describe())
+            if state.is_fluid(obj):
+                fluid = state._FLUIDS.get(obj.name)
+                for warning in (fluid.warnings if fluid is not None else ()):
+                    self.report({'WARNING'}, f"'{obj.name}': {warning}")
+                continue
             st = state.get_state(obj)
-            self.report({'WARNING'} if report.skipped else {'INFO'}, report.describe())
             if st is not None and st.frame_backend_message and not getattr(st, "_message_reported", False):
                 self.report({'INFO'}, f"'{obj.name}': {st.frame_backend_message}")
                 st._message_reported = True
@@ -76,4 +87,20 @@ class TRANSLUCENCY_OT_solve(bpy.types.Operator):
         return {'CANCELLED'} if failed == len(objects) else {'FINISHED'}
 
 
-CLASSES = (TRANSLUCENCY_OT_solve,)
+class TRANSLUCENCY_OT_report(bpy.types.Operator):
+    """Show a message of the live updates in the Info log (handlers and timers are not operators)"""
+
+    bl_idname = "translucency.report"
+    bl_label = "Translucency Message"
+    bl_options = {'INTERNAL'}
+
+    level: EnumProperty(items=(("ERROR", "Error", ""), ("WARNING", "Warning", ""), ("INFO", "Info", "")),
+                        default="INFO")
+    message: StringProperty(default="")
+
+    def execute(self, _context):
+        self.report({self.level}, f"Translucency: {self.message}")
+        return {'FINISHED'}
+
+
+CLASSES = (TRANSLUCENCY_OT_solve, TRANSLUCENCY_OT_report)

@@ -5,7 +5,8 @@ Both panels share :func:`draw_translucency`.  If a bundled dependency does not
 import, the panel lists what is missing (with the import error) and draws
 nothing else, so a broken wheel never breaks the UI.
 
-Sections: bake settings, the terms (multiple scattering, single scattering
+Sections: the source (a baked Mesh, or a Fluid: where its particles come
+from, their radius, what a frame costs; no bake), bake settings, the terms (multiple scattering, single scattering
 with its bake settings and Split Pass), Bake / Free Bake / Bake Single
 Scattering, bake status and statistics (the saved ``translucency.status``: N_s
 and N_i per level, graph memory, bake time, single-scattering samples and time
@@ -69,6 +70,13 @@ def _draw_object_settings(layout, obj, context=None) -> None:
 
     col = layout.column()
     col.active = settings.enabled
+    if obj.type in {'MESH', 'POINTCLOUD'}:
+        col.row().prop(settings, "source", expand=True)
+    if state.is_fluid(obj):
+        _draw_fluid(col, obj, context)
+        return
+    if obj.type == 'POINTCLOUD':
+        col.label(text="A point cloud is translucent as a Fluid: set Source to Fluid", icon='INFO')
 
     # -- bake --------------------------------------------------------------------
     box = col.box()
@@ -76,22 +84,7 @@ def _draw_object_settings(layout, obj, context=None) -> None:
     box.prop(settings, "quality")
     box.prop(settings, "levels")
     box.prop(settings, "sky_occlusion")
-    row = box.row(heading="Scale")
-    row.prop(settings, "use_mm_per_unit_override", text="Override")
-    sub = box.row()
-    sub.active = settings.use_mm_per_unit_override
-    sub.prop(settings, "mm_per_unit")
-    scene = getattr(context, "scene", None) if context is not None else None
-    if scene is not None and not settings.use_mm_per_unit_override:
-        try:
-            from .scene_inputs import mm_per_unit
-
-            mm, warning = mm_per_unit(obj, scene)
-            box.label(text=f"1 object unit = {mm:.4g} mm (scene unit scale x object scale)")
-            if warning:
-                _draw_multiline(box, warning, icon='ERROR')
-        except Exception:  # noqa: BLE001 - drawing must never fail
-            pass
+    _draw_scale(box, obj, context)
     _draw_terms(box, settings)
     if obj.type == 'MESH':
         row = box.row(align=True)
@@ -120,31 +113,7 @@ def _draw_object_settings(layout, obj, context=None) -> None:
     if baked.bake_warnings:
         _draw_multiline(box, baked.bake_warnings, icon='ERROR')
 
-    # -- material ------------------------------------------------------------------
-    box = col.box()
-    box.label(text="Material", icon='MATERIAL')
-    box.prop(settings, "material_preset")
-    if settings.material_preset == 'CUSTOM':
-        box.prop(settings, "sigma_a")
-        box.prop(settings, "sigma_s")
-    box.prop(settings, "eta")
-
-    box = col.box()
-    box.prop(settings, "use_heterogeneity")
-    sub = box.column()
-    sub.active = settings.use_heterogeneity
-    sub.prop(settings, "second_preset")
-    sub.prop(settings, "field_source")
-    if settings.field_source == 'TEXTURE':
-        sub.prop(settings, "field_texture")
-        sub.prop(settings, "field_scale")
-    elif settings.field_source == 'ATTRIBUTE':
-        if obj.type == 'MESH':
-            sub.prop_search(settings, "field_attribute", obj.data, "attributes")
-        else:
-            sub.prop(settings, "field_attribute")
-    else:
-        sub.prop_search(settings, "field_vertex_group", obj, "vertex_groups")
+    _draw_material(col, obj)
 
     # -- solve ---------------------------------------------------------------------------
     box = col.box()
@@ -163,14 +132,7 @@ def _draw_object_settings(layout, obj, context=None) -> None:
         _draw_multiline(box, solved.message, icon='INFO')
     if solved.ss_backend:
         box.label(text=f"Single scattering: {solved.ss_seconds * 1000:.1f} ms on the {solved.ss_backend}")
-    try:
-        plan_text = status.plan_summary(obj.name)
-    except Exception:  # noqa: BLE001 - drawing must never fail
-        plan_text = ""
-    if plan_text:
-        sub = box.box()
-        sub.label(text="Passes this frame (planner)", icon='PRESET')
-        _draw_multiline(sub, plan_text, width=90)  # the first line says whether it runs, or why not
+    _draw_plan(box, obj)
     if solved.ss_message:
         stale = "re-bake" in solved.ss_message or "not baked" in solved.ss_message
         sub = box.column()
@@ -180,6 +142,103 @@ def _draw_object_settings(layout, obj, context=None) -> None:
     box = col.box()
     box.label(text="Cache", icon='FILE_CACHE')
     box.prop(settings, "cache_filepath")
+
+
+def _draw_scale(box, obj, context) -> None:
+    """Scale override and the scale in use (mm per object unit)."""
+    settings = obj.translucency
+    row = box.row(heading="Scale")
+    row.prop(settings, "use_mm_per_unit_override", text="Override")
+    sub = box.row()
+    sub.active = settings.use_mm_per_unit_override
+    sub.prop(settings, "mm_per_unit")
+    scene = getattr(context, "scene", None) if context is not None else None
+    if scene is not None and not settings.use_mm_per_unit_override:
+        try:
+            from .scene_inputs import mm_per_unit
+
+            mm, warning = mm_per_unit(obj, scene)
+            box.label(text=f"1 object unit = {mm:.4g} mm (scene unit scale x object scale)")
+            if warning:
+                _draw_multiline(box, warning, icon='ERROR')
+        except Exception:  # noqa: BLE001 - drawing must never fail
+            pass
+
+
+def _draw_material(col, obj) -> None:
+    """The material and its heterogeneity field (meshes and fluids alike)."""
+    settings = obj.translucency
+    box = col.box()
+    box.label(text="Material", icon='MATERIAL')
+    box.prop(settings, "material_preset")
+    if settings.material_preset == 'CUSTOM':
+        box.prop(settings, "sigma_a")
+        box.prop(settings, "sigma_s")
+    box.prop(settings, "eta")
+
+    box = col.box()
+    box.prop(settings, "use_heterogeneity")
+    sub = box.column()
+    sub.active = settings.use_heterogeneity
+    sub.prop(settings, "second_preset")
+    sub.prop(settings, "field_source")
+    if settings.field_source == 'TEXTURE':
+        sub.prop(settings, "field_texture")
+        sub.prop(settings, "field_scale")
+    elif settings.field_source == 'ATTRIBUTE':
+        if obj.type == 'MESH' and not state.is_fluid(obj):
+            sub.prop_search(settings, "field_attribute", obj.data, "attributes")
+        else:
+            sub.prop(settings, "field_attribute")
+    elif state.is_fluid(obj):
+        sub.label(text="A fluid has no vertex groups: use a texture or a point attribute", icon='ERROR')
+    else:
+        sub.prop_search(settings, "field_vertex_group", obj, "vertex_groups")
+
+
+def _draw_plan(box, obj) -> None:
+    try:
+        plan_text = status.plan_summary(obj.name)
+    except Exception:  # noqa: BLE001 - drawing must never fail
+        plan_text = ""
+    if plan_text:
+        sub = box.box()
+        sub.label(text="Passes this frame (planner)", icon='PRESET')
+        _draw_multiline(sub, plan_text, width=90)  # the first line says whether it runs, or why not
+
+
+def _draw_fluid(col, obj, context) -> None:
+    """A Fluid source: where its particles come from, their radius, the material, and what a frame costs."""
+    settings = obj.translucency
+    box = col.box()
+    box.label(text="Fluid: Voronoi-fluid cells every frame, no bake", icon='MOD_FLUIDSIM')
+    box.prop(settings, "fluid_kind")
+    box.prop(settings, "fluid_object")
+    source = settings.fluid_object or obj
+    if settings.fluid_kind == 'PARTICLES' and len(source.particle_systems):
+        box.prop_search(settings, "fluid_particle_system", source, "particle_systems")
+    box.prop(settings, "fluid_radius_auto")
+    row = box.row()
+    row.active = not settings.fluid_radius_auto
+    row.prop(settings, "fluid_radius")
+    _draw_scale(box, obj, context)
+
+    _draw_material(col, obj)
+
+    box = col.box()
+    box.label(text="Solve (every frame)", icon='LIGHT')
+    box.operator("translucency.solve", icon='PLAY')
+    for line in status.fluid_lines(obj):  # runtime state: never saved
+        _draw_multiline(box, line, icon='INFO')
+    error = state.ERRORS.get(obj.name)
+    if error:
+        sub = box.column()
+        sub.alert = True
+        _draw_multiline(sub, error, icon='ERROR')
+    fluid = state._FLUIDS.get(obj.name)
+    for warning in (fluid.warnings if fluid is not None else ()):
+        _draw_multiline(box, warning, icon='ERROR')
+    _draw_plan(box, obj)
 
 
 def _draw_scene_settings(layout, scene, overlay_drawn: bool = False) -> None:

@@ -178,6 +178,32 @@ class TranslucencyObjectStatus(bpy.types.PropertyGroup):
     )
 
 
+FLUID_KINDS = (
+    ("PARTICLES", "Particle System",
+     "The alive particles of a particle system of the Source Object (an emitter); particle indices keep the warm "
+     "start between frames"),
+    ("POINT_CLOUD", "Point Cloud", "The points of a point-cloud object (evaluated; an 'id' attribute keeps the warm "
+     "start between frames)"),
+    ("GEOMETRY_NODES", "Geometry Nodes",
+     "The points a Geometry Nodes object outputs (its evaluated point cloud; an 'id' attribute keeps the warm start)"),
+    ("MANTAFLOW", "Mantaflow Liquid",
+     "The FLIP particles of a Mantaflow liquid domain (Physics > Fluid); the radiance usually goes onto the domain's "
+     "liquid mesh"),
+)
+
+
+def _fluid_object_poll(settings, obj) -> bool:
+    """Objects the Source Object field offers for the chosen kind (the solve checks again: Python may set any)."""
+    kind = settings.fluid_kind
+    if kind == 'PARTICLES':
+        return len(obj.particle_systems) > 0
+    if kind == 'POINT_CLOUD':
+        return obj.type == 'POINTCLOUD'
+    if kind == 'GEOMETRY_NODES':
+        return any(m.type == 'NODES' for m in obj.modifiers)
+    return any(m.type == 'FLUID' and m.fluid_type == 'DOMAIN' for m in obj.modifiers)
+
+
 class TranslucencyObjectSettings(bpy.types.PropertyGroup):
     """Per-object Translucency settings (``object.translucency``)."""
 
@@ -186,6 +212,63 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         name="Enabled",
         description="Simulate subsurface scattering in this object with Translucency",
         default=False,
+    )
+    source: EnumProperty(
+        update=_request_update,
+        name="Source",
+        description="What the light scatters in",
+        items=(
+            ("MESH", "Mesh", "This mesh: its QuadGraph is baked once (Bake), then solved every frame"),
+            ("FLUID", "Fluid",
+             "A particle fluid (Kang & Kim 2013): Voronoi-fluid cells rebuilt from the particles every frame, no "
+             "bake; the radiance goes onto this object (a mesh's vertices or a point cloud's points)"),
+        ),
+        default="MESH",
+    )
+
+    # -- fluid (source FLUID): where the particles come from, their radius ---------------------
+    fluid_kind: EnumProperty(
+        update=_request_update,
+        name="Particles",
+        description="Where the fluid's particles come from",
+        items=FLUID_KINDS,
+        default="PARTICLES",
+    )
+    fluid_object: PointerProperty(
+        update=_request_update,
+        name="Source Object",
+        description="The object the particles come from (empty: this object)",
+        type=bpy.types.Object,
+        poll=_fluid_object_poll,
+    )
+    fluid_particle_system: StringProperty(
+        update=_request_update,
+        name="Particle System",
+        description="Name of the Source Object's particle system (empty: its first)",
+        default="",
+    )
+    fluid_radius_auto: BoolProperty(
+        update=_request_update,
+        name="Auto Radius",
+        description=(
+            "Use the particle spacing of each frame as the particle radius (the smallest radius that leaves no "
+            "voids inside the fluid)"
+        ),
+        default=True,
+    )
+    fluid_radius: FloatProperty(
+        update=_request_update,
+        name="Radius",
+        description=(
+            "Particle radius in scene units when Auto Radius is off: each particle's cell is cut by a ball of this "
+            "radius, so it sets how far the fluid reaches beyond its particles (about the particle spacing)"
+        ),
+        default=0.05,
+        min=0.0,
+        soft_max=10.0,
+        precision=4,
+        subtype='DISTANCE',
+        unit='LENGTH',
     )
 
     # -- bake ---------------------------------------------------------------

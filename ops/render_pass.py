@@ -36,6 +36,7 @@ from bpy.props import BoolProperty, FloatProperty
 
 from .attributes import ATTRIBUTE_NAME as ATTRIBUTE  # the one spelling of the names
 from .attributes import SS_ATTRIBUTE_NAME as SS_ATTRIBUTE
+from .attributes import carrier_modifier
 
 AOV_NAME = "Translucency"
 SS_AOV_NAME = "Translucency_SS"
@@ -242,9 +243,12 @@ def object_materials(obj, create=False):
 
 # --- operators -----------------------------------------------------------------------------
 
+SHADED_TYPES = {'MESH', 'POINTCLOUD'}  # what carries the attribute: a mesh, or a fluid's point cloud
+
+
 def _poll_mesh(context):
     obj = context.object
-    return obj is not None and obj.type == 'MESH'
+    return obj is not None and obj.type in SHADED_TYPES
 
 
 class TRANSLUCENCY_OT_add_to_material(bpy.types.Operator):
@@ -286,7 +290,7 @@ class TRANSLUCENCY_OT_add_to_material(bpy.types.Operator):
         sync_aovs(context.scene)
         passes = AOV_NAME + (f" and {SS_AOV_NAME}" if single else "")
         self.report({'INFO'}, f"{passes} pass added to {len(materials)} material(s)")
-        if obj.data.attributes.get(ATTRIBUTE) is None:
+        if obj.data.attributes.get(ATTRIBUTE) is None and carrier_modifier(obj) is None:
             self.report({'WARNING'}, f"'{obj.name}' has no solved radiance yet: the pass stays black until a solve")
         return {'FINISHED'}
 
@@ -317,8 +321,8 @@ def draw_settings(layout, context) -> None:
     obj = getattr(context, "object", None)
     box = layout.box()
     box.label(text="Render Pass", icon='RENDERLAYERS')
-    if obj is None or obj.type != 'MESH':
-        box.label(text="Select a mesh object")
+    if obj is None or obj.type not in SHADED_TYPES:
+        box.label(text="Select a mesh or point-cloud object")
         return
     row = box.row(align=True)
     row.operator(TRANSLUCENCY_OT_add_to_material.bl_idname, icon='NODE_MATERIAL')

@@ -20,8 +20,11 @@
    reads, and a redraw.
 
 :func:`solve_scene` does this for every enabled, baked object of a scene
-(what ``live`` and ``handlers`` call).  Nothing here calls back up into
-``live``, ``handlers``, the operators or the panels.
+(what ``live`` and ``handlers`` call), and for every enabled Fluid-source
+object it runs :func:`.fluid_runtime.solve_fluid` (particles rebuilt into
+cells every frame, nothing baked); :func:`solve_object` hands a fluid object
+there too.  Nothing here calls back up into ``live``, ``handlers``, the
+operators or the panels.
 
 State lives in :mod:`.state`, keyed by **object name**, and is only used
 while its ``key`` equals ``obj.translucency.bake_key``.  No ``bpy`` reference
@@ -53,7 +56,7 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
-from . import attributes, backend, cache_files, deformation, state, status
+from . import attributes, backend, cache_files, deformation, fluid_runtime, state, status
 from .frame import FrameInputs, gather
 
 
@@ -118,6 +121,8 @@ def solve_object(obj, scene=None, depsgraph=None, *, use_camera: bool = False, f
     scene = scene or bpy.context.scene
     if depsgraph is None:
         depsgraph = bpy.context.evaluated_depsgraph_get()
+    if state.is_fluid(obj):
+        return fluid_runtime.solve_fluid(obj, scene, depsgraph, use_camera=use_camera, force=force)
     if obj.mode == 'EDIT':
         return None  # attribute writes are lost when leaving edit mode; solve afterwards
     with state._LOCK:
@@ -433,10 +438,14 @@ def _report(st: state.ObjectState, frame: FrameInputs, ms: Diffusion) -> SolveRe
 # ------------------------------------------------------------------ every object of a scene
 
 
-def solve_scene(scene=None, depsgraph=None, *, use_camera: bool = False, force: bool = False) -> list:
-    """Solve every enabled, baked object of ``scene``; errors are logged, never raised.
+def solve_scene(scene=None, depsgraph=None, *, use_camera: bool = False, force: bool = False,
+                playback: bool = False) -> list:
+    """Solve every enabled, baked object and every enabled fluid of ``scene``; errors are logged, never raised.
 
-    Returns the :class:`SolveReport` of every object that was (re-)solved.
+    ``playback``: the viewport is playing the animation; a fluid whose last frame took longer than
+    :data:`.status.FLUID_LIVE_BUDGET` is not solved now but reported ``deferred`` (the caller leaves it to
+    the throttled live check, so playback does not wait for it).  Returns the :class:`SolveReport` (or
+    :class:`.fluid_runtime.FluidReport`) of every object that was (re-)solved or deferred.
     """
     from ..translucency_addon.errors import TranslucencyError
 
@@ -444,7 +453,11 @@ def solve_scene(scene=None, depsgraph=None, *, use_camera: bool = False, force: 
     if depsgraph is None:
         depsgraph = bpy.context.evaluated_depsgraph_get()
     reports = []
-    for obj in state.baked_objects(scene):
+    for obj in state.baked_objects(scene) + state.fluid_objects(scene):
+        fluid = state._FLUIDS.get(obj.name) if state.is_fluid(obj) else None
+        if playback and fluid is not None and fluid.seconds > status.FLUID_LIVE_BUDGET:
+            reports.append(fluid_runtime.deferred_report(obj, fluid, scene.frame_current))
+            continue
         try:
             report = solve_object(obj, scene, depsgraph, use_camera=use_camera, force=force)
         except TranslucencyError as ex:

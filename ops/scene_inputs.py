@@ -315,11 +315,13 @@ class OccluderCache:
     value: tuple | None = None
 
 
-def collect_occluders(depsgraph, obj, obj_matrix, cache: OccluderCache | None = None):
+def collect_occluders(depsgraph, obj, obj_matrix, cache: OccluderCache | None = None, exclude=()):
     """Other visible mesh objects' evaluated triangles in ``obj``'s space.
 
-    Returns ``((V, F) or None, signature)``; the signature changes when an
-    occluder moves (relative to ``obj``), deforms, appears or disappears.
+    ``exclude``: names of further objects that cast no shadow on ``obj`` (a
+    fluid's emitter).  Returns ``((V, F) or None, signature)``; the signature
+    changes when an occluder moves (relative to ``obj``), deforms, appears or
+    disappears.
     """
     to_object = matrix_to_numpy(obj_matrix.inverted_safe())
     own = obj.original if obj.original is not None else obj
@@ -330,7 +332,7 @@ def collect_occluders(depsgraph, obj, obj_matrix, cache: OccluderCache | None = 
         if ob.type != 'MESH':
             continue
         orig = ob.original if ob.original is not None else ob
-        if orig == own:
+        if orig == own or orig.name in exclude:
             continue
         mesh = ob.data
         if mesh is None or len(mesh.vertices) == 0:
@@ -441,28 +443,31 @@ def evaluate_texture(tex, points: np.ndarray) -> np.ndarray:
     return np.clip(np.nan_to_num(out, nan=0.0), 0.0, 1.0)
 
 
+def attribute_values(attr, label: str) -> np.ndarray:
+    """An attribute's values as floats: float, integer and boolean as they are, a colour by its luminance
+    (Rec. 709).  ``label`` names it in the error for any other type."""
+    n = len(attr.data)
+    if attr.data_type in {'FLOAT', 'INT', 'BOOLEAN', 'INT8'}:
+        raw = np.empty(n, dtype={'FLOAT': np.float64, 'BOOLEAN': bool}.get(attr.data_type, np.int64))
+        attr.data.foreach_get("value", raw)
+        return raw.astype(np.float64)
+    if attr.data_type in {'FLOAT_COLOR', 'BYTE_COLOR'}:
+        raw = np.empty(n * 4, dtype=np.float32)
+        attr.data.foreach_get("color", raw)
+        rgba = raw.reshape(-1, 4)
+        return 0.2126 * rgba[:, 0] + 0.7152 * rgba[:, 1] + 0.0722 * rgba[:, 2]
+    from ..translucency_addon.errors import MaterialError
+
+    raise MaterialError(f"{label} has type {attr.data_type}; the field needs a float, integer, boolean or colour "
+                        "attribute")
+
+
 def _attribute_values(mesh, name: str):
     """Per-vertex float values of a mesh attribute, or None if the mesh lacks it."""
     attr = mesh.attributes.get(name)
     if attr is None:
         return None
-    n = len(attr.data)
-    if attr.data_type in {'FLOAT', 'INT', 'BOOLEAN', 'INT8'}:
-        raw = np.empty(n, dtype=np.float64 if attr.data_type == 'FLOAT' else np.int64)
-        if attr.data_type == 'BOOLEAN':
-            raw = np.empty(n, dtype=bool)
-        attr.data.foreach_get("value", raw)
-        values = raw.astype(np.float64)
-    elif attr.data_type in {'FLOAT_COLOR', 'BYTE_COLOR'}:
-        raw = np.empty(n * 4, dtype=np.float32)
-        attr.data.foreach_get("color", raw)
-        rgba = raw.reshape(-1, 4)
-        values = 0.2126 * rgba[:, 0] + 0.7152 * rgba[:, 1] + 0.0722 * rgba[:, 2]
-    else:
-        from ..translucency_addon.errors import MaterialError
-
-        raise MaterialError(f"attribute {name!r} has type {attr.data_type}; the field needs a float, "
-                            "integer, boolean or colour attribute")
+    values = attribute_values(attr, f"attribute {name!r}")
     if attr.domain == 'POINT':
         return values
     if attr.domain == 'CORNER':

@@ -1,10 +1,12 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""Per-object runtime state: what one baked object keeps between frames (never a bpy reference).
+"""Per-object runtime state: what one object keeps between frames (never a bpy reference).
 
-:class:`ObjectState` per object name in :data:`_STATES`, used only while its
+:class:`ObjectState` per baked object name in :data:`_STATES`, used only while its
 ``key`` equals ``obj.translucency.bake_key`` (so undo, which replaces every ID,
-never leaves a dangling pointer), the diagnostics counters and the console log.
-Everything on the Blender side that keeps memory between frames keeps it here.
+never leaves a dangling pointer); :class:`FluidObjectState` per Fluid-source
+object name in :data:`_FLUIDS` (no bake: the last frame's warm start and what
+it cost); the diagnostics counters and the console log.  Everything on the
+Blender side that keeps memory between frames keeps it here.
 """
 
 from __future__ import annotations
@@ -136,7 +138,47 @@ class ObjectState:
         self.deformation = DeformationState()
 
 
+@dataclass
+class FluidObjectState:
+    """What one Fluid-source object keeps between frames (never a bpy reference; never saved).
+
+    ``name``, ``seconds``, ``residual``, ``backend`` and ``stale_message`` are
+    what ``status.publish`` reads of any object's state.
+    """
+
+    name: str
+    backend: str = "CPU"  # fluid cells have 15-25 links; the GPU layer packs 4 (gpu_shaders/pack.py)
+    stale_message: str = ""
+    sig: tuple | None = None  # the inputs of the frame the attribute holds (the solve's and the view)
+    solve_sig: tuple | None = None  # the inputs of the last solve (all but the view)
+    result: object | None = None  # its FluidResult (mesh outputs): a new view only re-evaluates the radiance
+    solver_sig: tuple | None = None  # material, field and scale the warm start was solved with
+    warm: object | None = None  # translucency_addon.fluid.FluidState of the last frame
+    frame: int = 0  # the scene frame of the last solve
+    seconds: float = 0.0  # the last frame's wall-clock time (particles to attribute)
+    stages: dict = field(default_factory=dict)  # the engine's seconds per stage
+    residual: float = 0.0
+    iterations: int = 0
+    particles: int = 0
+    cells: int = 0
+    surface_cells: int = 0
+    radius: float = 0.0  # the radius used, scene units
+    source: str = ""  # what the particles were: "particle system 'P' of 'Emitter'"
+    output: str = ""  # what the radiance went onto: "642 vertices" / "300 points"
+    carried: bool = False  # written through the carrier modifier (generated geometry)
+    warm_started: bool = False
+    empty: str = ""  # why there were no particles ('' when there were)
+    warnings: tuple = ()
+    solves: int = 0
+    deferred: int = 0  # frames left to the throttled live check while playback ran
+    occluders: scene_inputs.OccluderCache = field(default_factory=scene_inputs.OccluderCache)
+
+    def free(self) -> None:
+        self.warm = self.result = None
+
+
 _STATES: dict[str, ObjectState] = {}
+_FLUIDS: dict[str, FluidObjectState] = {}
 _FAILED: dict[str, tuple] = {}  # name -> (inputs, message): a load that failed is not retried blindly
 _LOGGED: set = set()
 # Problems found with an object's cache (missing, truncated, stale), by object name; shown
@@ -147,6 +189,9 @@ COUNTERS = {"solves": 0, "radiance_only": 0, "loads": 0, "field_samples": 0, "wr
 PLANS: dict = {}  # object name -> the planner's last Plan (shown in the panel)
 ERRORS: dict[str, str] = {}  # object name -> why its last solve failed (shown until one succeeds)
 LAST_SOLVE: dict = {}  # the last solve of any object: name, seconds, residual, backend (the scene's line)
+# (level, message) for Blender's Info log: handlers and timers are not operators, so ``live.report_info``
+# hands these to the ``translucency.report`` operator from a timer (the console has them at once).
+INFO: list = []
 # Object names whose mesh we just wrote (the handler ignores the update that causes).
 OWN_WRITES: set = set()
 # Bumped by the handlers when a mesh is edited (vertex-group weights are not hashed each time).
@@ -173,8 +218,17 @@ def get_state(obj) -> ObjectState | None:
     return None
 
 
+def fluid_state(obj) -> FluidObjectState:
+    """The runtime state of a Fluid-source object (made on first use)."""
+    st = _FLUIDS.get(obj.name)
+    if st is None:
+        st = _FLUIDS[obj.name] = FluidObjectState(name=obj.name)
+    return st
+
+
 def drop_state(name: str) -> None:
     with _LOCK:
+        _FLUIDS.pop(name, None)
         st = _STATES.pop(name, None)
         _FAILED.pop(name, None)
         ERRORS.pop(name, None)
@@ -185,7 +239,7 @@ def drop_state(name: str) -> None:
 def clear() -> None:
     """Forget every object's runtime state and free GPU memory (file load, unregister)."""
     with _LOCK:
-        for name in list(_STATES):
+        for name in list(_STATES) + list(_FLUIDS):
             drop_state(name)
         _FAILED.clear()
         _LOGGED.clear()
@@ -195,6 +249,7 @@ def clear() -> None:
         PLANS.clear()
         ERRORS.clear()
         LAST_SOLVE.clear()
+        INFO.clear()
 
 
 def invalidate_views() -> None:
@@ -203,13 +258,15 @@ def invalidate_views() -> None:
         for st in _STATES.values():
             st.view_sig = None
             st.geometry_digest = ""
+        for fl in _FLUIDS.values():
+            fl.sig = fl.solve_sig = None
         GEOMETRY_EPOCH.update({k: v + 1 for k, v in GEOMETRY_EPOCH.items()})
 
 
 def prune(existing_names) -> None:
     """Drop states of objects that no longer exist."""
     names = set(existing_names)
-    for name in list(_STATES):
+    for name in list(_STATES) + list(_FLUIDS):
         if name not in names:
             drop_state(name)
 
@@ -229,5 +286,17 @@ def is_baked(obj) -> bool:
             and bool(obj.translucency.cache_filepath) and bool(obj.translucency.bake_key))
 
 
+def is_fluid(obj) -> bool:
+    """A mesh or point cloud whose Translucency source is a particle fluid (no bake)."""
+    return (obj is not None and obj.type in {'MESH', 'POINTCLOUD'} and hasattr(obj, "translucency")
+            and obj.translucency.source == 'FLUID')
+
+
 def baked_objects(scene):
-    return [ob for ob in scene.objects if ob.type == 'MESH' and ob.translucency.enabled and is_baked(ob)]
+    return [ob for ob in scene.objects if ob.type == 'MESH' and ob.translucency.enabled and is_baked(ob)
+            and not is_fluid(ob)]
+
+
+def fluid_objects(scene):
+    """The scene's enabled Fluid-source objects (solved every frame, nothing baked)."""
+    return [ob for ob in scene.objects if is_fluid(ob) and ob.translucency.enabled]

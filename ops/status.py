@@ -15,6 +15,12 @@
   a solve writes no property and so causes no depsgraph update of its own.
   :func:`publish` tells the panels to redraw after a solve.
 
+A **Fluid source** has no bake: its status is all runtime (:func:`fluid_lines`:
+the particles, the radius, what a frame costs stage by stage, why there were
+no particles, warnings), and while the viewport plays an animation whose
+fluid frames take longer than :data:`FLUID_LIVE_BUDGET`, the status bar says
+that the live check, not playback, paces the fluid (:func:`status_bar`).
+
 Files saved before the status had its own group kept these values among the
 settings; :func:`migrate_legacy` moves them on load (``handlers.on_load_post``).
 """
@@ -37,6 +43,11 @@ LEGACY_BAKE_STATUS = ("bake_status", "bake_stats", "bake_memory", "bake_seconds"
 LEGACY_SOLVE_STATUS = ("solve_seconds", "solve_residual", "solve_iterations", "solve_backend", "solve_message",
                        "ss_solve_seconds", "ss_backend", "ss_message")
 LEGACY_SCENE_STATUS = ("last_solve_time", "last_residual", "last_backend")
+
+
+# A fluid frame slower than this (seconds) is not solved in the frame-change handler while the viewport plays
+# the animation: the throttled live check solves the frame shown when it runs, so playback keeps its pace.
+FLUID_LIVE_BUDGET = 0.1
 
 
 def _format_count(n: int) -> str:
@@ -197,9 +208,52 @@ def publish(st: state.ObjectState) -> None:
 
 
 def report_error(name: str, message: str) -> None:
-    """The last solve of ``name`` failed: the panel shows ``message`` until a solve succeeds."""
+    """The last solve of ``name`` failed: the panel shows ``message`` until a solve succeeds.
+
+    A new message also goes to Blender's Info log (``state.INFO``, handed on by ``live.report_info``).
+    """
+    if state.ERRORS.get(name) != message:
+        state.INFO.append(('ERROR', f"'{name}': {message}"))
     state.ERRORS[name] = message
     tag_redraw()
+
+
+def fluid_lines(obj) -> list[str]:
+    """What the panel says about a Fluid source's last frame (runtime state; empty before its first)."""
+    st = state._FLUIDS.get(obj.name)
+    if st is None or not st.sig:
+        return []
+    lines = [f"Frame {st.frame}: {st.particles:,} particles ({st.source}) -> {st.output}"
+             + (" through the Translucency Radiance modifier" if st.carried else "")]
+    if st.empty:
+        lines.append(f"{st.empty}: radiance 0")
+        return lines
+    if st.radius > 0:
+        lines.append(f"Radius {st.radius:.4g} scene units" + (" (auto: the particle spacing)"
+                                                               if obj.translucency.fluid_radius_auto else ""))
+    if st.stages:
+        stages = ", ".join(f"{k} {st.stages[k]:.2f}" for k in ("cells", "light", "solve", "output") if k in st.stages)
+        lines.append(f"A frame costs {st.seconds:.2f} s on the {st.backend} ({stages} s); {st.cells:,} cells, "
+                     f"{st.surface_cells:,} at the surface")
+        lines.append(f"{st.iterations} sweeps, residual {st.residual:.2e}"
+                     + (", warm-started from the last frame" if st.warm_started else ", cold start"))
+    if st.seconds > FLUID_LIVE_BUDGET:
+        lines.append(f"Playback: frames over {FLUID_LIVE_BUDGET:g} s are left to the live check, which solves the "
+                     f"frame shown about every {min(st.seconds, 1.0):.1f} s; renders solve every frame")
+    return lines
+
+
+def playing() -> bool:
+    """The viewport is playing the animation."""
+    screen = getattr(bpy.context, "screen", None)
+    return bool(screen is not None and screen.is_animation_playing)
+
+
+def status_bar(text: str | None) -> None:
+    """Put ``text`` in the status bar (``None``: give it back to Blender); nothing without a window."""
+    workspace = getattr(bpy.context, "workspace", None)
+    if workspace is not None and getattr(bpy.context, "window", None) is not None:
+        workspace.status_text_set(text)
 
 
 def tag_redraw() -> None:

@@ -49,3 +49,29 @@ def test_demo_quick_writes_frames_and_translucency_pass(addon, tmp_path):
     assert not np.allclose(passes[0], passes[1])
     # It went through the add-on's operators, not around them.
     assert "baked in" in log and "solved in" in log
+
+
+def test_fluid_demo_quick_renders_the_pour(addon, tmp_path):
+    """demo/fluid_demo.py --quick: milk poured onto a plate through the Fluid source, two frames rendered
+    with Cycles; the Translucency pass covers the milk and grows with the puddle."""
+    out = tmp_path / "fluid_demo"
+    env = dict(os.environ)
+    env.pop("TRANSLUCENCY_KEEP_USER_RESOURCES", None)
+    proc = subprocess.run([sys.executable, str(ROOT / "demo" / "fluid_demo.py"), "--quick", "--output", str(out)],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log[-4000:]
+
+    from tools.exr import exr_pass
+
+    covered = []
+    for frame in (8, 14):
+        for name in (f"frame_{frame:04d}.png", f"frame_{frame:04d}.exr", f"translucency_{frame:04d}.png"):
+            assert (out / name).exists() and str(out / name) in log, f"{name}\n{log[-2000:]}"
+        rgb = exr_pass(out / f"frame_{frame:04d}.exr", "Translucency")[..., :3]
+        assert rgb.shape[:2] == (72, 96) and np.isfinite(rgb).all()
+        assert not rgb[:, 0].any() and not rgb[:, -1].any()  # plate and sky at the sides: no pass there
+        covered.append((rgb.max(axis=2) > 0).mean())
+        assert f"frame {frame}: " in log and "particles ->" in log
+    assert covered[0] > 0.02 and covered[1] > covered[0]  # more milk at frame 14
+    assert "fluid frame 14:" in log and "view towards the camera" in log  # solved for the frame it renders

@@ -16,9 +16,9 @@ FLOORS = (
     ("operators_bake", "operators_solve", "panels", "overlay", "render_pass"),
     ("live",),
     ("runtime",),
-    ("deformation",),
+    ("deformation", "fluid_runtime"),
     ("frame", "status", "cache_files", "attributes"),
-    ("state",),
+    ("state", "fluid_sources"),
     ("scene_inputs", "backend"),
     ("compat", "dependencies", "quality_costs"),
 )

@@ -25,7 +25,8 @@ from translucency_addon.diffusion import DiffusionSolver, SolveOptions
 from translucency_addon.lights import Environment, Light
 from translucency_addon.materials import Material, Medium, material_from_preset
 from translucency_addon.planner import (NEGLIGIBLE, ChangeTracker, ObjectState, describe_plan, fingerprint,
-                                        light_fingerprint, plan_object, semi_infinite_albedo)
+                                        fluid_thickness, light_fingerprint, plan_fluid, plan_object,
+                                        semi_infinite_albedo)
 
 ROOT = Path(__file__).resolve().parents[1]
 REF_CACHE = ROOT / "bench" / "data" / "planner"
@@ -340,3 +341,43 @@ def test_thickness_belongs_to_the_bake_not_to_its_key():
     t = surface_thickness(b)
     np.testing.assert_allclose(surface_thickness(half), 0.5 * t, rtol=1e-6)
     assert np.all(t * 15.0 > 10.0)  # every node of the 30 mm sphere is over 1 cm thick
+
+
+# ----------------------------------------------------------------- particle fluids (issue 14)
+
+
+def _ball_of_particles(radius=6.0, spacing=0.5):
+    k = int(radius / spacing)
+    g = np.mgrid[-k:k + 1, -k:k + 1, -k:k + 1].reshape(3, -1).T * spacing
+    return g[np.linalg.norm(g, axis=1) <= radius]
+
+
+def test_fluid_thickness_of_a_slab_and_a_ball():
+    """The smallest principal extent plus one particle diameter: a slab's thickness, a ball's diameter (its
+    principal axes are arbitrary, so a lattice ball's extent along them is within 0.1 % of 12)."""
+    ball = _ball_of_particles()
+    geo = fluid_thickness(ball, 0.5, 2.0)
+    assert geo["thin_mm"] == pytest.approx((12.0 + 1.0) * 2.0, rel=1e-3)
+    slab = np.mgrid[0:20, 0:20, 0:3].reshape(3, -1).T * 0.5
+    rot = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]  # any orientation
+    assert fluid_thickness(slab @ rot.T, 0.5, 1.0)["thin_mm"] == pytest.approx(1.0 + 1.0)
+
+
+def test_fluid_plan_says_particles_and_validity():
+    """Milk in a 12 mm ball: diffusion valid in every channel, the first line names the particle count;
+    a 0.1 mm film of it is optically thin, and diffusion still runs (a fluid has no other pass), saying so."""
+    ball = _ball_of_particles()
+    milk = material_from_preset("skimmilk")
+    plan = plan_fluid(ball, 0.5, 1.0, milk, SUN, None, name="Milk")
+    text = describe_plan(plan)
+    assert plan.run and plan.multiple.channels == (True, True, True) and plan.single is None
+    assert f"fluid: {len(ball):,} particles, diffusion valid" in text.splitlines()[1]
+    assert plan.estimated_ms == pytest.approx(0.31 * len(ball))
+    film = plan_fluid(ball * (1.0, 1.0, 0.0) + (0.0, 0.0, 1.0) * (ball[:, 2:] > 0) * 0.05, 0.025, 1.0, milk, SUN, None)
+    assert film.run and film.multiple.channels == (True, True, True)
+    assert "diffusion doubtful in RGB" in describe_plan(film) and "a particle fluid has no other pass" in \
+        describe_plan(film)
+    assert "single scattering" not in describe_plan(film)  # no advice to bake what a fluid cannot have
+    assert plan_fluid(ball, 0.5, 1.0, milk, [], None).reason == "unlit: no light reaches it"
+    off = plan_fluid(ball, 0.5, 1.0, milk, SUN, None, overrides={"multiple": False})
+    assert not off.run and off.reason == "every pass is turned off in the object's settings"

@@ -267,7 +267,7 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
                 field_values=None, has_single_scattering: bool | None = None, in_view: bool = True,
                 enabled: bool = True, overrides: dict | None = None, name: str = "object",
                 has_voxel_number_map: bool | None = None) -> Plan:
-    """Decide the passes of one object for this frame (see the module docstring).
+    """Decide the passes of one baked object for this frame (see the module docstring).
 
     ``overrides`` force a pass on or off (``{"single": False}``: single
     scattering is turned off, so it is not available to replace diffusion;
@@ -290,27 +290,132 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
     ss_available = replacement is not None
     if hasattr(material, "outer"):  # a composite_bake.CompositeMaterial: plan for the outer medium
         material, field_values = material.outer, None
+    vnm_n = bake.voxel_number_map.n if getattr(bake, "voxel_number_map", None) is not None else 2000
+
+    def split(single):
+        """The replacement pass's decision goes to single scattering or to the Voxel Number Map."""
+        return _split_replacement(single, replacement, baked_ss, ss_real, bool(has_voxel_number_map), vnm_real,
+                                  parts)
+
+    skipped = _skipped(name, enabled, in_view)
+    if skipped is not None:
+        return skipped
+    geo = object_thickness(bake)
+    lv = bake.finest
+    # Coefficients: the bulk medium, or the spread over the nodes of a heterogeneous one.
+    if material.heterogeneous and field_values is not None:
+        fv = np.asarray(field_values[-1] if isinstance(field_values, (list, tuple)) else field_values)
+        sa_n, ss_n = material.coefficients(fv)
+        bulk = (sa_n.mean(axis=0), ss_n.mean(axis=0))
+        surface = (sa_n[lv.n_inner:], ss_n[lv.n_inner:])
+    else:
+        bulk = tuple(np.asarray(x) for x in material.bulk().arrays())
+        surface = tuple(np.broadcast_to(x, (lv.n_surface, 3)) for x in bulk)
+    plan = _plan(name, geo, np.asarray(lv.area, dtype=np.float64), material, bulk, surface, lights, environment,
+                 bake.mm_per_unit, bool(has_single_scattering), overrides,
+                 ms_cost=lambda channels: 1e-4 * lv.n_nodes * sum(channels) / 3.0,  # ~0.1 us per node-channel sweep x ~50
+                 ss_available=ss_available, split=split,
+                 # the packed kernel read once per frame (~2 GB/s on a CPU core) plus the light pass
+                 vnm_cost=1.0 + 6e-6 * vnm_n * vnm_n / 2.0)
+    if parts and plan.facts:
+        plan.facts["inner_parts"] = parts
+        plan.facts["replacement"] = replacement
+    return plan
+
+
+# Measured per-frame cost of a fluid (cells + warm solve + output), per particle: 5,105 ms at 16,375
+# particles on 2 CPU cores (docs/bench_fluid.md); the stages grow about linearly with N.
+FLUID_MS_PER_PARTICLE = 0.31
+
+
+def fluid_thickness(points, radius: float, mm_per_unit: float) -> dict:
+    """Thickness facts (mm) of a particle fluid, in the keys of :func:`object_thickness`, one "node".
+
+    A fluid has no surface nodes before its cells are built (that is the
+    frame's cost), so its thickness is estimated from the particles alone:
+    the smallest extent along the principal axes of their positions (an SVD
+    of the centred points), plus one particle diameter (each ball reaches a
+    radius beyond its centre).  Exact for a slab, a box and a ball; an upper
+    estimate for a curved sheet (a splash crown), whose thickness the
+    principal axes cannot see.
+    """
+    P = np.asarray(points, dtype=np.float64)
+    R = float(radius)
+    lo, hi = P.min(axis=0) - R, P.max(axis=0) + R
+    center = 0.5 * (lo + hi)
+    c = P - P.mean(axis=0)
+    axes = np.linalg.svd(c[:: max(1, len(P) // 20000)], full_matrices=False)[2] if len(P) >= 3 else np.eye(3)
+    proj = c @ axes.T
+    thin = (float(np.ptp(proj, axis=0).min()) if len(P) >= 3 else 0.0) + 2.0 * R
+    bound = float(np.max(np.linalg.norm(P - center, axis=1))) + R
+    return {"thin_mm": thin * mm_per_unit, "median_mm": thin * mm_per_unit, "radius_mm": bound * mm_per_unit,
+            "center": center, "radius_units": bound, "node_mm": np.array([thin * mm_per_unit])}
+
+
+def plan_fluid(points, radius: float, mm_per_unit: float, material: Material, lights=(),
+               environment: Environment | None = None, *, field_values=None, in_view: bool = True,
+               enabled: bool = True, overrides: dict | None = None, name: str = "fluid") -> Plan:
+    """Decide the diffusion pass of one particle fluid for this frame (Kang & Kim 2013; the module docstring).
+
+    The same criteria as :func:`plan_object` on the whole fluid as one
+    region (:func:`fluid_thickness`; ``field_values`` per particle give the
+    mean coefficients of a two-media fluid).  A fluid has no single-scattering
+    bake, so diffusion is its only pass and is never turned off for being
+    doubtful.  ``facts["particles"]`` makes :func:`describe_plan` say
+    "fluid: N particles, diffusion valid".
+    """
+    overrides = overrides or {}
+    P = np.asarray(points, dtype=np.float64)
+    skipped = _skipped(name, enabled, in_view)
+    if skipped is not None:
+        skipped.facts["particles"] = len(P)
+        return skipped
+    geo = fluid_thickness(P, radius, mm_per_unit)
+    if material.heterogeneous and field_values is not None:
+        sa_n, ss_n = material.coefficients(np.asarray(field_values, dtype=np.float64))
+        bulk = (sa_n.mean(axis=0), ss_n.mean(axis=0))
+    else:
+        bulk = tuple(np.asarray(x) for x in material.bulk().arrays())
+    surface = tuple(np.asarray(x, dtype=np.float64).reshape(1, 3) for x in bulk)
+    plan = _plan(name, geo, np.ones(1), material, bulk, surface, lights, environment, mm_per_unit, False, overrides,
+                 ms_cost=lambda _channels: FLUID_MS_PER_PARTICLE * len(P),  # every channel in one cell build
+                 single_pass=False)
+    plan.facts["particles"] = len(P)
+    plan.facts["radius_units"] = float(radius)
+    return plan
+
+
+def _skipped(name: str, enabled: bool, in_view: bool) -> Plan | None:
     if not enabled:
         return Plan(name, False, "translucency disabled")
     if not in_view:
         return Plan(name, False, "outside the camera view: nothing to compute")
-    geo = object_thickness(bake)
-    E, reaching = light_reaching(lights, environment, geo["center"], geo["radius_units"], bake.mm_per_unit)
+    return None
+
+
+def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_unit, has_single_scattering,
+          overrides, ms_cost, single_pass: bool = True, ss_available: bool | None = None, split=None,
+          vnm_cost: float = 0.0) -> Plan:
+    """The passes of one object from its geometry facts (``geo``, per-node ``area``), its bulk and surface-node
+    coefficients, and the light reaching it: the criteria of the module docstring, per channel and node.
+
+    ``single_pass`` False: the object has no single-scattering pass at all (a particle fluid), so the plan
+    has none, and diffusion, its only pass, runs wherever it returns light.
+
+    ``ss_available``: whether a pass can replace diffusion where it is invalid (default: single scattering
+    baked and not turned off); ``split(single) -> (single, voxel_number_map)`` hands that replacement to the
+    Voxel Number Map where it is the better pass (:func:`plan_object`), costing ``vnm_cost`` ms per frame."""
+    if ss_available is None:
+        ss_available = has_single_scattering and overrides.get("single") is not False
+    vnm = None
+    E, reaching = light_reaching(lights, environment, geo["center"], geo["radius_units"], mm_per_unit)
     facts = {"thin_mm": geo["thin_mm"], "radius_mm": geo["radius_mm"], "irradiance": E.tolist(),
              "lights_reaching": [getattr(light, "name", "") for light in reaching]}
     if not np.any(E > 0) and not any(overrides.values()):
         return Plan(name, False, "unlit: no light reaches it", facts=facts)
-
-    # Coefficients: the bulk medium, or the spread over the nodes of a heterogeneous one.
-    lv = bake.finest
-    if material.heterogeneous and field_values is not None:
-        fv = np.asarray(field_values[-1] if isinstance(field_values, (list, tuple)) else field_values)
-        sa_n, ss_n = material.coefficients(fv)
-        sa, ss = sa_n.mean(axis=0), ss_n.mean(axis=0)
-        sa_s, ss_s = sa_n[lv.n_inner:], ss_n[lv.n_inner:]
-    else:
-        sa, ss = (np.asarray(x) for x in material.bulk().arrays())
-        sa_s, ss_s = np.broadcast_to(sa, (lv.n_surface, 3)), np.broadcast_to(ss, (lv.n_surface, 3))
+    sa, ss = bulk
+    sa_s, ss_s = surface
+    n_surface = len(area)
     st = sa + ss
     alpha = reduced_albedo(sa, ss)
     l_tr = 1.0 / st
@@ -323,7 +428,6 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
                  transport_mfp_mm=l_tr.tolist())
 
     # Validity per surface node: local thickness in transport mean free paths, local albedo.
-    area = np.asarray(lv.area, dtype=np.float64)
     area = area / max(area.sum(), 1e-300)
     tau_node = geo["node_mm"][:, None] * (sa_s + ss_s)
     thin_node = tau_node < THICK_MIN
@@ -357,7 +461,7 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
             return f"reduced albedo {alpha[c]:.2f} < {ALBEDO_MIN}"
         return f"optically thin: {tau_thin[c]:.1f} transport mean free paths across its thin parts"
 
-    ms_ch, ms_why, ms_w = [], [], np.ones((lv.n_surface, 3))
+    ms_ch, ms_why, ms_w = [], [], np.ones((n_surface, 3))
     ss_replaces = [False, False, False]
     unbaked = {}  # channel -> share of the surface where single scattering would be better, not available
     for c in range(3):
@@ -385,7 +489,8 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
             else:
                 ms_ch.append(True)
                 ms_why.append(f"{C}: diffusion doubtful everywhere ({why_invalid(c)}); it runs because "
-                              "single scattering is not baked or is turned off")
+                              + ("single scattering is not baked or is turned off" if single_pass
+                                 else "a particle fluid has no other pass"))
                 unbaked[c] = 1.0
         elif negligible:
             ms_ch.append(False)
@@ -407,7 +512,7 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
     multiple = PassDecision("multiple", tuple(ms_ch), ms_why,
                             weights=None if np.all(ms_w == 1.0) else ms_w)
     advice = []
-    if unbaked:
+    if unbaked and single_pass:
         chans = "".join(CHANNELS[c] for c in sorted(unbaked))
         share = max(unbaked.values())
         what = "thin parts" if any(thin_frac[c] > 0 for c in unbaked) else "low albedo"
@@ -415,7 +520,7 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
         advice.append(f"{chans}: single scattering would be more accurate on {_pct(share)} of the surface "
                       f"({what}); {todo}")
 
-    ss_ch, ss_why, bound, ss_w = [], [], [], np.zeros((lv.n_surface, 3))
+    ss_ch, ss_why, bound, ss_w = [], [], [], np.zeros((n_surface, 3))
     for c in range(3):
         C = CHANNELS[c]
         b = float(ss_estimate[c] / max(ms_estimate[c], 1e-300)) if ms_ch[c] else 0.0
@@ -443,30 +548,30 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
             ss_why.append(f"{C}: the valid term where diffusion is not")
     single = PassDecision("single", tuple(ss_ch), ss_why, tuple(bound),
                           weights=None if all(np.all(ss_w[:, c] == 1.0) for c in range(3) if ss_ch[c]) else ss_w)
+    if not single_pass:
+        single = None
 
-    single, vnm = _split_replacement(single, replacement, baked_ss, ss_real, bool(has_voxel_number_map), vnm_real,
-                                     parts)
-    if parts:
-        facts["inner_parts"] = parts
-        facts["replacement"] = replacement
+    if split is not None:
+        single, vnm = split(single)
     for p in (multiple, single, vnm):
+        if p is None:
+            continue
         force = overrides.get(p.name)
         if force is not None:
             p.channels = (bool(force),) * 3
             p.reasons = [f"{CHANNELS[c]}: forced {'on' if force else 'off'} by the user" for c in range(3)]
             p.forced = True
             p.weights = None
-    if not (multiple.runs or single.runs or vnm.runs):
+    if not (multiple.runs or (single is not None and single.runs) or (vnm is not None and vnm.runs)):
         return Plan(name, False, _nothing_runs(multiple, single, ss_available), multiple, single, facts=facts,
                     advice=advice, voxel_number_map=vnm)
     cost = 0.0
     if multiple.runs:
-        cost += 1e-4 * bake.finest.n_nodes * sum(multiple.channels) / 3.0  # ~0.1 us per node-channel sweep x ~50
-    if single.runs:
+        cost += ms_cost(multiple.channels)
+    if single is not None and single.runs:
         cost += 5.0
-    if vnm.runs:  # the packed kernel read once per frame (~2 GB/s on a CPU core) plus the light pass
-        n = bake.voxel_number_map.n if getattr(bake, "voxel_number_map", None) is not None else 2000
-        cost += 1.0 + 6e-6 * n * n / 2.0
+    if vnm is not None and vnm.runs:
+        cost += vnm_cost
     return Plan(name, True, "runs", multiple, single, estimated_ms=cost, facts=facts, advice=advice,
                 voxel_number_map=vnm)
 
@@ -541,13 +646,25 @@ def _split_replacement(single: PassDecision, replacement, baked_ss: bool, ss_on:
     return single, vnm
 
 
-def _nothing_runs(multiple: PassDecision, single: PassDecision, ss_available: bool) -> str:
+def _nothing_runs(multiple: PassDecision, single: PassDecision | None, ss_available: bool) -> str:
     """Why no pass runs, in numbers: every channel's reason (never a bare 'skipped')."""
-    forced_off = multiple.forced and not any(multiple.channels) and (single.forced or not ss_available)
+    forced_off = multiple.forced and not any(multiple.channels) and (single is None or single.forced
+                                                                     or not ss_available)
     if forced_off:
         return "every pass is turned off in the object's settings"
     return "no pass returns light (" + "; ".join(multiple.reasons) + ")" + (
-        "" if ss_available else "; single scattering is not baked")
+        "" if ss_available or single is None else "; single scattering is not baked")
+
+
+def _fluid_validity(plan: Plan) -> str:
+    """"diffusion valid", or where it is doubtful, for the channels that run (the fluid's first line)."""
+    running = [c for c in range(3) if plan.multiple.channels[c]]
+    if not running:
+        return "diffusion off"
+    doubtful = [c for c in running if plan.facts.get("invalid_fraction", (0.0,) * 3)[c] > 0.0]
+    if not doubtful:
+        return "diffusion valid"
+    return "diffusion doubtful in " + "".join(CHANNELS[c] for c in doubtful) + " (see below)"
 
 
 def _pct(x: float) -> str:
@@ -560,7 +677,10 @@ def describe_plan(plan: Plan) -> str:
     if not plan.run:
         lines = [f"{plan.object_name}: skipped -- {plan.reason}"]
     else:
-        lines = [f"{plan.object_name}: runs (estimated {plan.estimated_ms:.0f} ms per frame)"]
+        lines = [f"{plan.object_name}: runs (estimated {plan.estimated_ms:,.0f} ms per frame)"]
+    if "particles" in plan.facts:
+        lines.insert(1, f"  fluid: {plan.facts['particles']:,} particles" + (
+            f", {_fluid_validity(plan)}" if plan.multiple is not None else ""))
     for label, p in (("multiple scattering", plan.multiple), ("single scattering", plan.single),
                      ("Voxel Number Map", plan.voxel_number_map)):
         if p is None:
