@@ -142,7 +142,7 @@ class ObjectState:
 class FluidObjectState:
     """What one Fluid-source object keeps between frames (never a bpy reference; never saved).
 
-    ``name``, ``seconds``, ``residual``, ``backend`` and ``stale_message`` are
+    ``name``, ``seconds``, ``residual``, ``frame_backend`` and ``stale_message`` are
     what ``status.publish`` reads of any object's state.
     """
 
@@ -172,6 +172,12 @@ class FluidObjectState:
     solves: int = 0
     deferred: int = 0  # frames left to the throttled live check while playback ran
     occluders: scene_inputs.OccluderCache = field(default_factory=scene_inputs.OccluderCache)
+
+    @property
+    def frame_backend(self) -> str:
+        """Where this frame solved (``ObjectState`` keeps it apart from the object's solver for deformed
+        frames; a fluid always solves where ``backend`` says)."""
+        return self.backend
 
     def free(self) -> None:
         self.warm = self.result = None
