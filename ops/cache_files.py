@@ -13,7 +13,7 @@ import tempfile
 
 import bpy
 
-from . import scene_inputs
+from . import inner_parts, scene_inputs
 from .state import _FAILED, _LOCK, _STATES, CACHE_STATUS, COUNTERS, ObjectState, drop_state, get_state, log
 
 DEFAULT_CACHE_DIRECTORY = "//translucency_cache/"
@@ -115,7 +115,9 @@ def check_cache(obj, depsgraph=None) -> str:
 
         try:
             baked = BakeSettings(**meta["settings"])
-            message = _staleness(obj, depsgraph, (meta.get("stats") or {}).get("graph_key") or meta["key"], baked)
+            stats = meta.get("stats") or {}
+            message = _staleness(obj, depsgraph, stats.get("graph_key") or meta["key"], baked,
+                                 stats.get(inner_parts.RECORD))
         except Exception as ex:  # noqa: BLE001 - a status line must not raise
             message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
         if message:
@@ -123,18 +125,23 @@ def check_cache(obj, depsgraph=None) -> str:
     return f"Baked (cache found: {os.path.basename(path)})"
 
 
-def _staleness(obj, depsgraph, key: str, baked_settings) -> str:
+def _staleness(obj, depsgraph, key: str, baked_settings, composite: dict | None = None) -> str:
     """Why the bake no longer matches the object (empty when it still does).
 
     ``key``: the QuadGraph key (``single_scattering.graph_key``: a bake holding
-    single scattering has a combined key of its own)."""
+    single scattering has a combined key of its own).  ``composite``: what a bake
+    with inner parts recorded of them (``bake.stats["composite"]``): its outer mesh,
+    parts and map are compared by :func:`.inner_parts.staleness` instead of the key."""
     from dataclasses import replace
 
     from ..translucency_addon.bake import mesh_key
 
     V, F = scene_inputs.evaluated_triangles(obj, depsgraph)
-    if mesh_key(V, F, baked_settings) != key:
+    if composite is None and mesh_key(V, F, baked_settings) != key:
         return "the mesh changed since it was baked (modifiers included); re-bake to update the graph"
+    message = inner_parts.staleness(obj, depsgraph, composite, V, F)
+    if message:
+        return message
     s = obj.translucency
     wanted = replace(baked_settings, quality=s.quality.lower(), levels=int(s.levels))
     if (wanted.quality, wanted.levels) != (baked_settings.quality, baked_settings.levels):
@@ -147,12 +154,15 @@ def update_staleness(obj, st: ObjectState, depsgraph) -> str:
     """Re-check staleness when the evaluated geometry changed; cheap otherwise."""
     positions = scene_inputs.evaluated_positions(obj, depsgraph)
     digest = scene_inputs.array_digest(positions) + f"|{obj.translucency.quality}|{obj.translucency.levels}"
+    if inner_parts.listed(obj) or st.bake.composite is not None:
+        digest += "|" + inner_parts.parts_digest(obj, depsgraph)
     if digest != st.geometry_digest:
         st.geometry_digest = digest
         try:
             from ..translucency_addon.single_scattering import graph_key
 
-            st.stale_message = _staleness(obj, depsgraph, graph_key(st.bake), st.bake.settings)
+            st.stale_message = _staleness(obj, depsgraph, graph_key(st.bake), st.bake.settings,
+                                          (st.bake.stats or {}).get(inner_parts.RECORD))
         except Exception as ex:  # noqa: BLE001
             st.stale_message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
         if st.stale_message:

@@ -10,7 +10,9 @@ with its bake settings and Split Pass), Bake / Free Bake / Bake Single
 Scattering, bake status and statistics (the saved ``translucency.status``: N_s
 and N_i per level, graph memory, bake time, single-scattering samples and time
 per stage, warnings; cache problems found after a file load), material,
-heterogeneity field, Solve with the last solve time, iterations, residual,
+heterogeneity field, the inner parts (the list with each part's object, role and
+a medium's material; the Voxel Number Map's settings; what the last bake made of
+them), Solve with the last solve time, iterations, residual,
 backend and fallback message, the single-scattering time and backend and why
 it needs a re-bake (``status.solve_status``: runtime state, never saved), the
 cache file, then the hooks of the optional modules (``overlay.draw_settings``
@@ -145,6 +147,8 @@ def _draw_object_settings(layout, obj, context=None) -> None:
     else:
         sub.prop_search(settings, "field_vertex_group", obj, "vertex_groups")
 
+    _draw_inner_parts(col, obj)
+
     # -- solve ---------------------------------------------------------------------------
     box = col.box()
     box.label(text="Solve", icon='LIGHT')
@@ -158,6 +162,10 @@ def _draw_object_settings(layout, obj, context=None) -> None:
         _draw_multiline(box, solved.message, icon='INFO')
     if solved.ss_backend:
         box.label(text=f"Single scattering: {solved.ss_seconds * 1000:.1f} ms on the {solved.ss_backend}")
+    if solved.vnm_backend:
+        box.label(text=f"Voxel Number Map: {solved.vnm_seconds * 1000:.1f} ms on the {solved.vnm_backend}")
+    if solved.vnm_message:
+        _draw_multiline(box, solved.vnm_message, icon='INFO')
     try:
         plan_text = status.plan_summary(obj.name)
     except Exception:  # noqa: BLE001 - drawing must never fail
@@ -175,6 +183,41 @@ def _draw_object_settings(layout, obj, context=None) -> None:
     box = col.box()
     box.label(text="Cache", icon='FILE_CACHE')
     box.prop(settings, "cache_filepath")
+
+
+def _draw_inner_parts(layout, obj) -> None:
+    """The inner-part list (object, role, a medium's material), the Voxel Number Map's settings and what
+    the last bake made of the parts."""
+    settings = obj.translucency
+    box = layout.box()
+    box.label(text="Inner Parts", icon='MOD_BOOLEAN')
+    row = box.row()
+    row.template_list("TRANSLUCENCY_UL_inner_parts", "", settings, "inner_parts", settings, "inner_parts_index",
+                      rows=3)
+    buttons = row.column(align=True)
+    buttons.operator("translucency.inner_part_add", icon='ADD', text="")
+    buttons.operator("translucency.inner_part_remove", icon='REMOVE', text="")
+    box.operator("translucency.inner_parts_from_children", icon='OUTLINER_OB_MESH')
+    parts = settings.inner_parts
+    if not len(parts):
+        box.label(text="None: the object is one medium (cavities, other media and opaque parts go here)")
+        return
+    item = parts[min(max(int(settings.inner_parts_index), 0), len(parts) - 1)]
+    sub = box.column()
+    sub.prop(item, "object")
+    sub.prop(item, "role")
+    if item.role == 'MEDIUM':
+        sub.prop(item, "material_preset")
+        if item.material_preset == 'CUSTOM':
+            sub.prop(item, "sigma_a")
+            sub.prop(item, "sigma_s")
+    box.prop(settings, "use_voxel_number_map")
+    sub = box.column()
+    sub.active = settings.use_voxel_number_map
+    sub.prop(settings, "vnm_quality")
+    sub.prop(settings, "vnm_resolution")
+    if settings.status.parts_bake_stats:
+        _draw_multiline(box, settings.status.parts_bake_stats, icon='INFO')
 
 
 def _draw_scene_settings(layout, scene, overlay_drawn: bool = False) -> None:

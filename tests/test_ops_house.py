@@ -13,10 +13,11 @@ OPS = Path(__file__).resolve().parent.parent / "ops"
 FLOORS = (
     ("__init__",),
     ("handlers", "properties"),
-    ("operators_bake", "operators_solve", "panels", "overlay", "render_pass"),
+    ("operators_bake", "operators_parts", "operators_solve", "panels", "overlay", "render_pass"),
     ("live",),
     ("runtime",),
     ("frame", "status", "cache_files", "attributes"),
+    ("inner_parts",),
     ("state",),
     ("scene_inputs", "backend"),
     ("compat", "dependencies", "quality_costs"),
