@@ -546,3 +546,54 @@ def test_the_map_on_the_gpu_matches_blas(blender, addon, cache_dir, memo_bakes):
     np.testing.assert_allclose(attribute_ok(bottle), L_cpu, rtol=1e-4, atol=1e-5 * L_cpu.max())
     transmission = st.vnm.transmission
     assert gpu_shaders.free_all() >= 1 and transmission.tex is None
+
+
+def test_single_scattering_is_baked_with_the_parts(blender, addon, cache_dir, memo_composites):
+    """Bake Single Scattering on an object with inner parts bakes from the assembly's voxels: the samples know
+    the parts, so the planner picks single scattering over the map; a part's medium changed since makes it
+    stale (its optical depth is made of it), with the part's name."""
+    from translucency.ops import state, status
+
+    cube, sphere, _, _ = cube_scene('MEDIUM', radius=0.45, offset=(0.0, 0.0, 0.0))
+    s = cube.translucency
+    s.material_preset = 'CUSTOM'
+    s.sigma_a, s.sigma_s = SS_MEDIUM
+    s.inner_parts[0].material_preset = 'KETCHUP'
+    assert bake_op(cube) == {'FINISHED'}
+    assert state.PLANS[cube.name].voxel_number_map.runs  # single scattering is not baked yet: the map replaces
+    s.use_single_scattering = True
+    s.ss_quality, s.ss_directions, s.ss_samples = 'DRAFT', '32', 1500
+    graph_key = s.bake_key
+    activate(cube)
+    assert bpy.ops.translucency.bake_single_scattering() == {'FINISHED'}
+    assert s.bake_key != graph_key
+    data = state.get_state(cube).bake.single_scattering
+    assert data.stats["inner_parts"] and data.stats["inputs"]["parts"][0][:2] == ["Sphere", "medium"]
+    plan = state.PLANS[cube.name]
+    assert plan.single.runs and not plan.voxel_number_map.runs
+    assert "baked with the inner parts" in status.plan_summary(cube.name)
+    attribute_ok(cube)
+    assert not status.solve_status(cube).ss_message.startswith("single scattering needs a re-bake")
+    s.inner_parts[0].material_preset = 'WHOLEMILK'
+    assert solve_op(cube) == {'FINISHED'}
+    assert "the inner parts' media changed (Sphere)" in status.solve_status(cube).ss_message
+
+
+def test_a_mixed_material_takes_cavities_not_solid_parts(blender, addon, cache_dir, memo_composites):
+    """A field-mixed outer material: with a cavity the map is baked from the field sampled on the main thread;
+    with an opaque part the bake is refused before anything is written (the diffusion pass cannot mix both)."""
+    from translucency.ops import state
+
+    cube, sphere, _, _ = cube_scene()
+    s = cube.translucency
+    tex = bpy.data.textures.new("veins", 'CLOUDS')
+    s.use_heterogeneity, s.second_preset, s.field_source, s.field_texture = True, 'KETCHUP', 'TEXTURE', tex
+    assert bake_op(cube) == {'FINISHED'}
+    vnm = state.get_state(cube).bake.voxel_number_map
+    assert vnm.n_components == 2  # the outer material's two media
+    attribute_ok(cube)
+    s.inner_parts[0].role = 'OPAQUE'
+    before = _snapshot(cube, cache_dir)
+    with pytest.raises(RuntimeError, match=r"'Cube' mixes two media and has medium or opaque inner parts \(Sphere\)"):
+        bake_op(cube)
+    assert _snapshot(cube, cache_dir) == before
