@@ -299,9 +299,12 @@ def test_the_opaque_stone_casts_its_shadow(blender, addon, cache_dir, memo_bakes
     plan = state.PLANS[cube.name]
     assert plan.multiple.runs == (medium == "MARBLE") and plan.voxel_number_map.runs == (medium != "MARBLE")
     shadowed = attribute_ok(cube)
+    key = cube.translucency.bake_key
     item.role = 'MEDIUM'  # the stone made of the cube's own medium: no stone
     assert bake_op(cube) == {'FINISHED'}
     clear = attribute_ok(cube)
+    # the same QuadGraph (an opaque part carves nothing), but another bake: the key covers the parts' roles
+    assert cube.translucency.bake_key != key and loaded_bake(cube).composite.roles == ("medium",)
     V = _f32(Vb)
     v = behind(stone_at, V)
     assert V[v, 2] == pytest.approx(-1.0) and shadowed[v].mean() < 0.8 * clear[v].mean()
@@ -330,8 +333,9 @@ def _sphere_part(name, radius, center, parent):
     return mesh_object(name, *primitives.icosphere(radius, 2, (0.0, 0.0, 0.0)), parent=parent, location=center)
 
 
-def test_bad_inner_parts_are_refused_and_change_nothing(blender, addon, cache_dir, memo_composites):
-    """Each refused input says why through the operator; the scene, the existing bake and its cache stay."""
+def test_bad_inner_parts_are_refused_and_change_nothing(blender, addon, cache_dir, memo_composites, monkeypatch):
+    """Each refused input says why through the operator; the scene, the existing bake and its cache stay; so
+    does a bake cancelled (Esc) while the map is built."""
     cube, sphere, _, _ = cube_scene()
     assert bake_op(cube) == {'FINISHED'}
     s = cube.translucency
@@ -397,6 +401,16 @@ def test_bad_inner_parts_are_refused_and_change_nothing(blender, addon, cache_di
         s.vnm_resolution = 0
 
     case(r"Voxel Number Map at resolution 100: .* above the limit of 4,096 surface voxels", over_budget, within_budget)
+
+    # Esc during the map's chord table (a key not baked before: the real engine bake runs and is cancelled)
+    from translucency.ops import operators_bake
+
+    s.vnm_quality = 'PREVIEW'
+    before = _snapshot(cube, cache_dir)
+    stages = []
+    monkeypatch.setattr(operators_bake, "PROGRESS_LISTENERS", [lambda f, stage: stages.append(stage) or stage != "lut"])
+    assert bake_op(cube) == {'CANCELLED'} and stages[-1] == "lut" and "tetrahedralize" not in stages
+    assert _snapshot(cube, cache_dir) == before
 
 
 def test_moving_an_inner_part_makes_the_bake_stale(blender, addon, cache_dir, memo_composites):
@@ -597,3 +611,28 @@ def test_a_mixed_material_takes_cavities_not_solid_parts(blender, addon, cache_d
     with pytest.raises(RuntimeError, match=r"'Cube' mixes two media and has medium or opaque inner parts \(Sphere\)"):
         bake_op(cube)
     assert _snapshot(cube, cache_dir) == before
+
+
+def test_undo_brings_the_list_back(blender, addon, cache_dir, memo_composites):
+    """Undo replaces every ID; the list (object pointers) comes back with it and the runtime state, which keeps
+    no bpy reference, solves the restored object again without a re-load."""
+    from translucency.ops import state
+
+    cube, _, _, _ = cube_scene()
+    assert bake_op(cube) == {'FINISHED'}
+    before = attribute_ok(cube)
+    loads = state.COUNTERS["loads"]
+    bpy.ops.ed.undo_push(message="baked")
+    activate(cube)
+    assert bpy.ops.translucency.inner_part_remove() == {'FINISHED'}
+    bpy.ops.ed.undo_push(message="removed the part")
+    assert solve_op(cube) == {'FINISHED'}
+    assert "the inner parts changed since the bake (baked: Sphere (cavity); now: none)" in \
+        state.get_state(cube).stale_message
+    assert bpy.ops.ed.undo() == {'FINISHED'}
+    cube = bpy.data.objects["Cube"]  # a new ID: the old Python reference is gone
+    assert [(i.object.name, i.role) for i in cube.translucency.inner_parts] == [("Sphere", 'CAVITY')]
+    assert solve_op(cube) == {'FINISHED'} and not state.get_state(cube).stale_message
+    assert state.COUNTERS["loads"] == loads  # the same bake, still in the state
+    # warm-started from the last frame's solution: equal within the solver's tolerance (1e-4 of the residual)
+    assert np.abs(attribute_ok(cube) - before).max() < 5e-3 * before.max()
