@@ -46,6 +46,10 @@ from . import backend, scene_inputs, state
 
 ROLE_OF = {"MEDIUM": "medium", "CAVITY": "cavity", "OPAQUE": "opaque"}
 RECORD = "composite"  # the key of bake.stats that holds :func:`record`
+# The map's bake stages as the status bar shows them (the QuadGraph's and "cavity exchange" keep their names).
+STAGE_NAMES = {"resolution": "Voxel Number Map: grid", "voxelise": "Voxel Number Map: voxelise",
+               "surface": "Voxel Number Map: surface voxels", "lut": "Voxel Number Map: chord table",
+               "visibility": "Voxel Number Map: sky visibility"}
 FIELD_GRID = 64  # voxels along the longest side of the grid a mixing field is sampled on for the map
 
 
@@ -198,9 +202,14 @@ def bake(inputs: BakeInputs, settings, progress=None):
     """The engine's ``bake_composite`` (QuadGraph with the cavities carved, cavity exchange, node labels, the
     Voxel Number Map) under :func:`bake_key`, with :func:`record` in its stats.  Any thread."""
     from ..translucency_addon.composite_bake import bake_composite
+    from ..translucency_addon.errors import MeshError
 
-    baked = bake_composite(inputs.composite, settings, inputs.vnm, progress=progress,
-                           field_fingerprint=inputs.field_fp or "")
+    named = None if progress is None else (lambda f, stage: progress(f, STAGE_NAMES.get(stage, stage)))
+    try:
+        baked = bake_composite(inputs.composite, settings, inputs.vnm, progress=named,
+                               field_fingerprint=inputs.field_fp or "")
+    except MeshError as ex:  # the engine's 'auto' is the panel's Map Resolution 0
+        raise MeshError(str(ex).replace("or use 'auto'", "or set Map Resolution to 0 (auto)")) from None
     return replace(baked, key=inputs.key, stats={**(baked.stats or {}), RECORD: inputs.record})
 
 
