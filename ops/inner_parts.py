@@ -75,6 +75,9 @@ def _entries(obj) -> list:
             raise MeshError(f"inner part '{part.name}' of '{obj.name}' is not a mesh ({part.type.lower()})")
         if part.name == obj.name:
             raise MeshError(f"'{obj.name}' is listed as an inner part of itself; remove that entry")
+        if not part.users_scene:
+            raise MeshError(f"inner part '{part.name}' of '{obj.name}' is in no scene (deleted from it?): link it "
+                            "back or remove the entry")
         role = ROLE_OF[item.role]
         if part.name in seen:
             other = seen[part.name]

@@ -191,7 +191,7 @@ def test_cube_with_a_cavity_matches_the_engine(blender, addon, cache_dir, memo_c
     L_engine = np.asarray(solver.vertex_radiance(result))[: info.n_outer_vertices]
     assert meta["solves"] > 1
     err = np.abs(L_blender - L_engine).max() / L_engine.max()
-    assert err < 5e-3, err
+    assert err < 1e-3, err  # measured 3e-5; without the cavity exchange 3e-2
     # the planner keeps diffusion for marble (valid everywhere); the map stays off, and says why
     plan = state.PLANS[cube.name]
     assert plan.multiple.runs and not plan.voxel_number_map.runs
@@ -307,7 +307,7 @@ def test_the_opaque_stone_casts_its_shadow(blender, addon, cache_dir, memo_bakes
     assert cube.translucency.bake_key != key and loaded_bake(cube).composite.roles == ("medium",)
     V = _f32(Vb)
     v = behind(stone_at, V)
-    assert V[v, 2] == pytest.approx(-1.0) and shadowed[v].mean() < 0.8 * clear[v].mean()
+    assert V[v, 2] == pytest.approx(-1.0) and shadowed[v].mean() < 0.85 * clear[v].mean()  # measured 0.75, 0.72
     top = V[:, 2] > 0.99  # the lit face, in front of the stone
     np.testing.assert_allclose(shadowed[top].mean(axis=0), clear[top].mean(axis=0), rtol=0.1)
 
@@ -392,6 +392,13 @@ def test_bad_inner_parts_are_refused_and_change_nothing(blender, addon, cache_di
          lambda: [add_part(cube, sphere, 'OPAQUE')], lambda m: None)
     case(r"inner part 2 of 'Cube' has no object", lambda: [s.inner_parts.add()], lambda m: None)
     case(r"'Cube' is listed as an inner part of itself", lambda: [add_part(cube, cube, 'OPAQUE')], lambda m: None)
+
+    def unlinked():
+        made = parts(("Ghost", 0.3, (-0.4, 0.5, 0.5), 'OPAQUE'))()
+        bpy.context.scene.collection.objects.unlink(made[0])
+        return made
+
+    case(r"inner part 'Ghost' of 'Cube' is in no scene", unlinked, lambda m: remove(*m))
 
     def over_budget():
         s.vnm_resolution = 100
