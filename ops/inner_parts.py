@@ -288,7 +288,8 @@ def parts_digest(obj, depsgraph) -> str:
         if part is None or part.type != 'MESH':
             items.append((None, item.role))
             continue
-        items.append((part.name, item.role, scene_inputs.array_digest(scene_inputs.evaluated_positions(part, depsgraph)),
+        positions = scene_inputs.evaluated_positions(part, depsgraph)
+        items.append((part.name, item.role, scene_inputs.array_digest(positions),
                       scene_inputs.array_digest(_relative(obj, part, depsgraph))))
     return repr((items, s.use_voxel_number_map, s.vnm_quality, int(s.vnm_resolution)))
 

@@ -238,7 +238,7 @@ class TranslucencyObjectStatus(bpy.types.PropertyGroup):
     )
     parts_bake_stats: StringProperty(
         name="Inner Parts Bake",
-        description="Inner parts of the last bake with their roles, and its Voxel Number Map (surface voxels, LUT memory)",
+        description="Inner parts of the last bake with their roles, and its Voxel Number Map (surface voxels, LUT)",
         default="",
     )
     ss_samples_baked: IntProperty(
