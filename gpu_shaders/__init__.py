@@ -35,9 +35,11 @@ _LOGGED: set = set()
 
 
 def _log_once(message: str) -> None:
+    """Log a fallback reason once per session (and print it: the console of ``blender -b``)."""
     if message not in _LOGGED:
         _LOGGED.add(message)
         log.warning(message)
+        print(f"Translucency: {message}", flush=True)
 
 
 def init_headless() -> str:
@@ -171,14 +173,59 @@ def make_solver(bake, material, field_values=None, options=None, prefer: str = "
     return solver, "GPU", f"GPU solver on {reason} ({solver.precision})"
 
 
+def make_kernel(build, prefer: str = "AUTO", *, what: str, cpu_name: str, software_why: str):
+    """The backend choice of an optional pass's kernel: ``(kernel or None, backend, message)``.
+
+    One rule for the single-scattering ray pass (``single_scattering.make_integrator``) and the
+    Voxel Number Map's transport (``voxel_number_map.make_transmission``): ``build()`` makes the
+    GPU kernel object; ``what`` names it in messages, ``cpu_name`` is its CPU twin ("numpy",
+    "BLAS") and ``software_why`` says why the twin wins on a software rasteriser.
+
+    ``prefer``: ``"CPU"`` -> ``(None, "CPU", ...)``; ``"AUTO"`` -> the kernel when
+    :func:`available` says yes, the renderer is not a software rasteriser
+    (:data:`single_scattering.SOFTWARE_RENDERERS`) and ``build()`` succeeds, else ``None`` with
+    the reason (logged once); ``"GPU"`` -> the kernel wherever it builds (llvmpipe included),
+    else :class:`errors.GPUUnavailable` / :class:`errors.GraphTooLarge`.
+    """
+    from ._engine import errors
+    from .single_scattering import SOFTWARE_RENDERERS
+
+    prefer = str(prefer).upper()
+    if prefer not in PREFERENCES:
+        raise errors.TranslucencyError(f"unknown backend preference {prefer!r}; choose one of {', '.join(PREFERENCES)}")
+    if prefer == "CPU":
+        return None, "CPU", f"CPU ({cpu_name}) selected"
+    ok, reason = available()
+    if not ok:
+        if prefer == "GPU":
+            raise errors.GPUUnavailable(f"{what} GPU kernel unavailable: {reason}")
+        message = f"{what} GPU kernel unavailable ({reason}); using {cpu_name}"
+    elif prefer == "AUTO" and any(name in reason.lower() for name in SOFTWARE_RENDERERS):
+        message = f"the GPU ({reason}) is a software rasteriser, on which {software_why}; using {cpu_name}"
+    else:
+        try:
+            return build(), "GPU", f"{what} kernel on {reason}"
+        except errors.GraphTooLarge as exc:
+            if prefer == "GPU":
+                raise
+            message = f"{exc}; using {cpu_name}"
+        except Exception as exc:  # noqa: BLE001 - compile or driver failure
+            if prefer == "GPU":
+                raise errors.GPUUnavailable(f"{what} GPU kernel failed to start: {type(exc).__name__}: {exc}") from exc
+            message = f"{what} GPU kernel failed to start ({type(exc).__name__}: {exc}); using {cpu_name}"
+    _log_once(message)
+    return None, "CPU", message
+
+
 def free_all() -> int:
     """Free every GPU resource of this package (call on add-on unregister): the textures of
-    every diffusion solver and single-scattering integrator, and the compiled kernels.
+    every diffusion solver, single-scattering integrator and Voxel Number Map transmission, and
+    the compiled kernels.
     Returns how many solvers/integrators were freed; safe to call again."""
     import sys
 
     n = 0
-    for sub in ("solver", "single_scattering"):  # only modules that were imported can own textures
+    for sub in ("solver", "single_scattering", "voxel_number_map"):  # only imported modules can own textures
         mod = sys.modules.get(f"{__name__}.{sub}")
         if mod is not None and hasattr(mod, "free_all"):
             n += mod.free_all()
@@ -188,4 +235,4 @@ def free_all() -> int:
     return n
 
 
-__all__ = ["available", "make_solver", "free_all", "PREFERENCES"]
+__all__ = ["available", "make_solver", "make_kernel", "free_all", "PREFERENCES"]

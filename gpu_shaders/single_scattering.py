@@ -44,13 +44,12 @@ the failure was a missing context, dropped otherwise.
 
 from __future__ import annotations
 
-import logging
 import weakref
 from collections import Counter
 
 import numpy as np
 
-from . import runtime
+from . import _LOGGED, _log_once, runtime  # noqa: F401 - _LOGGED: the one set of messages logged once
 from .runtime import KernelSpec
 
 try:  # installed extension: translucency.gpu_shaders -> translucency.translucency_addon
@@ -59,8 +58,6 @@ try:  # installed extension: translucency.gpu_shaders -> translucency.translucen
 except ImportError:  # top-level package (repo root on sys.path)
     from translucency_addon import errors
     from translucency_addon.single_scattering import runtime as ss_runtime
-
-log = logging.getLogger(__name__)
 
 TEX_W = 4096  # width of every 1D-in-2D texture of the kernel (texels)
 LOCAL_X = 64  # local group size (LOCAL_X x 1 x 1), one invocation per ray
@@ -88,15 +85,7 @@ runtime.KERNELS.setdefault("ss_erf_test", KernelSpec(
 # ray-sample pairs).  prefer="GPU" still runs the kernel there (the parity tests do).
 SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "software rasterizer", "basic render driver")
 
-_LOGGED: set = set()
 _LIVE = weakref.WeakSet()
-
-
-def _log_once(message: str) -> None:
-    if message not in _LOGGED:
-        _LOGGED.add(message)
-        log.warning(message)
-        print(f"Translucency: {message}", flush=True)
 
 
 # ------------------------------------------------------------------ packing (numpy only)
@@ -354,43 +343,20 @@ def make_integrator(data, prefer: str = "AUTO", **gpu_options):
     numpy twin, the reason logged once), ``"GPU"`` (a bare
     :class:`GPUSingleScattering`; raise :class:`errors.GPUUnavailable` /
     :class:`errors.GraphTooLarge` instead of falling back) or ``"CPU"``.
+    The choice is :func:`gpu_shaders.make_kernel`'s (the Voxel Number Map's too).
     """
-    from . import available
+    from . import make_kernel
 
-    prefer = str(prefer).upper()
-    if prefer not in ("AUTO", "GPU", "CPU"):
-        raise errors.TranslucencyError(f"unknown backend preference {prefer!r}; choose AUTO, GPU or CPU")
-    if prefer == "CPU":
-        return ss_runtime.CPUIntegrator(data), "CPU", "CPU (numpy) selected"
-    ok, reason = available()
-    if not ok:
-        if prefer == "GPU":
-            raise errors.GPUUnavailable(f"single-scattering GPU kernel unavailable: {reason}")
-        message = f"single-scattering GPU kernel unavailable ({reason}); using numpy"
-        _log_once(message)
+    gpu_int, backend, message = make_kernel(
+        lambda: GPUSingleScattering(data, **gpu_options), prefer, what="single-scattering", cpu_name="numpy",
+        software_why="the single-scattering ray pass is faster in numpy")
+    if str(prefer).upper() == "CPU":
+        return ss_runtime.CPUIntegrator(data), "CPU", message
+    if gpu_int is None:
         return AutoIntegrator(data, None, message), "CPU", message
-    if prefer == "AUTO" and any(name in reason.lower() for name in SOFTWARE_RENDERERS):
-        message = (f"the GPU ({reason}) is a software rasteriser, on which the single-scattering ray pass is faster "
-                   "in numpy; using numpy")
-        _log_once(message)
-        return AutoIntegrator(data, None, message), "CPU", message
-    try:
-        gpu_int = GPUSingleScattering(data, **gpu_options)
-    except errors.GraphTooLarge as exc:
-        if prefer == "GPU":
-            raise
-        message = f"{exc}; using numpy"
-    except Exception as exc:  # noqa: BLE001 - compile or driver failure
-        if prefer == "GPU":
-            raise errors.GPUUnavailable(f"single-scattering GPU kernel failed to start: {type(exc).__name__}: {exc}") \
-                from exc
-        message = f"single-scattering GPU kernel failed to start ({type(exc).__name__}: {exc}); using numpy"
-    else:
-        if prefer == "GPU":
-            return gpu_int, "GPU", f"single scattering on {reason}"
-        return AutoIntegrator(data, gpu_int, ""), "GPU", f"single scattering on {reason}"
-    _log_once(message)
-    return AutoIntegrator(data, None, message), "CPU", message
+    if str(prefer).upper() == "GPU":
+        return gpu_int, "GPU", message
+    return AutoIntegrator(data, gpu_int, ""), "GPU", message
 
 
 def free_all() -> int:

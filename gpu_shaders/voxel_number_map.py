@@ -34,9 +34,9 @@ import numpy as np
 
 from . import runtime
 from .runtime import KernelSpec
-# The texture rows, the texture limit, the one-message log and the software-rasteriser list are the
-# single-scattering kernel's (same 4096-texel rows).
-from .single_scattering import SOFTWARE_RENDERERS, TEX_W, _log_once, _max_texture_size, pack_rows, rows_for
+# The texture rows and the texture limit are the single-scattering kernel's (same 4096-texel rows); the
+# backend choice is gpu_shaders.make_kernel, shared with it.
+from .single_scattering import TEX_W, _max_texture_size, pack_rows, rows_for
 
 try:  # installed extension: translucency.gpu_shaders -> translucency.translucency_addon
     from ..translucency_addon import errors
@@ -140,41 +140,13 @@ class GPUTransmission:
 
 
 def make_transmission(vnm, prefer: str = "AUTO", **gpu_options):
-    """``(transmission or None, backend, message)``: None means the numpy/BLAS product (see the module docstring)."""
-    from . import available
+    """``(transmission or None, backend, message)``: None means the numpy/BLAS product (see the module docstring).
 
-    prefer = str(prefer).upper()
-    if prefer not in ("AUTO", "GPU", "CPU"):
-        raise errors.TranslucencyError(f"unknown backend preference {prefer!r}; choose AUTO, GPU or CPU")
-    if prefer == "CPU":
-        return None, "CPU", "CPU (BLAS) selected"
-    ok, reason = available()
-    if not ok:
-        if prefer == "GPU":
-            raise errors.GPUUnavailable(f"Voxel Number Map GPU kernel unavailable: {reason}")
-        message = f"Voxel Number Map GPU kernel unavailable ({reason}); using BLAS"
-        _log_once(message)
-        return None, "CPU", message
-    if prefer == "AUTO" and any(name in reason.lower() for name in SOFTWARE_RENDERERS):
-        message = (f"the GPU ({reason}) is a software rasteriser, on which the Voxel Number Map's n^2 loop is "
-                   "slower than BLAS on the same cores; using BLAS")
-        _log_once(message)
-        return None, "CPU", message
-    try:
-        tr = GPUTransmission(vnm, **gpu_options)
-    except errors.GraphTooLarge as exc:
-        if prefer == "GPU":
-            raise
-        message = f"{exc}; using BLAS"
-    except Exception as exc:  # noqa: BLE001 - compile or driver failure
-        if prefer == "GPU":
-            raise errors.GPUUnavailable(f"Voxel Number Map GPU kernel failed to start: {type(exc).__name__}: {exc}") \
-                from exc
-        message = f"Voxel Number Map GPU kernel failed to start ({type(exc).__name__}: {exc}); using BLAS"
-    else:
-        return tr, "GPU", f"Voxel Number Map on {reason}"
-    _log_once(message)
-    return None, "CPU", message
+    The choice is :func:`gpu_shaders.make_kernel`'s, the single-scattering kernel's rule."""
+    from . import make_kernel
+
+    return make_kernel(lambda: GPUTransmission(vnm, **gpu_options), prefer, what="Voxel Number Map", cpu_name="BLAS",
+                       software_why="the Voxel Number Map's n^2 loop is slower than BLAS on the same cores")
 
 
 def free_all() -> int:

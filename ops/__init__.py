@@ -26,6 +26,7 @@ from . import (  # the modules that register something; they import the rest (do
     dependencies,
     handlers,
     operators_bake,
+    operators_parts,
     operators_solve,
     overlay,
     panels,
@@ -33,7 +34,8 @@ from . import (  # the modules that register something; they import the rest (do
     render_pass,
 )
 
-MODULES = (properties, dependencies, operators_bake, operators_solve, overlay, render_pass, handlers, panels)
+MODULES = (properties, dependencies, operators_bake, operators_parts, operators_solve, overlay, render_pass, handlers,
+           panels)
 
 # (bpy type, attribute name, PropertyGroup class)
 POINTERS = (

@@ -10,12 +10,14 @@ why, with names and numbers:
   render job runs elsewhere), the solver kind (sparse LU has no GPU form), an earlier
   GPU failure in this render, the GPU layer importing, a GPU context with
   compute shaders (``gpu_shaders.available``) and, for the single-scattering
-  ray pass in "Auto", a software rasteriser (where numpy is faster).
-* :func:`make_solver` / :func:`make_integrator`: the diffusion solver and the
-  single-scattering integrator for a placement.  The GPU layer is asked
-  strictly (``prefer="GPU"``: build it or raise, never fall back itself); a
-  refusal (a level over the texture limits, a kernel that does not compile)
-  becomes the CPU, with the GPU layer's reason.
+  ray pass and the Voxel Number Map in "Auto", a software rasteriser (where
+  numpy and BLAS are faster).
+* :func:`make_solver` / :func:`make_integrator` / :func:`make_transmission`: the
+  diffusion solver, the single-scattering integrator and the Voxel Number
+  Map's transport for a placement.  The GPU layer is asked strictly
+  (``prefer="GPU"``: build it or raise, never fall back itself); a refusal (a
+  level over the texture limits, a kernel that does not compile) becomes the
+  CPU, with the GPU layer's reason.
 * :func:`after_gpu_failure`: a GPU solve that raised while solving: the CPU
   from now on, or, during a render, the CPU for renders only.
 
@@ -30,6 +32,11 @@ import threading
 from dataclasses import dataclass
 
 PREFERENCES = ("AUTO", "GPU", "CPU")
+# The passes whose CPU twin beats the kernel on a software rasteriser (llvmpipe) in "Auto", and why.
+SOFTWARE_SLOWER = {
+    "single scattering": "the single-scattering ray pass is faster in numpy; using numpy",
+    "Voxel Number Map": "the Voxel Number Map's n^2 loop is slower than BLAS on the same cores; using BLAS",
+}
 
 
 @dataclass(frozen=True)
@@ -51,7 +58,7 @@ def off_main_thread() -> bool:
 
 def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "fast", off_main: bool | None = None,
               failed_in_render: str = "", built: bool = False, deformed_nodes: int = 0) -> Placement:
-    """Where a pass of ``kind`` (``"diffusion"`` or ``"single scattering"``) may run.
+    """Where a pass of ``kind`` (``"diffusion"``, ``"single scattering"`` or ``"Voxel Number Map"``) may run.
 
     ``prefer``: the scene's Solver setting (AUTO, GPU, CPU); ``solver``: the
     diffusion solver's name; ``off_main``: solving off Blender's main thread
@@ -93,12 +100,11 @@ def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "f
         return Placement("CPU", f"the {kind} GPU layer is not available ({type(ex).__name__}: {ex}); using the CPU")
     if not ok:
         return Placement("CPU", f"the GPU cannot run {kind} ({why}); using the CPU")
-    if kind == "single scattering" and prefer == "AUTO":
+    if kind in SOFTWARE_SLOWER and prefer == "AUTO":
         from ..gpu_shaders.single_scattering import SOFTWARE_RENDERERS
 
         if any(name in why.lower() for name in SOFTWARE_RENDERERS):
-            return Placement("CPU", f"the GPU ({why}) is a software rasteriser, on which the single-scattering "
-                                    "ray pass is faster in numpy; using numpy")
+            return Placement("CPU", f"the GPU ({why}) is a software rasteriser, on which {SOFTWARE_SLOWER[kind]}")
     return Placement("GPU", why)
 
 
@@ -136,17 +142,48 @@ def make_integrator(data, prefer: str = "AUTO", *, off_main: bool | None = None)
     """
     from ..translucency_addon.single_scattering import CPUIntegrator
 
-    where = placement(prefer, kind="single scattering", off_main=off_main)
-    if where.gpu:
-        try:
-            from ..gpu_shaders import single_scattering as gss
+    def build():
+        from ..gpu_shaders import single_scattering as gss
 
-            integrator, _name, message = gss.make_integrator(data, "GPU")
-            return gss.AutoIntegrator(data, integrator, ""), "GPU", message
-        except Exception as ex:  # noqa: BLE001 - too large for the textures, a kernel that does not compile
-            where = Placement("CPU", f"the single-scattering GPU kernel cannot run ({type(ex).__name__}: {ex}); "
-                                     "using numpy")
+        integrator, _name, message = gss.make_integrator(data, "GPU")
+        return gss.AutoIntegrator(data, integrator, ""), message
+
+    built, where = _strictly_on_the_gpu(placement(prefer, kind="single scattering", off_main=off_main), build,
+                                        "single-scattering", "numpy")
+    if built is not None:
+        return built[0], "GPU", built[1]
     return CPUIntegrator(data), "CPU", where.reason
+
+
+def make_transmission(vnm, prefer: str = "AUTO", *, off_main: bool | None = None):
+    """``(transmission or None, backend, message)`` for the Voxel Number Map's transport of one baked map.
+
+    On the GPU the kernel's dispatcher (``gpu_shaders.voxel_number_map``); ``None`` means the
+    evaluator's own BLAS product, with the reason.
+    """
+    def build():
+        from ..gpu_shaders import voxel_number_map as gvnm
+
+        transmission, _name, message = gvnm.make_transmission(vnm, "GPU")
+        return transmission, message
+
+    built, where = _strictly_on_the_gpu(placement(prefer, kind="Voxel Number Map", off_main=off_main), build,
+                                        "Voxel Number Map", "BLAS")
+    if built is not None:
+        return built[0], "GPU", built[1]
+    return None, "CPU", where.reason
+
+
+def _strictly_on_the_gpu(where: Placement, build, what: str, cpu_name: str):
+    """``(build() or None, placement)``: the GPU layer's kernel where ``where`` allows it; a refusal (too
+    large for the textures, a kernel that does not compile) becomes the CPU with the layer's reason."""
+    if not where.gpu:
+        return None, where
+    try:
+        return build(), where
+    except Exception as ex:  # noqa: BLE001 - too large for the textures, a kernel that does not compile
+        return None, Placement("CPU", f"the {what} GPU kernel cannot run ({type(ex).__name__}: {ex}); "
+                                      f"using {cpu_name}")
 
 
 def after_gpu_failure(ex: BaseException, *, rendering: bool, on_gpu: bool = True) -> Placement | None:

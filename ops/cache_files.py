@@ -21,7 +21,7 @@ import tempfile
 import bpy
 import numpy as np
 
-from . import scene_inputs
+from . import inner_parts, scene_inputs
 from .state import _FAILED, _LOCK, _STATES, CACHE_STATUS, COUNTERS, ObjectState, drop_state, get_state, log
 
 DEFAULT_CACHE_DIRECTORY = "//translucency_cache/"
@@ -124,8 +124,9 @@ def check_cache(obj, depsgraph=None) -> str:
 
         try:
             baked = BakeSettings(**meta["settings"])
-            message, _pose = _staleness(obj, depsgraph, (meta.get("stats") or {}).get("graph_key") or meta["key"],
-                                        baked, read_mesh_topology(path))
+            stats = meta.get("stats") or {}
+            message, _pose = _staleness(obj, depsgraph, stats.get("graph_key") or meta["key"], baked,
+                                        read_mesh_topology(path), stats.get(inner_parts.RECORD))
         except Exception as ex:  # noqa: BLE001 - a status line must not raise
             message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
         if message:
@@ -153,7 +154,8 @@ def same_polygons(baked_faces, faces) -> bool:
     return True
 
 
-def _staleness(obj, depsgraph, key: str, baked_settings, baked_mesh=None) -> tuple[str, np.ndarray | None]:
+def _staleness(obj, depsgraph, key: str, baked_settings, baked_mesh=None,
+               composite: dict | None = None) -> tuple[str, np.ndarray | None]:
     """``(why the bake no longer matches the object ('' when it still does), the pose)``.
 
     ``key``: the QuadGraph key (``single_scattering.graph_key``: a bake holding
@@ -161,6 +163,9 @@ def _staleness(obj, depsgraph, key: str, baked_settings, baked_mesh=None) -> tup
     baked ``(vertex count, triangles)``; an evaluated mesh with those vertices
     and polygons (:func:`same_polygons`) at other positions is a pose, returned
     as its positions (object space, the baked order), and not stale.
+    ``composite``: what a bake with inner parts recorded of them
+    (``bake.stats["composite"]``): its outer mesh, parts and map are compared by
+    :func:`.inner_parts.staleness` instead of the key (such a bake has no poses).
     """
     from dataclasses import replace
 
@@ -168,7 +173,7 @@ def _staleness(obj, depsgraph, key: str, baked_settings, baked_mesh=None) -> tup
 
     V, F = scene_inputs.evaluated_triangles(obj, depsgraph)
     pose = None
-    if mesh_key(V, F, baked_settings) != key:
+    if composite is None and mesh_key(V, F, baked_settings) != key:
         if baked_mesh is None:
             return "the mesh changed since it was baked (modifiers included); re-bake to update the graph", None
         if len(V) != baked_mesh[0] or not same_polygons(baked_mesh[1], F):
@@ -179,6 +184,9 @@ def _staleness(obj, depsgraph, key: str, baked_settings, baked_mesh=None) -> tup
                     "shape keys, lattice, deform modifiers) keeps the vertices and polygons and needs no re-bake; "
                     "this change of topology does: re-bake to update the graph"), None
         pose = V
+    message = inner_parts.staleness(obj, depsgraph, composite, V, F)
+    if message:
+        return message, None
     s = obj.translucency
     wanted = replace(baked_settings, quality=s.quality.lower(), levels=int(s.levels))
     if (wanted.quality, wanted.levels) != (baked_settings.quality, baked_settings.levels):
@@ -191,13 +199,16 @@ def update_staleness(obj, st: ObjectState, depsgraph) -> str:
     """Re-check staleness when the evaluated geometry changed; cheap otherwise."""
     positions = scene_inputs.evaluated_positions(obj, depsgraph)
     digest = scene_inputs.array_digest(positions) + f"|{obj.translucency.quality}|{obj.translucency.levels}"
+    if inner_parts.listed(obj) or st.bake.composite is not None:
+        digest += "|" + inner_parts.parts_digest(obj, depsgraph)
     if digest != st.geometry_digest:
         st.geometry_digest = digest
         try:
             from ..translucency_addon.single_scattering import graph_key
 
             st.stale_message, st.pose = _staleness(obj, depsgraph, graph_key(st.bake), st.bake.settings,
-                                                   (len(st.bake.mesh_vertices), st.bake.mesh_faces))
+                                                   (len(st.bake.mesh_vertices), st.bake.mesh_faces),
+                                                   (st.bake.stats or {}).get(inner_parts.RECORD))
         except Exception as ex:  # noqa: BLE001
             st.stale_message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
             st.pose = None

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import scene_inputs
+from . import inner_parts, scene_inputs
 from .state import COUNTERS, FRAME_EPOCH, GEOMETRY_EPOCH, ObjectState
 
 NOT_BAKED_SS = ("Single Scattering is on but was not baked: press Bake Single Scattering "
@@ -73,6 +73,8 @@ class FrameInputs:
     plan: object  # translucency_addon.planner.Plan
     use_ms: bool  # diffusion runs this frame
     use_ss: bool  # single scattering runs this frame
+    use_vnm: bool  # the Voxel Number Map runs this frame (an object with inner parts)
+    part_media: tuple | None  # the inner parts' roles and media now (ops.inner_parts.part_media); None: no parts
     ms_channels: tuple  # the planner's diffusion channels
     occluders: object  # other objects' triangles in object space (None without, or when diffusion is off)
     occ_sig: tuple | None
@@ -96,7 +98,8 @@ class FrameInputs:
         return SolveOptions(solver="fast", tol=self.tolerance)
 
     def weights(self, kind: str) -> np.ndarray:
-        """The planner's per-vertex weight of a pass (``"multiple"``/``"single"``), on ``obj.data``'s vertices."""
+        """The planner's per-vertex weight of a pass (``"multiple"``, ``"single"``, ``"voxel_number_map"``), on
+        ``obj.data``'s vertices."""
         return self.plan.vertex_weights(kind, self.mapping.idx, self.mapping.w)
 
 
@@ -110,6 +113,7 @@ def gather(obj, scene, depsgraph, st: ObjectState, use_camera: bool) -> FrameInp
     mm, scale_warning = scene_inputs.mm_per_unit(obj, scene, matrix)
     metres_per_bu = scene_inputs.metres_per_world_unit(obj, scene, mm, matrix)
     material = scene_inputs.build_material(settings)
+    part_media = inner_parts.part_media(obj) if st.bake.composite is not None else None
     want_ms = bool(settings.use_multiple_scattering)
     field_sig = _field(obj, settings, depsgraph, st, want_ms)
     lights = tuple(scene_inputs.collect_lights(depsgraph, matrix, metres_per_bu))
@@ -122,16 +126,19 @@ def gather(obj, scene, depsgraph, st: ObjectState, use_camera: bool) -> FrameInp
     has_ss = st.bake.single_scattering is not None
     use_ms = want_ms and plan.run and plan.multiple.runs
     use_ss = plan.run and plan.single.runs and has_ss
+    vnm = plan.voxel_number_map
+    use_vnm = bool(plan.run and vnm is not None and vnm.runs and st.bake.voxel_number_map is not None)
     want_ss = bool(settings.use_single_scattering)
-    occluders, occ_sig = (scene_inputs.collect_occluders(depsgraph, obj, matrix, st.occluders) if use_ms
-                          else (None, None))
+    occluders, occ_sig = (scene_inputs.collect_occluders(depsgraph, obj, matrix, st.occluders,
+                                                         exclude=inner_parts.part_objects(obj))
+                          if use_ms or use_vnm else (None, None))
     view = scene_inputs.camera_view(scene, depsgraph, matrix) if use_camera else None
     ss_view, ss_stale = None, ""
     if use_ss:
         ss_view = view
         if ss_view is None and not use_camera and not rendering and not off_main:
             ss_view = scene_inputs.viewport_view(matrix)
-        ss_stale = _ss_staleness(obj, st, settings, depsgraph, material, field_sig, mm)
+        ss_stale = _ss_staleness(obj, st, settings, depsgraph, material, field_sig, mm, part_media)
     elif want_ss and not has_ss:
         ss_stale = NOT_BAKED_SS
     return FrameInputs(
@@ -141,9 +148,10 @@ def gather(obj, scene, depsgraph, st: ObjectState, use_camera: bool) -> FrameInp
         rendering=rendering, off_main=off_main, want_ms=want_ms, want_ss=want_ss,
         split=bool(settings.ss_split_pass),
         ss_order=min(int(settings.ss_sh_order), st.bake.single_scattering.order) if has_ss else 0,
-        plan=plan, use_ms=use_ms, use_ss=use_ss,
+        plan=plan, use_ms=use_ms, use_ss=use_ss, use_vnm=use_vnm, part_media=part_media,
         ms_channels=plan.multiple.channels if plan.multiple is not None else (False, False, False),
-        occluders=occluders, occ_sig=occ_sig, mapping=mesh_mapping(obj, st) if use_ms or use_ss else None,
+        occluders=occluders, occ_sig=occ_sig,
+        mapping=mesh_mapping(obj, st) if use_ms or use_ss or use_vnm else None,
         ss_stale=ss_stale,
         warnings=tuple(w for w in (scale_warning, world_warning, st.stale_message, ss_stale) if w))
 
@@ -184,13 +192,18 @@ def make_plan(name: str, st: ObjectState, settings, material, lights, environmen
         overrides["single"] = False
     elif every:
         overrides["single"] = True
+    if not settings.use_voxel_number_map:
+        overrides["voxel_number_map"] = False
+    elif every and st.bake.voxel_number_map is not None:
+        overrides["voxel_number_map"] = True
     return plan_object(st.bake.with_scale(mm), material, list(lights), environment, field_values=st.field_values,
                        has_single_scattering=has_ss, in_view=in_view, enabled=bool(settings.enabled),
                        overrides=overrides, name=name)
 
 
-def _ss_staleness(obj, st: ObjectState, settings, depsgraph, material, field_sig, mm: float) -> str:
-    """Why the baked single scattering no longer matches the object ('' when it does)."""
+def _ss_staleness(obj, st: ObjectState, settings, depsgraph, material, field_sig, mm: float, part_media) -> str:
+    """Why the baked single scattering no longer matches the object ('' when it does); with inner parts,
+    also their media (:func:`.inner_parts.ss_parts_staleness`)."""
     from ..translucency_addon.single_scattering import stale_message, staleness
 
     data = st.bake.single_scattering
@@ -204,6 +217,7 @@ def _ss_staleness(obj, st: ObjectState, settings, depsgraph, material, field_sig
             st.ss_field_fp = (field_sig, scene_inputs.ss_field_fingerprint(obj, settings, depsgraph, field_sig))
         field_fp = st.ss_field_fp[1]
     reasons = staleness(data, settings=want, material=material, field_fp=field_fp, mm_per_unit=mm)
+    reasons += inner_parts.ss_parts_staleness(data, part_media)
     return stale_message(reasons)
 
 
@@ -223,13 +237,15 @@ def _original_normals(mesh, V) -> np.ndarray:
 def mesh_mapping(obj, st: ObjectState) -> MeshMapping:
     """The finest surface nodes that carry values to ``obj.data``'s vertices (read once per frame).
 
-    The baked (evaluated) mesh's own vertex map when ``obj.data`` has its vertex count; otherwise
+    The baked (evaluated) mesh's own vertex map when ``obj.data`` has its vertex count (the outer mesh's,
+    for a bake with inner parts); otherwise
     a map to ``obj.data``'s vertices (a modifier changed the count), cached in ``st`` until they move.
     """
     bake = st.bake
-    if len(obj.data.vertices) == len(bake.mesh_vertices):
+    n = inner_parts.n_outer_vertices(bake)  # a bake with cavities continues with their walls
+    if len(obj.data.vertices) == n:
         idx, w = bake.vertex_map
-        return MeshMapping(True, idx, w)
+        return MeshMapping(True, idx[:n], w[:n])
     from ..translucency_addon.bake import vertex_mapping
 
     mesh = obj.data

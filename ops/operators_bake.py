@@ -25,6 +25,16 @@ before the job starts (Blender textures are not evaluated off the main
 thread).  The cache file name carries the combined key (QuadGraph and
 single-scattering inputs), so undo returns to a file that still exists.
 
+An object that lists **inner parts** (:mod:`.inner_parts`) bakes as one
+assembly: its parts are read on the main thread (each evaluated mesh moved
+into the object's space), the engine's ``composite_bake.bake_composite``
+runs in the job (the Voxel Number Map first, so that every refusal --
+parts outside or overlapping, a cavity open to the outside, a map over its
+budget -- comes before the long QuadGraph bake; then the QuadGraph with the
+cavities carved, the cavity exchange and the node labels), and single
+scattering, when on, is baked from the assembly's voxels
+(``voxelise_composite``), so it knows the parts.
+
 Nothing in the scene changes until the bake has succeeded: the cache is
 written to ``<name>.npz.partial`` (atomically, by the engine) and renamed to
 its final name by :meth:`BakeJob.commit` on the main thread, together with
@@ -42,7 +52,7 @@ import time
 import bpy
 from bpy.props import BoolProperty, IntProperty
 
-from . import attributes, cache_files, runtime, scene_inputs, state, status
+from . import attributes, cache_files, inner_parts, runtime, scene_inputs, state, status
 from .status import SS_STAGE_NAMES
 
 # Test seam: callables ``(fraction, stage) -> bool | None``; returning False cancels the bake.
@@ -59,12 +69,13 @@ SS_SHARE = 0.4  # share of the progress bar the single-scattering stages take in
 class SSJobInputs:
     """What the single-scattering part of a bake needs, gathered on the main thread."""
 
-    def __init__(self, settings, material, field, field_fp, key: str):
+    def __init__(self, settings, material, field, field_fp, key: str, extra_inputs=None):
         self.settings = settings
         self.material = material
         self.field = field  # a GridField (sampled on the main thread) or None
         self.field_fp = field_fp
         self.key = key  # the final key of the bake (QuadGraph + single scattering)
+        self.extra_inputs = extra_inputs  # what else the optical depth is made of (the inner parts' media)
 
 
 class BakeJob:
@@ -72,14 +83,16 @@ class BakeJob:
     the scene changed only in ``commit`` (main thread).
 
     ``ss``: :class:`SSJobInputs` to bake single scattering too; ``base_bake``:
-    an existing QuadGraph bake to bake single scattering onto (no QuadGraph bake).
+    an existing QuadGraph bake to bake single scattering onto (no QuadGraph bake);
+    ``composite``: :class:`.inner_parts.BakeInputs` of an object with inner parts.
     """
 
     def __init__(self, obj_name: str, V, F, settings, final_path: str, notes: list[str], ss: SSJobInputs | None = None,
-                 base_bake=None):
+                 base_bake=None, composite=None):
         self.obj_name = obj_name
         self.ss = ss
         self.base_bake = base_bake
+        self.composite = composite
         self.ss_seconds = 0.0
         self.V, self.F = V, F
         self.settings = settings
@@ -118,8 +131,16 @@ class BakeJob:
         try:
             if self.base_bake is None:
                 share = 1.0 - SS_SHARE if self.ss is not None else 1.0
-                bake = bake_mod.bake_mesh(self.V, self.F, self.settings,
-                                          progress=lambda f, st: self.progress(share * f, st))
+
+                def progress(f, st):
+                    if not self.progress(share * f, st):  # the map's stages ignore a False: raise
+                        raise BakeCancelled("bake cancelled")
+                    return True
+
+                if self.composite is not None:
+                    bake = inner_parts.bake(self.composite, self.settings, progress=progress)
+                else:
+                    bake = bake_mod.bake_mesh(self.V, self.F, self.settings, progress=progress)
             else:
                 bake = self.base_bake
             if self.cancel_requested:
@@ -151,8 +172,16 @@ class BakeJob:
                 raise BakeCancelled("bake cancelled")
 
         t0 = time.perf_counter()
+        kw = {}
+        if self.composite is not None:  # from the assembly's voxels: the samples know the inner parts
+            from ..translucency_addon.single_scattering.volume import voxelise_composite
+
+            V, F, _ = inner_parts.outer_mesh(bake)
+            volume = voxelise_composite(self.composite.composite, resolution=self.ss.settings.quality,
+                                        mm_per_unit=bake.mm_per_unit, walls=False)
+            kw = dict(volume=volume, mesh=(V, F), extra_inputs=self.ss.extra_inputs)
         data = bake_single_scattering_for(bake, self.ss.material, self.ss.field, self.ss.settings, progress=progress,
-                                          field_fingerprint=self.ss.field_fp)
+                                          field_fingerprint=self.ss.field_fp, **kw)
         self.ss_seconds = time.perf_counter() - t0
         out = attach(bake, data)
         if out.key != self.ss.key:  # the file name was chosen from the key expected before the bake
@@ -247,8 +276,9 @@ def _check_object(obj) -> None:
         raise MeshError(f"'{obj.name}' is already being baked")
 
 
-def _ss_inputs(obj, depsgraph, V, graph_key: str, mm: float) -> SSJobInputs:
-    """Single-scattering inputs (main thread): settings, material, the field sampled on the voxel grid, the key."""
+def _ss_inputs(obj, depsgraph, V, graph_key: str, mm: float, parts: bool = False) -> SSJobInputs:
+    """Single-scattering inputs (main thread): settings, material, the field sampled on the voxel grid, the key
+    (``parts``: baked with the inner parts, whose media it records)."""
     from ..translucency_addon.single_scattering import expected_key
 
     s = obj.translucency
@@ -256,8 +286,9 @@ def _ss_inputs(obj, depsgraph, V, graph_key: str, mm: float) -> SSJobInputs:
     material = scene_inputs.build_material(s)
     field_fp = scene_inputs.ss_field_fingerprint(obj, s, depsgraph) if material.heterogeneous else None
     field = scene_inputs.ss_field_sampler(obj, s, depsgraph, V, settings.quality) if material.heterogeneous else None
-    key = expected_key(graph_key, settings, material, field_fp=field_fp, mm_per_unit=mm)
-    return SSJobInputs(settings, material, field, field_fp, key)
+    extra = inner_parts.ss_inputs(inner_parts.part_media(obj)) if parts else None
+    key = expected_key(graph_key, settings, material, field_fp=field_fp, mm_per_unit=mm, extra_inputs=extra)
+    return SSJobInputs(settings, material, field, field_fp, key, extra)
 
 
 def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
@@ -275,14 +306,15 @@ def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
                                      base_triangles=int(base_triangles) or None,
                                      sky_directions=DEFAULT_DIRECTIONS if s.sky_occlusion else 0)
     settings.resolved()  # raises MeshError for impossible settings
-    key = bake_mod.mesh_key(V, F, settings)
-    ss = _ss_inputs(obj, depsgraph, V, key, mm) if s.use_single_scattering else None
+    composite = inner_parts.bake_inputs(obj, depsgraph, V, F, settings) if inner_parts.listed(obj) else None
+    key = composite.key if composite is not None else bake_mod.mesh_key(V, F, settings)
+    ss = _ss_inputs(obj, depsgraph, V, key, mm, parts=composite is not None) if s.use_single_scattering else None
     if ss is not None:
         key = ss.key
     directory, note = cache_files.cache_directory(scene)
     final = os.path.join(directory, cache_files.cache_file_name(obj.name, key))
     notes = [w for w in (scale_warning, note) if w]
-    return BakeJob(obj.name, V, F, settings, final, notes, ss=ss)
+    return BakeJob(obj.name, V, F, settings, final, notes, ss=ss, composite=composite)
 
 
 def prepare_ss_job(context, obj) -> BakeJob:
@@ -303,11 +335,15 @@ def prepare_ss_job(context, obj) -> BakeJob:
     base = st.bake.with_scale(mm)
     from ..translucency_addon.single_scattering import graph_key
 
-    ss = _ss_inputs(obj, depsgraph, base.mesh_vertices, graph_key(base), mm)
+    V, F, _ = inner_parts.outer_mesh(base)
+    composite = None
+    if base.composite is not None:  # the parts as baked (the bake is not stale): their voxels for the samples
+        composite = inner_parts.bake_inputs(obj, depsgraph, V, F, base.settings)
+    ss = _ss_inputs(obj, depsgraph, V, graph_key(base), mm, parts=composite is not None)
     directory, note = cache_files.cache_directory(scene)
     final = os.path.join(directory, cache_files.cache_file_name(obj.name, ss.key))
     notes = [w for w in (scale_warning, note) if w]
-    return BakeJob(obj.name, base.mesh_vertices, base.mesh_faces, base.settings, final, notes, ss=ss, base_bake=base)
+    return BakeJob(obj.name, V, F, base.settings, final, notes, ss=ss, base_bake=base, composite=composite)
 
 
 def _error_text(obj_name: str, ex: BaseException) -> str:

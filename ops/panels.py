@@ -11,10 +11,13 @@ with its bake settings and Split Pass), Bake / Free Bake / Bake Single
 Scattering, bake status and statistics (the saved ``translucency.status``: N_s
 and N_i per level, graph memory, bake time, single-scattering samples and time
 per stage, warnings; cache problems found after a file load), material,
-heterogeneity field, Solve with the last solve time, iterations, residual,
+heterogeneity field, the inner parts (the list with each part's object, role and
+a medium's material; the Voxel Number Map's settings; what the last bake made of
+them), Solve with the last solve time, iterations, residual,
 backend and fallback message, on a deformed frame the pose's worst link
-stretch (or that it was refused), the single-scattering time and backend and why
-it needs a re-bake (``status.solve_status``: runtime state, never saved), the
+stretch (or that it was refused), the single-scattering and Voxel Number Map
+times and backends and why single scattering
+needs a re-bake (``status.solve_status``: runtime state, never saved), the
 cache file, then the hooks of the optional modules (``overlay.draw_settings``
 and ``render_pass.draw_settings``, see :func:`_draw_hooks`) and the scene
 settings.
@@ -114,6 +117,7 @@ def _draw_object_settings(layout, obj, context=None) -> None:
         _draw_multiline(box, baked.bake_warnings, icon='ERROR')
 
     _draw_material(col, obj)
+    _draw_inner_parts(col, obj)
 
     # -- solve ---------------------------------------------------------------------------
     box = col.box()
@@ -132,6 +136,10 @@ def _draw_object_settings(layout, obj, context=None) -> None:
         _draw_multiline(box, solved.message, icon='INFO')
     if solved.ss_backend:
         box.label(text=f"Single scattering: {solved.ss_seconds * 1000:.1f} ms on the {solved.ss_backend}")
+    if solved.vnm_backend:
+        box.label(text=f"Voxel Number Map: {solved.vnm_seconds * 1000:.1f} ms on the {solved.vnm_backend}")
+    if solved.vnm_message:
+        _draw_multiline(box, solved.vnm_message, icon='INFO')
     _draw_plan(box, obj)
     if solved.ss_message:
         stale = "re-bake" in solved.ss_message or "not baked" in solved.ss_message
@@ -196,6 +204,7 @@ def _draw_material(col, obj) -> None:
         sub.prop_search(settings, "field_vertex_group", obj, "vertex_groups")
 
 
+
 def _draw_plan(box, obj) -> None:
     try:
         plan_text = status.plan_summary(obj.name)
@@ -239,6 +248,41 @@ def _draw_fluid(col, obj, context) -> None:
     for warning in (fluid.warnings if fluid is not None else ()):
         _draw_multiline(box, warning, icon='ERROR')
     _draw_plan(box, obj)
+
+
+def _draw_inner_parts(layout, obj) -> None:
+    """The inner-part list (object, role, a medium's material), the Voxel Number Map's settings and what
+    the last bake made of the parts."""
+    settings = obj.translucency
+    box = layout.box()
+    box.label(text="Inner Parts", icon='MOD_BOOLEAN')
+    row = box.row()
+    row.template_list("TRANSLUCENCY_UL_inner_parts", "", settings, "inner_parts", settings, "inner_parts_index",
+                      rows=3)
+    buttons = row.column(align=True)
+    buttons.operator("translucency.inner_part_add", icon='ADD', text="")
+    buttons.operator("translucency.inner_part_remove", icon='REMOVE', text="")
+    box.operator("translucency.inner_parts_from_children", icon='OUTLINER_OB_MESH')
+    parts = settings.inner_parts
+    if not len(parts):
+        box.label(text="None: the object is one medium (cavities, other media and opaque parts go here)")
+        return
+    item = parts[min(max(int(settings.inner_parts_index), 0), len(parts) - 1)]
+    sub = box.column()
+    sub.prop(item, "object")
+    sub.prop(item, "role")
+    if item.role == 'MEDIUM':
+        sub.prop(item, "material_preset")
+        if item.material_preset == 'CUSTOM':
+            sub.prop(item, "sigma_a")
+            sub.prop(item, "sigma_s")
+    box.prop(settings, "use_voxel_number_map")
+    sub = box.column()
+    sub.active = settings.use_voxel_number_map
+    sub.prop(settings, "vnm_quality")
+    sub.prop(settings, "vnm_resolution")
+    if settings.status.parts_bake_stats:
+        _draw_multiline(box, settings.status.parts_bake_stats, icon='INFO')
 
 
 def _draw_scene_settings(layout, scene, overlay_drawn: bool = False) -> None:

@@ -94,6 +94,72 @@ _DEFAULT_PRESET = "MARBLE" if any(item[0] == "MARBLE" for item in PRESET_ITEMS) 
 _DEFAULT_SECOND = "KETCHUP" if any(item[0] == "KETCHUP" for item in PRESET_ITEMS) else PRESET_ITEMS[-1][0]
 
 
+def _sigma_a(used: str):
+    """The Custom absorption coefficient of a material (an object's or an inner part's)."""
+    return FloatVectorProperty(
+        update=_request_update,
+        name="Absorption",
+        description=f"Custom absorption coefficient sigma_a per millimetre (RGB), {used}",
+        size=3,
+        default=(0.0021, 0.0041, 0.0071),
+        min=0.0,
+        soft_max=10.0,
+        precision=4,
+    )
+
+
+def _sigma_s(used: str):
+    """The Custom reduced scattering coefficient of a material (an object's or an inner part's)."""
+    return FloatVectorProperty(
+        update=_request_update,
+        name="Scattering",
+        description=f"Custom reduced scattering coefficient sigma_s' per millimetre (RGB), {used}",
+        size=3,
+        default=(2.19, 2.62, 3.00),
+        min=0.0,
+        soft_max=100.0,
+        precision=4,
+    )
+
+
+def _is_inner_part_candidate(item, obj) -> bool:
+    """Poll of an inner part's object: a mesh other than the object the list belongs to."""
+    return obj.type == 'MESH' and obj != getattr(item, "id_data", None)
+
+
+class TranslucencyInnerPart(bpy.types.PropertyGroup):
+    """One inner part of an object (``object.translucency.inner_parts``): a mesh object, typically a child,
+    with its role (Mochida et al.; ``translucency_addon.composite``)."""
+
+    object: PointerProperty(
+        update=_request_update,
+        name="Object",
+        description="Closed mesh object inside this object (typically a child): its evaluated mesh is the part",
+        type=bpy.types.Object,
+        poll=_is_inner_part_candidate,
+    )
+    role: EnumProperty(
+        update=_request_update,
+        name="Role",
+        description="What the part is made of",
+        items=(
+            ("MEDIUM", "Medium", "Another translucent medium (wine in a bottle, a jade core): its own material below"),
+            ("CAVITY", "Cavity", "A closed hollow of air inside the object (no extinction)"),
+            ("OPAQUE", "Opaque", "An opaque body inside the object (a stone in jelly): it absorbs and casts shadows"),
+        ),
+        default="MEDIUM",
+    )
+    material_preset: EnumProperty(
+        update=_request_update,
+        name="Material",
+        description="Measured material of a Medium part, or Custom coefficients (a change re-solves; no re-bake)",
+        items=MATERIAL_ITEMS,
+        default=_DEFAULT_SECOND,
+    )
+    sigma_a: _sigma_a("of a Medium part whose Material is Custom")
+    sigma_s: _sigma_s("of a Medium part whose Material is Custom")
+
+
 class TranslucencyLevelStats(bpy.types.PropertyGroup):
     """Node counts of one QuadGraph level of the last bake (written by the bake operator)."""
 
@@ -169,6 +235,11 @@ class TranslucencyObjectStatus(bpy.types.PropertyGroup):
         default=0.0,
         min=0.0,
         precision=2,
+    )
+    parts_bake_stats: StringProperty(
+        name="Inner Parts Bake",
+        description="Inner parts of the last bake with their roles, and its Voxel Number Map (surface voxels, LUT)",
+        default="",
     )
     ss_samples_baked: IntProperty(
         name="SS Samples",
@@ -406,26 +477,8 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         items=MATERIAL_ITEMS,
         default=_DEFAULT_PRESET,
     )
-    sigma_a: FloatVectorProperty(
-        update=_request_update,
-        name="Absorption",
-        description="Custom absorption coefficient sigma_a per millimetre (RGB), used when Material is Custom",
-        size=3,
-        default=(0.0021, 0.0041, 0.0071),
-        min=0.0,
-        soft_max=10.0,
-        precision=4,
-    )
-    sigma_s: FloatVectorProperty(
-        update=_request_update,
-        name="Scattering",
-        description="Custom reduced scattering coefficient sigma_s' per millimetre (RGB), used when Material is Custom",
-        size=3,
-        default=(2.19, 2.62, 3.00),
-        min=0.0,
-        soft_max=100.0,
-        precision=4,
-    )
+    sigma_a: _sigma_a("used when Material is Custom")
+    sigma_s: _sigma_s("used when Material is Custom")
     eta: FloatProperty(
         update=_request_update,
         name="IOR",
@@ -435,6 +488,53 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         soft_max=2.0,
         max=4.0,
         precision=3,
+    )
+
+    # -- inner parts (Mochida et al.; translucency_addon.composite) ---------------
+    inner_parts: CollectionProperty(
+        name="Inner Parts",
+        description=(
+            "Mesh objects inside this one (typically children) that are another medium, a cavity or opaque; "
+            "baked with the object"
+        ),
+        type=TranslucencyInnerPart,
+    )
+    inner_parts_index: IntProperty(
+        name="Active Inner Part",
+        description="Index of the inner part shown below the list",
+        default=0,
+        min=0,
+    )
+    use_voxel_number_map: BoolProperty(
+        update=_request_update,
+        name="Voxel Number Map",
+        description=(
+            "With inner parts: also bake the Voxel Number Map (a chord LUT between surface voxels), the pass the "
+            "planner runs where diffusion is not valid and single scattering does not know the parts"
+        ),
+        default=True,
+    )
+    vnm_quality: EnumProperty(
+        update=_request_update,
+        name="Map Quality",
+        description="Surface voxels the Voxel Number Map aims for (its LUT grows with their square)",
+        items=(
+            ("DRAFT", "Draft", "About 800 surface voxels"),
+            ("PREVIEW", "Preview", "About 2,000 surface voxels"),
+            ("FINAL", "Final", "About 3,500 surface voxels"),
+        ),
+        default="PREVIEW",
+    )
+    vnm_resolution: IntProperty(
+        update=_request_update,
+        name="Map Resolution",
+        description=(
+            "Voxels along the longest side of the Voxel Number Map; 0 chooses it from Map Quality within the "
+            "budget of 4,096 surface voxels (a set resolution beyond the budget is refused with the numbers)"
+        ),
+        default=0,
+        min=0,
+        max=512,
     )
 
     # -- heterogeneity -----------------------------------------------------
@@ -574,4 +674,5 @@ class TranslucencySceneSettings(bpy.types.PropertyGroup):
     )
 
 
-CLASSES = (TranslucencyLevelStats, TranslucencyObjectStatus, TranslucencyObjectSettings, TranslucencySceneSettings)
+CLASSES = (TranslucencyInnerPart, TranslucencyLevelStats, TranslucencyObjectStatus, TranslucencyObjectSettings,
+           TranslucencySceneSettings)

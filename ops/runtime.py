@@ -15,9 +15,19 @@
    weighted by the planner's region;
 4. :func:`_single_scatter`: the single-scattering term (Bernabei et al.),
    weighted by the planner's region;
-5. :func:`_write`: the radiance attributes (:mod:`.attributes`);
-6. :func:`_record` and :func:`.status.publish`: the runtime state the panel
+5. :func:`_voxel_number_map`: for an object with inner parts, the Voxel
+   Number Map's term (Mochida et al.; :func:`.inner_parts.vnm_radiance`),
+   weighted by the planner's region;
+6. :func:`_write`: the radiance attributes (:mod:`.attributes`);
+7. :func:`_record` and :func:`.status.publish`: the runtime state the panel
    reads, and a redraw.
+
+An object with inner parts (:mod:`.inner_parts`) solves the same way: its
+solver gets the per-node media of the parts (read every frame, so a part's
+material change needs no re-bake), its diffusion runs through
+``cavity.solve_with_cavities`` when the bake has a cavity exchange, and every
+pass writes only the outer mesh's vertices (the bake's ``mesh_vertices``
+continue with the cavity walls).
 
 :func:`solve_scene` does this for every enabled, baked object of a scene
 (what ``live`` and ``handlers`` call), and for every enabled Fluid-source
@@ -56,7 +66,7 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
-from . import attributes, backend, cache_files, deformation, fluid_runtime, state, status
+from . import attributes, backend, cache_files, deformation, fluid_runtime, inner_parts, state, status
 from .frame import FrameInputs, gather
 
 
@@ -75,6 +85,8 @@ class SolveReport:
     skipped: str = ""  # why no pass ran (the planner's reason, with its numbers); "" when one ran
     ms_ran: bool = True  # the diffusion pass ran (False: single scattering only, or skipped)
     deformed: str = ""  # a deformed frame: its pose's line (worst link stretch); "" at the baked pose
+    vnm_seconds: float = 0.0  # the Voxel Number Map's evaluation (0: not evaluated)
+    vnm_backend: str = ""
 
     def describe(self) -> str:
         """One line for the Info log and the status bar; a skip never reads as a solve."""
@@ -87,6 +99,8 @@ class SolveReport:
                          + ("" if self.solved else "; that solution reused, nothing it depends on changed"))
         if self.ss_backend:
             parts.append(f"single scattering {1000 * self.ss_seconds:.1f} ms on the {self.ss_backend}")
+        if self.vnm_backend:
+            parts.append(f"Voxel Number Map {1000 * self.vnm_seconds:.1f} ms on the {self.vnm_backend}")
         if not parts:
             parts.append("diffusion turned off; nothing else to evaluate")
         if self.deformed:
@@ -157,7 +171,9 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     else:
         ms = Diffusion(np.zeros((frame.n_vertices, 3)), None, False, 0.0)
     ss_rgb = _single_scatter(st, frame) if frame.use_ss else None
-    _write(obj, frame, ms.rgb + ss_rgb if ss_rgb is not None else ms.rgb, ss_rgb)
+    vnm_rgb = _voxel_number_map(st, frame) if frame.use_vnm else None
+    total = ms.rgb + sum(x for x in (ss_rgb, vnm_rgb) if x is not None)
+    _write(obj, frame, total, ss_rgb)
     st.deformation.solved_frame = scene.frame_current
     _record(st, frame, view_sig, ms, ss_rgb)
     if not frame.off_main:
@@ -181,17 +197,20 @@ def _prepare_solver(st: state.ObjectState, frame: FrameInputs):
     solver_sig = _solver_sig(frame)
     if st.solver is None or st.solver_sig != solver_sig:
         _free_solvers(st)
-        solver, name, message = backend.make_solver(st.bake.with_scale(frame.mm), frame.material, frame.field_values,
+        solver, name, message = backend.make_solver(st.bake.with_scale(frame.mm), *_solver_material(st, frame),
                                                     frame.solve_options(), frame.prefer, off_main=frame.off_main)
         st.solver, st.backend, st.backend_message = solver, name, message
         st.solver_sig, st.material, st.solver_field = solver_sig, frame.material, frame.field_values
+        st.part_media = frame.part_media
         st.result = st.result_solver = st.solve_sig = st.view_sig = None
         st.announced = False
-    elif frame.material != st.material or frame.field_values is not st.solver_field:
-        st.solver.set_material(frame.material, frame.field_values)
+    elif (frame.material != st.material or frame.field_values is not st.solver_field
+          or frame.part_media != st.part_media):
+        material = _solver_material(st, frame)
+        st.solver.set_material(*material)
         if st.render_solver is not None:
-            st.render_solver.set_material(frame.material, frame.field_values)
-        st.material, st.solver_field = frame.material, frame.field_values
+            st.render_solver.set_material(*material)
+        st.material, st.solver_field, st.part_media = frame.material, frame.field_values, frame.part_media
     if not st.announced:
         state.log(f"'{st.name}' solves on the {st.backend}"
                   + (f" ({st.backend_message})" if st.backend_message else ""))
@@ -206,6 +225,12 @@ def _prepare_solver(st: state.ObjectState, frame: FrameInputs):
     return _cpu_twin(st, frame)
 
 
+def _solver_material(st: state.ObjectState, frame: FrameInputs) -> tuple:
+    """``(material, field_values)`` the diffusion solver takes: the frame's, or, for an object with inner
+    parts, the per-node media of the parts (:func:`.inner_parts.diffusion_inputs`)."""
+    return inner_parts.diffusion_inputs(st.bake, frame.material, frame.field_values, frame.part_media)
+
+
 def _free_solvers(st: state.ObjectState) -> None:
     if st.solver is not None:
         backend.free_solver(st.solver)
@@ -218,7 +243,7 @@ def _free_solvers(st: state.ObjectState) -> None:
 def _cpu_twin(st: state.ObjectState, frame: FrameInputs):
     """The CPU solver used where the GPU one cannot run (render thread, no GPU context)."""
     if st.render_solver is None:
-        st.render_solver = backend.cpu_solver(st.bake.with_scale(frame.mm), frame.material, frame.field_values,
+        st.render_solver = backend.cpu_solver(st.bake.with_scale(frame.mm), *_solver_material(st, frame),
                                               frame.solve_options())
         st.render_result = st.render_solve_sig = None
     return st.render_solver
@@ -232,16 +257,21 @@ def _signatures(st: state.ObjectState, frame: FrameInputs) -> tuple:
         # it lights (planner.light_reaching: range, spot cone, area facing).
         reaching = set(frame.plan.facts.get("lights_reaching", ()))
         lights_sig = tuple(light for light in frame.lights if light.name in reaching)
-        solve_sig = (_solver_sig(frame), frame.material, frame.field_sig,
+        solve_sig = (_solver_sig(frame), frame.material, frame.field_sig, frame.part_media,
                      lights_sig, frame.env_sig, frame.occ_sig, frame.ms_channels,
                      st.geometry_digest if st.pose is not None else None)  # a pose: its positions
     ss_sig = (frame.want_ss, frame.use_ss, frame.split)
     if frame.use_ss:
         ss_sig += (st.bake.key, frame.ss_order, frame.prefer, float(frame.material.eta), round(frame.mm, 9),
                    frame.lights, frame.env_sig, frame.ss_view)
+    vnm_sig = None
+    if frame.use_vnm:
+        vnm_sig = (st.bake.key, frame.material, frame.part_media, frame.prefer, round(frame.mm, 9), frame.lights,
+                   frame.env_sig, frame.occ_sig, frame.view)
     plan = frame.plan
-    view_sig = (solve_sig, frame.view, frame.n_vertices, frame.use_ms, ss_sig, plan.run,
-                plan.single.channels if plan.single is not None else None)
+    view_sig = (solve_sig, frame.view, frame.n_vertices, frame.use_ms, ss_sig, vnm_sig, plan.run,
+                plan.single.channels if plan.single is not None else None,
+                plan.voxel_number_map.channels if plan.voxel_number_map is not None else None)
     return solve_sig, view_sig
 
 
@@ -319,7 +349,7 @@ def _retry_on_the_cpu(st: state.ObjectState, frame: FrameInputs, where):
         st.gpu_failed_in_render = where.reason
         return _cpu_twin(st, frame)
     backend.free_solver(st.solver)
-    st.solver = backend.cpu_solver(st.bake.with_scale(frame.mm), frame.material, frame.field_values,
+    st.solver = backend.cpu_solver(st.bake.with_scale(frame.mm), *_solver_material(st, frame),
                                    frame.solve_options())
     st.backend, st.backend_message = "CPU", where.reason
     st.result = st.result_solver = None
@@ -332,9 +362,19 @@ def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous):
     The bounce comes from a first solve of the same frame (``DiffusionSolver.
     solve_interreflected``; the second solve is warm-started from the first),
     never from an earlier frame, so a frame's result depends only on that
-    frame's inputs (renders of single frames and of animations agree).
+    frame's inputs (renders of single frames and of animations agree).  A bake with cavities solves
+    through ``cavity.solve_with_cavities`` (the wall exchange, GMRES around the same solver; frame to
+    frame it follows the last result), without the interreflection bounce.
     """
     lights = list(frame.lights)
+    exchange = getattr(st.bake.composite, "exchange", None)  # cavities: their walls exchange light
+    if exchange is not None:
+        from ..translucency_addon.cavity import solve_with_cavities
+
+        result, _info = solve_with_cavities(solver, exchange, lights, frame.environment, tol=frame.tolerance,
+                                            warm_start=previous, shadows=True, occluders=frame.occluders,
+                                            channels=frame.ms_channels)
+        return result
     if solver.sky is None:
         return solver.solve(lights, frame.environment, warm_start=previous, shadows=True, occluders=frame.occluders,
                             channels=frame.ms_channels)
@@ -352,9 +392,9 @@ def radiance_for_mesh(st: state.ObjectState, solver, result, frame: FrameInputs)
     from .scene_inputs import view_directions
 
     m = frame.mapping
-    if m.same:
+    if m.same:  # a bake with cavities continues with their walls: the mesh's vertices are the first rows
         dirs = view_directions(frame.view, np.asarray(st.bake.mesh_vertices))
-        return np.asarray(solver.vertex_radiance(result, dirs))
+        return np.asarray(solver.vertex_radiance(result, dirs))[: len(m.idx)]
     return np.asarray(solver.radiance_at(result, m.idx, m.w, m.normals, view_directions(frame.view, m.positions)))
 
 
@@ -373,11 +413,11 @@ def _single_scatter(st: state.ObjectState, frame: FrameInputs) -> np.ndarray:
             st.ss = None
         data_o = data if frame.ss_order == data.order else data.with_order(frame.ss_order)
         integrator, name, message = backend.make_integrator(data_o, frame.prefer, off_main=frame.off_main)
+        V, F, N = inner_parts.outer_mesh(bake)
         if m.same:
-            ev = FrameEvaluator(data_o, bake.mesh_vertices, bake.mesh_faces, bake.mesh_normals, integrator=integrator)
+            ev = FrameEvaluator(data_o, V, F, N, integrator=integrator)
         else:
-            ev = FrameEvaluator(data_o, bake.mesh_vertices, bake.mesh_faces, points=m.positions,
-                                point_normals=m.normals, integrator=integrator)
+            ev = FrameEvaluator(data_o, V, F, points=m.positions, point_normals=m.normals, integrator=integrator)
         st.ss, st.ss_key, st.ss_backend_message = ev, key, message
         state.log(f"'{frame.name}': single scattering on the {name}" + (f" ({message})" if message else ""),
                   once_key=("ss-backend", frame.name, name, message))
@@ -395,6 +435,11 @@ def _single_scatter(st: state.ObjectState, frame: FrameInputs) -> np.ndarray:
     return rgb * frame.weights("single")  # the planner's channels and region
 
 
+def _voxel_number_map(st: state.ObjectState, frame: FrameInputs) -> np.ndarray:
+    """The Voxel Number Map's radiance at ``obj.data``'s vertices, (n, 3), weighted by the planner's region."""
+    return inner_parts.vnm_radiance(st, frame) * frame.weights("voxel_number_map")
+
+
 def _write(obj, frame: FrameInputs, rgb: np.ndarray, ss_rgb: np.ndarray | None) -> None:
     """The radiance attributes: the total, and single scattering alone with Split Pass."""
     attributes.write_radiance(obj, rgb)
@@ -410,6 +455,8 @@ def _record(st: state.ObjectState, frame: FrameInputs, view_sig, ms: Diffusion, 
     st.warnings = frame.warnings
     if ss_rgb is None:
         st.ss_seconds, st.ss_rgb = 0.0, None
+    if not frame.use_vnm:
+        st.vnm_seconds, st.vnm_backend = 0.0, ""
     if ms.solved:
         st.solves += 1
         state.COUNTERS["solves"] += 1
@@ -424,7 +471,7 @@ def _report(st: state.ObjectState, frame: FrameInputs, ms: Diffusion) -> SolveRe
     if frame.use_ms:
         report_backend = ms.backend or ("CPU" if ms.solver is st.render_solver else st.backend)
     else:
-        report_backend = st.ss_backend if frame.use_ss else ""
+        report_backend = st.ss_backend if frame.use_ss else st.vnm_backend if frame.use_vnm else ""
     return SolveReport(name=frame.name, backend=report_backend, seconds=st.seconds if frame.use_ms else 0.0,
                        residual=st.residual if frame.use_ms else 0.0,
                        iterations=st.iterations if frame.use_ms else 0, solved=ms.solved,
@@ -432,7 +479,9 @@ def _report(st: state.ObjectState, frame: FrameInputs, ms: Diffusion) -> SolveRe
                        ss_seconds=st.ss_seconds if frame.use_ss else 0.0,
                        ss_backend=st.ss_backend if frame.use_ss else "",
                        skipped="" if frame.plan.run else frame.plan.reason, ms_ran=frame.use_ms,
-                       deformed=st.deformation.describe() if st.pose is not None else "")
+                       deformed=st.deformation.describe() if st.pose is not None else "",
+                       vnm_seconds=st.vnm_seconds if frame.use_vnm else 0.0,
+                       vnm_backend=st.vnm_backend if frame.use_vnm else "")
 
 
 # ------------------------------------------------------------------ every object of a scene

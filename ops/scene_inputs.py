@@ -319,9 +319,9 @@ def collect_occluders(depsgraph, obj, obj_matrix, cache: OccluderCache | None = 
     """Other visible mesh objects' evaluated triangles in ``obj``'s space.
 
     ``exclude``: names of further objects that cast no shadow on ``obj`` (a
-    fluid's emitter).  Returns ``((V, F) or None, signature)``; the signature
-    changes when an occluder moves (relative to ``obj``), deforms, appears or
-    disappears.
+    fluid's emitter, the object's own inner parts).  Returns ``((V, F) or
+    None, signature)``; the signature changes when an occluder moves (relative
+    to ``obj``), deforms, appears or disappears.
     """
     to_object = matrix_to_numpy(obj_matrix.inverted_safe())
     own = obj.original if obj.original is not None else obj
@@ -372,17 +372,22 @@ def collect_occluders(depsgraph, obj, obj_matrix, cache: OccluderCache | None = 
 # ------------------------------------------------------------------ material
 
 
-def build_material(settings):
-    """The engine ``Material`` of an object's settings (raises ``MaterialError``)."""
-    from ..translucency_addon.materials import Material, Medium, preset
+def build_medium(settings, name: str = "custom"):
+    """The engine ``Medium`` of settings with ``material_preset``, ``sigma_a`` and ``sigma_s`` (an object's,
+    or an inner part's): the preset, or the Custom coefficients named ``name``."""
+    from ..translucency_addon.materials import Medium, preset
 
     if settings.material_preset == 'CUSTOM':
-        medium_a = Medium(tuple(float(x) for x in settings.sigma_a),
-                          tuple(float(x) for x in settings.sigma_s), "custom")
-    else:
-        medium_a = preset(settings.material_preset)
+        return Medium(tuple(float(x) for x in settings.sigma_a), tuple(float(x) for x in settings.sigma_s), name)
+    return preset(settings.material_preset)
+
+
+def build_material(settings):
+    """The engine ``Material`` of an object's settings (raises ``MaterialError``)."""
+    from ..translucency_addon.materials import Material, preset
+
     medium_b = preset(settings.second_preset) if settings.use_heterogeneity else None
-    return Material(medium_a, medium_b, eta=float(settings.eta), name=settings.material_preset.lower())
+    return Material(build_medium(settings), medium_b, eta=float(settings.eta), name=settings.material_preset.lower())
 
 
 # ------------------------------------------------------------------ heterogeneity field

@@ -112,6 +112,14 @@ class ObjectState:
     ss_field_fp: tuple | None = None  # (field_sig, fingerprint)
     ss_rgb: object | None = None  # last single-scattering radiance (n_vertices, 3)
     plan: object | None = None  # translucency_addon.planner.Plan of the last solve
+    # inner parts (ops.inner_parts): the parts' media the solver was last given, the Voxel Number Map's evaluator
+    part_media: tuple | None = None
+    vnm: object | None = None  # translucency_addon.voxel_number_map.VoxelNumberMapEvaluator
+    vnm_key: tuple | None = None
+    vnm_inputs: tuple | None = None  # (material, part media) the evaluator was last given
+    vnm_backend: str = ""
+    vnm_backend_message: str = ""
+    vnm_seconds: float = 0.0
 
     @property
     def frame_backend(self) -> str:
@@ -135,6 +143,9 @@ class ObjectState:
             except Exception as ex:  # noqa: BLE001 - freeing must not break cleanup paths
                 print(f"Translucency: freeing the single-scattering data failed: {type(ex).__name__}: {ex}")
         self.ss = self.ss_key = self.ss_rgb = None
+        if self.vnm is not None:
+            backend.free_solver(self.vnm)  # the evaluator's GPU transmission (no-op on the CPU)
+        self.vnm = self.vnm_key = self.vnm_inputs = None
         self.deformation = DeformationState()
 
 

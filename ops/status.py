@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import bpy
 
-from . import state
+from . import inner_parts, state
 
 SS_STAGE_NAMES = {"voxelise": "voxelise", "ddod": "optical depth", "div": "divergence", "pds": "Poisson-disk samples",
                   "rbf": "RBF fit", "sh": "spherical harmonics", "grid": "sample grid"}
@@ -71,8 +71,9 @@ def set_bake_status(obj, bake, *, graph_seconds: float, ss_seconds: float, notes
         item.n_inner = int(lv.n_inner)
     s.bake_memory = bake.graph_bytes() / 2**20
     s.bake_seconds = float(graph_seconds)
-    s.bake_vertices = int(len(bake.mesh_vertices))
-    warnings = list(bake.stats.get("mesh", {}).get("warnings", [])) + list(notes)
+    s.bake_vertices = inner_parts.n_outer_vertices(bake)
+    s.parts_bake_stats, parts_warnings = inner_parts.bake_summary(bake)
+    warnings = list(bake.stats.get("mesh", {}).get("warnings", [])) + parts_warnings + list(notes)
     s.bake_stats = (
         "N_s " + " / ".join(_format_count(lv.n_surface) for lv in bake.levels)
         + "; N_i " + " / ".join(_format_count(lv.n_inner) for lv in bake.levels)
@@ -163,6 +164,9 @@ class SolveStatus:
     ss_seconds: float
     ss_message: str  # why single scattering needs a re-bake, else why it is not on the GPU
     deformation: str = ""  # a deformed frame: the pose's worst link stretch, or that it was refused
+    vnm_backend: str = ""  # where the Voxel Number Map's transport last ran ('' when it did not run)
+    vnm_seconds: float = 0.0
+    vnm_message: str = ""  # why the map's transport is not on the GPU
 
 
 def solve_status(obj) -> SolveStatus:
@@ -179,7 +183,9 @@ def solve_status(obj) -> SolveStatus:
         backend=st.frame_backend, seconds=float(st.seconds), residual=float(st.residual),
         iterations=int(st.iterations), message=error or message, ss_backend=st.ss_backend if ss_ran else "",
         ss_seconds=float(st.ss_seconds), ss_message=st.ss_stale or (st.ss_backend_message if ss_ran else ""),
-        deformation=st.deformation.describe() if st.pose is not None else "")
+        deformation=st.deformation.describe() if st.pose is not None else "",
+        vnm_backend=st.vnm_backend, vnm_seconds=float(st.vnm_seconds),
+        vnm_message=st.vnm_backend_message if st.vnm_backend else "")
 
 
 def last_solve() -> dict:

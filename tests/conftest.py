@@ -222,6 +222,12 @@ class FakeLayout:
         assert search_prop in search_data.bl_rna.properties, f"{type(search_data).__name__} has no {search_prop!r}"
         self.log.append(("prop", prop))
 
+    def template_list(self, listtype, list_id, data, prop, active_data, active_prop, **_kw):
+        assert hasattr(bpy.types, listtype), f"UI list {listtype} is not registered"
+        assert prop in data.bl_rna.properties, f"{type(data).__name__} has no property {prop!r}"
+        assert active_prop in active_data.bl_rna.properties, f"{type(active_data).__name__} has no {active_prop!r}"
+        self.log.append(("list", prop))
+
     def operator(self, idname, **_kw):
         category, _, name = idname.partition(".")
         assert hasattr(getattr(bpy.ops, category), name), f"operator {idname} is not registered"

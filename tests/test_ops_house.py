@@ -13,11 +13,12 @@ OPS = Path(__file__).resolve().parent.parent / "ops"
 FLOORS = (
     ("__init__",),
     ("handlers", "properties"),
-    ("operators_bake", "operators_solve", "panels", "overlay", "render_pass"),
+    ("operators_bake", "operators_parts", "operators_solve", "panels", "overlay", "render_pass"),
     ("live",),
     ("runtime",),
     ("deformation", "fluid_runtime"),
     ("frame", "status", "cache_files", "attributes"),
+    ("inner_parts",),
     ("state", "fluid_sources"),
     ("scene_inputs", "backend"),
     ("compat", "dependencies", "quality_costs"),

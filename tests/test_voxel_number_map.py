@@ -293,3 +293,21 @@ def test_radiance_is_the_diffusion_output_query(hollow_sphere):
     want = jv * (np.where(cos > 0, fresnel_transmittance(np.clip(cos, 0, 1), 1.4), 0.0) / (np.pi * 1.96))[:, None]
     assert np.allclose(ev.radiance(sun, None, ("ORTHO", view)), want, rtol=1e-12)
     assert 0.0 < diffuse_reflectance_internal(1.4) < 1.0
+
+
+def test_radiance_at_other_points_of_the_surface(hollow_sphere):
+    """``radiance(points=(P, N))``: points mapped onto the surface voxels as the mesh's vertices are -- the mesh's
+    own vertices give its radiance exactly; a finer mesh of the same sphere (a modifier's) gives nearly the same
+    radiance where the two meshes share a vertex."""
+    cav, _ = hollow_sphere
+    ev = VoxelNumberMapEvaluator(cav, Material(MED))
+    sun = [Light("sun", irradiance=700.0, direction=(0.0, -1.0, 0.0))]
+    view = ("ORTHO", (0.0, 1.0, 0.0))
+    L = ev.radiance(sun, None, view)
+    assert np.array_equal(ev.radiance(sun, None, view, points=(cav.mesh_vertices, cav.mesh_normals)), L)
+    Vf, _ = primitives.icosphere(10.0, 4)  # the subdivision keeps the coarse vertices first
+    Nf = Vf / np.linalg.norm(Vf, axis=1, keepdims=True)
+    Lf = ev.radiance(sun, None, view, points=(Vf, Nf))
+    n = len(cav.mesh_vertices)
+    assert Lf.shape == (len(Vf), 3) and np.allclose(Vf[:n], cav.mesh_vertices)
+    assert np.abs(Lf[:n] - L).max() < 0.05 * L.max()

@@ -109,14 +109,16 @@ def make_inputs(graph: str, settings, material, field_fp, mm_per_unit: float) ->
             "field": field_fp, "mm_per_unit": round(float(mm_per_unit), 9)}
 
 
-def expected_key(bake, settings=None, material=None, field=None, *, field_fp=None, mm_per_unit=None) -> str:
+def expected_key(bake, settings=None, material=None, field=None, *, field_fp=None, mm_per_unit=None,
+                 extra_inputs=None) -> str:
     """The key :func:`attach` will give ``bake`` once single scattering is baked with these inputs
-    (known before the bake: used to name the cache file)."""
+    (known before the bake: used to name the cache file).  ``extra_inputs``: as for
+    :func:`bake_single_scattering_for`."""
     material = material if material is not None else _default_material()
     fp = field_fp if field_fp is not None else fingerprint_field(field, material)
     mm = bake.mm_per_unit if mm_per_unit is None else mm_per_unit
     g = graph_key(bake) if not isinstance(bake, str) else bake
-    return combined_key(g, ss_key(make_inputs(g, settings, material, fp, mm)))
+    return combined_key(g, ss_key({**make_inputs(g, settings, material, fp, mm), **(extra_inputs or {})}))
 
 
 def _default_material():
@@ -152,7 +154,8 @@ class GridField:
 
 
 def bake_single_scattering_for(bake, material=None, field=None, settings: SingleScatteringSettings | None = None,
-                               progress=None, *, field_fingerprint: str | None = None, blockers=(), bvh=None):
+                               progress=None, *, field_fingerprint: str | None = None, blockers=(), bvh=None,
+                               volume=None, mesh=None, extra_inputs=None):
     """Bake single scattering for the mesh and scale of a QuadGraph ``bake``.
 
     ``material``: a :class:`~translucency_addon.materials.Material` (default:
@@ -160,7 +163,12 @@ def bake_single_scattering_for(bake, material=None, field=None, settings: Single
     :class:`~translucency_addon.fields.FieldSpec`, or ``field(points) ->
     values`` (give ``field_fingerprint=`` to make its staleness checkable;
     otherwise a digest of the values it returns is recorded).  ``progress``,
-    ``blockers``: as :func:`~.bake.bake_single_scattering`.  Returns the
+    ``blockers``, ``volume``: as :func:`~.bake.bake_single_scattering` (an object with inner
+    parts passes the volume of ``voxelise_composite``, whose voxels know the parts).  ``mesh``:
+    ``(V, F)`` to bake for instead of the bake's own (an object with inner parts: its outer
+    mesh, without the cavity walls that follow it in ``bake.mesh_vertices``).
+    ``extra_inputs``: more of what the optical depth was baked from (JSON values, e.g. the inner
+    parts' media), recorded in ``stats["inputs"]`` and hashed into the key.  Returns the
     :class:`~.data.SingleScatteringData` with ``stats["inputs"]`` and
     ``stats["key"]`` filled in; :func:`attach` puts it into the bake.
     """
@@ -182,11 +190,12 @@ def bake_single_scattering_for(bake, material=None, field=None, settings: Single
             recorded["digest"] = "values:" + hashlib.sha256(np.round(v, 9).tobytes()).hexdigest()[:32]
             return v
 
-    data = bake_single_scattering(np.asarray(bake.mesh_vertices), np.asarray(bake.mesh_faces), material, fn, s,
-                                  mm_per_unit=float(bake.mm_per_unit), blockers=blockers, progress=progress, bvh=bvh)
+    V, F = mesh if mesh is not None else (bake.mesh_vertices, bake.mesh_faces)
+    data = bake_single_scattering(np.asarray(V), np.asarray(F), material, fn, s, mm_per_unit=float(bake.mm_per_unit),
+                                  blockers=blockers, progress=progress, bvh=bvh, volume=volume)
     if fp is None:
         fp = recorded.get("digest")
-    inputs = make_inputs(graph_key(bake), s, material, fp, bake.mm_per_unit)
+    inputs = {**make_inputs(graph_key(bake), s, material, fp, bake.mm_per_unit), **(extra_inputs or {})}
     data.stats["inputs"] = inputs
     data.stats["key"] = ss_key(inputs)
     return data

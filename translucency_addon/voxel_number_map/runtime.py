@@ -167,14 +167,24 @@ class VoxelNumberMapEvaluator:
         return J + local
 
     # -- step 3 ---------------------------------------------------------------------------------
-    def radiance(self, lights=(), environment=None, view=None, *, shadows: bool = True, occluders=None):
-        """Outgoing radiance (W/(m^2 sr)) at the outer mesh's vertices, (n_vertices, 3)."""
+    def radiance(self, lights=(), environment=None, view=None, *, shadows: bool = True, occluders=None,
+                 points=None):
+        """Outgoing radiance (W/(m^2 sr)) at the outer mesh's vertices, (n_vertices, 3).
+
+        ``points``: ``(P, N)``, other points on the outer surface (object units) and their unit
+        normals -- the vertices of a mesh whose vertex count a modifier changed -- to get the
+        radiance there instead, (len(P), 3); they are mapped to the surface voxels as the mesh's
+        vertices are (:func:`.surface.vertex_weights`, cached for the last point set).
+        """
         t0 = time.perf_counter()
         J = self.exitance(lights, environment, shadows=shadows, occluders=occluders)
         t1 = time.perf_counter()
-        idx, w = self.vnm.vertex_map
+        if points is None:
+            (idx, w), V, N = self.vnm.vertex_map, self.vnm.mesh_vertices, self.vnm.mesh_normals
+        else:
+            V, N = (np.asarray(a, dtype=np.float64) for a in points)
+            idx, w = self._point_map(V, N)
         j_v = np.einsum("vk,vkc->vc", np.asarray(w, dtype=np.float64), J[np.asarray(idx)])
-        V, N = self.vnm.mesh_vertices, self.vnm.mesh_normals
         if view is None:
             cos_o = np.ones(len(V))
         elif view[0] == "ORTHO":
@@ -187,6 +197,16 @@ class VoxelNumberMapEvaluator:
         t2 = time.perf_counter()
         self.seconds.update({"output": t2 - t1, "total": t2 - t0})
         return L
+
+    def _point_map(self, V: np.ndarray, N: np.ndarray):
+        from .surface import vertex_weights
+
+        key = (V.shape, hash(V.tobytes()), hash(N.tobytes()))
+        cached = getattr(self, "_points", None)
+        if cached is None or cached[0] != key:
+            k = int(np.asarray(self.vnm.vertex_map[0]).shape[1])
+            cached = self._points = (key, vertex_weights(V, N, self.vnm.surface, k))
+        return cached[1]
 
     def power(self, J: np.ndarray, E_in: np.ndarray) -> dict:
         """Power (W per channel) that entered (``E_in`` from :meth:`sources`) and that leaves through the
