@@ -166,6 +166,18 @@ def test_cells_do_not_depend_on_the_particle_order():
     assert len(inv) == len(P)
 
 
+def test_graph_numbers_its_nodes_in_space_order_whatever_the_input_order():
+    """Shuffled particles (a particle system emits in random order): consecutive inner nodes of the graph are
+    neighbours in space (the sparse products of the solve then stay in cache), and every particle keeps its
+    cell."""
+    P = _jittered(8, 0.1, 5)
+    perm = np.random.default_rng(6).permutation(len(P))
+    g = build_graph(build_cells(P[perm], 1.0))
+    step = np.linalg.norm(np.diff(g.position[:g.n_inner], axis=0), axis=1)
+    assert np.median(step) < 1.5 and np.median(np.linalg.norm(np.diff(P[perm], axis=0), axis=1)) > 3.0
+    assert np.array_equal(np.sort(g.cell), np.arange(len(P))) and np.allclose(g.position[:g.n_inner], P[perm][g.cell])
+
+
 def _jittered(n, jitter, seed):
     rng = np.random.default_rng(seed)
     P = lattice(n)

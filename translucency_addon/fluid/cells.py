@@ -103,6 +103,7 @@ class VoronoiCells:
     surface_vector: np.ndarray  # (N, 3) its vector area (outward), = -sum_j S_ij n_ij
     tree: object = None  # the particles' cKDTree (reused by the graph and the occluder)
     seconds: dict = field(default_factory=dict)
+    order: np.ndarray | None = None  # the particles in a spatial order (the graph numbers its nodes so)
 
     @property
     def n_cells(self) -> int:
@@ -211,7 +212,8 @@ def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK) 
     seconds.update({"neighbours": t1 - t0, "faces": t2 - t1, "cells": t3 - t2})
     return VoronoiCells(points=P, radius=R, face_i=np.minimum(oi, oj), face_j=np.maximum(oi, oj),
                         face_area=area[keep], face_distance=fd[keep], volume=_unsort(volume, order),
-                        sphere_area=_unsort(sphere, order), surface_vector=vec, tree=tree, seconds=seconds)
+                        sphere_area=_unsort(sphere, order), surface_vector=vec, tree=tree, seconds=seconds,
+                        order=order)
 
 
 def _spatial_order(P, R):
