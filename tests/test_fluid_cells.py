@@ -89,6 +89,95 @@ def test_clipped_disk_against_closed_forms():
     assert abs(area[0] - np.pi * r * r / 2) < 1e-12 and abs(om[0] - np.pi * (1 - h / R)) < 1e-12
 
 
+@pytest.mark.parametrize("R", [0.87, 1.4])
+def test_lattice_ties_do_not_depend_on_the_particle_order(R):
+    """A shuffled cubic lattice: four particles on one circle give one Voronoi edge to four triangles, and
+    which of them keeps it depends on the particle indices; the cells are the same unit cubes in any order."""
+    P = lattice(6)[np.random.default_rng(3).permutation(216)]
+    cells = build_cells(P, R)
+    inner = interior(P, 0.5, 4.5)
+    assert np.abs(cells.volume[inner] - 1.0).max() < EXACT
+    both = inner[cells.face_i] & inner[cells.face_j]
+    assert np.abs(cells.face_area[both] - 1.0).max() < EXACT and np.all(cells.n_faces[inner] == 6)
+
+
+def _fingerprint_sets():
+    rng = np.random.default_rng(2024)
+    out = [("jittered lattice", lattice(6) + rng.uniform(-0.2, 0.2, (216, 3)), 1.0),
+           ("uniform random", rng.random((500, 3)) * 8.0, 1.3)]
+    half = lattice(6)
+    right = half[:, 0] > 2.5
+    half[right] += rng.uniform(-0.1, 0.1, (int(right.sum()), 3))
+    out.append(("half exact lattice", half, 0.95))
+    out.append(("fcc, lightly jittered", fcc(4) + rng.uniform(-0.02, 0.02, (256, 3)), 0.62))
+    out.append(("clustered", np.concatenate([rng.normal(0, 1.0, (300, 3)), rng.normal(3.0, 0.6, (200, 3))]), 0.7))
+    return out
+
+
+def _fingerprint(c):
+    """Order-free sums with fixed pseudo-random weights per cell and per face (i, j)."""
+    k = np.arange(c.n_cells)
+    wv = np.cos(0.37 * k + 0.1)
+    wf = np.sin(0.7 * c.face_i + 1.3 * c.face_j + 0.2)
+    return [len(c.face_i), c.volume.sum(), (c.volume * wv).sum(), (c.sphere_area * wv).sum(),
+            (c.surface_vector * np.stack([wv, wv ** 2, -wv], 1)).sum(), c.face_area.sum(), (c.face_area * wf).sum(),
+            (c.face_distance * wf).sum()]
+
+
+# Computed by the per-face clipping that the triangle-based one replaced (commit 32de383, build_cells at HEAD
+# then): every face clipped by all its lines, O(m^2) per face.  The rewrite must give the same cells to rounding.
+FINGERPRINTS = {
+    "jittered lattice": [1256, 313.356342388183, -4.40654593728183, -6.19992448169297, 2.09204694401106,
+                         629.128211905231, 2.58711679886639, -19.1457084259082],
+    "uniform random": [3218, 831.48843269179, 13.7819600265953, 21.9072188817717, 23.0080733399024,
+                       1684.60367476141, -22.3899116985916, 1.78552263872375],
+    "half exact lattice": [966, 295.463481380849, -5.28751671062787, -9.43415336056685, 0.327604329031939,
+                           622.848609275459, 3.07234146886322, -8.65262418992615],
+    "fcc, lightly jittered": [1455, 93.8049870891456, -0.514631760310779, -1.77649703449604, -0.6040119563307,
+                              282.820758725811, -5.62333120605787, -24.0975810787224],
+    "clustered": [3200, 140.907809667882, 4.48818701038379, 10.9744254023246, -6.90360970999348,
+                  408.433752672099, 6.8052093647902, 50.0192085422128],
+}
+
+
+@pytest.mark.parametrize("chunk", [None, 2000])
+def test_cells_match_the_per_face_clipping_they_replaced(chunk):
+    """Five particle sets (jittered and exact lattices, uniform and clustered random) against fingerprints of
+    the previous exact implementation; ``chunk=2000`` splits the work into 10-30 chunks, so that most faces
+    take lines decided in earlier chunks."""
+    for name, P, R in _fingerprint_sets():
+        cells = build_cells(P, R) if chunk is None else build_cells(P, R, chunk=chunk)
+        got, want = _fingerprint(cells), FINGERPRINTS[name]
+        assert got[0] == want[0], name
+        scale = np.array([1.0, abs(want[1]), *[abs(want[1])] * 4, abs(want[5]), abs(want[5])])
+        assert np.all(np.abs(np.subtract(got, want)) <= 1e-9 * scale), (name, got, want)
+
+
+def test_cells_do_not_depend_on_the_particle_order():
+    """Shuffled input: the same cells, permuted (the engine sorts the particles spatially inside)."""
+    P = _jittered(5, 0.2, 9)
+    perm = np.random.default_rng(4).permutation(len(P))
+    a, b = build_cells(P, 1.0), build_cells(P[perm], 1.0)
+    assert np.allclose(b.volume, a.volume[perm], rtol=1e-12) and np.allclose(b.surface_vector, a.surface_vector[perm])
+    inv = np.argsort(perm)
+    fa = dict(zip(zip(a.face_i.tolist(), a.face_j.tolist()), a.face_area))
+    fb = {tuple(sorted((int(perm[i]), int(perm[j])))): s for i, j, s in zip(b.face_i, b.face_j, b.face_area)}
+    assert fa.keys() == fb.keys() and max(abs(fa[k] - fb[k]) for k in fa) < 1e-12
+    assert len(inv) == len(P)
+
+
+def test_graph_numbers_its_nodes_in_space_order_whatever_the_input_order():
+    """Shuffled particles (a particle system emits in random order): consecutive inner nodes of the graph are
+    neighbours in space (the sparse products of the solve then stay in cache), and every particle keeps its
+    cell."""
+    P = _jittered(8, 0.1, 5)
+    perm = np.random.default_rng(6).permutation(len(P))
+    g = build_graph(build_cells(P[perm], 1.0))
+    step = np.linalg.norm(np.diff(g.position[:g.n_inner], axis=0), axis=1)
+    assert np.median(step) < 1.5 and np.median(np.linalg.norm(np.diff(P[perm], axis=0), axis=1)) > 3.0
+    assert np.array_equal(np.sort(g.cell), np.arange(len(P))) and np.allclose(g.position[:g.n_inner], P[perm][g.cell])
+
+
 def _jittered(n, jitter, seed):
     rng = np.random.default_rng(seed)
     P = lattice(n)

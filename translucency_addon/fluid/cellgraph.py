@@ -129,11 +129,12 @@ def build_graph(cells: VoronoiCells) -> FluidGraph:
                         f"droplets): their surface faces wrap around the particle and {lost:.0%} of their area is "
                         "lost to the flat projection; they receive less light")
     surf &= keep
-    inner = np.nonzero(keep)[0]
+    spatial = np.arange(N) if cells.order is None else cells.order
+    inner = spatial[keep[spatial]]  # nodes in the cells' spatial order: the solver's sparse products stay in cache
     node_of = np.full(N, -1, dtype=np.int64)
     node_of[inner] = np.arange(len(inner))
     n_in = len(inner)
-    scells = np.nonzero(surf)[0]
+    scells = inner[surf[inner]]
     n_s = len(scells)
     # Directed face links between kept cells, ranked per source for the slots.
     fk = keep[cells.face_i] & keep[cells.face_j]

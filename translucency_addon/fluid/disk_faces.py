@@ -15,26 +15,31 @@ origin, exactly, without ordering the polygon's vertices:
 * the **segment** of line t is ``x0 + tau d``, ``x0 = -c n``, ``d = rot90(n)``
   (inside on the left: counter-clockwise), for the ``tau`` in the disk
   (``|tau| <= sqrt(r^2 - c^2)``) that every other line allows -- a 1D interval
-  intersection.  Its fan triangle (origin, X0, X1) has the signed area
-  ``-c (tau1 - tau0) / 2`` and, seen from the particle at height h above the
-  origin, the signed solid angle of Van Oosterom & Strackee (1983);
+  intersection (:func:`segment_bounds`).  Its fan triangle (origin, X0, X1)
+  has the signed area ``-c (tau1 - tau0) / 2`` and, seen from the particle at
+  height h above the origin, the signed solid angle of Van Oosterom &
+  Strackee (1983) (:func:`fan`);
 * the **arcs** are the parts of the circle no line excludes.  Line t
   excludes the angles within ``alpha = arccos(-c/r)`` of its normal's angle;
-  an allowed stretch starts at an exclusion's end that no other exclusion
-  covers and runs to the nearest exclusion start, so the total allowed angle
-  Theta is a min over (m, m) angle gaps.  An arc of angle Theta adds
-  ``r^2 Theta / 2`` to the area and ``(1 - h/R) Theta`` to the solid angle
-  (a sector of the disk seen from its axis; ``h^2 + r^2 = R^2``).
+  the union of these exclusions is measured by a sort-and-sweep
+  (:func:`allowed_arc`).  An arc of angle Theta adds ``r^2 Theta / 2`` to the
+  area and ``(1 - h/R) Theta`` to the solid angle (a sector of the disk seen
+  from its axis; ``h^2 + r^2 = R^2``).
 
 Degenerate input -- a regular lattice, where several lines coincide and
 vertices fall exactly on the circle -- is handled by tie-breaks: of two
 coincident lines with the same orientation only the first keeps its segment,
 and of two exclusions ending at the same angle only the first opens an arc.
 
+:mod:`.cells` calls :func:`segment_bounds` for only part of a face's lines
+(each Voronoi edge once, in one of its three faces) and the other two
+functions on the segments it then shares; :func:`clipped_disk` is the whole
+computation for faces given by all their lines.
+
 Written by hand because no library in the engine's dependencies clips disks
-exactly (scipy's qhull Delaunay/Voronoi took 8-22x the whole frame budget on
-16k particles, see ``cells.py``), and it runs vectorised over all
-faces with the same number of lines at once.
+exactly (scipy's qhull ``Voronoi`` alone costs as much CPU as the whole cell
+build, see ``cells.py``, and would still need the disk cut), and it runs
+vectorised over all faces with the same number of lines at once.
 """
 
 from __future__ import annotations
@@ -61,32 +66,39 @@ def clipped_disk(r: np.ndarray, h: np.ndarray, R: float, nx: np.ndarray, ny: np.
     h = np.asarray(h, dtype=np.float64)
     if c.shape[0] == 0:  # an uncut disk
         return np.pi * r * r, TWO_PI * (1.0 - h / R)
-    seg_area, seg_omega = _segments(r, h, nx, ny, c)
-    theta = _allowed_arc(r, nx, ny, c)
-    area = seg_area + 0.5 * r * r * theta
-    omega = seg_omega + (1.0 - h / R) * theta
+    lo, hi, _ = segment_bounds(r, nx, ny, c)
+    seg_area, seg_omega = fan(h, c, lo, hi)
+    theta = allowed_arc(r, nx, ny, c)
+    area = seg_area.sum(axis=0) + 0.5 * r * r * theta
+    omega = seg_omega.sum(axis=0) + (1.0 - h / R) * theta
     return np.maximum(area, 0.0), np.maximum(omega, 0.0)
 
 
-def _segments(r, h, nx, ny, c):
-    """Signed fan area and solid angle of every line's boundary segment, summed per face.
+def segment_bounds(r, nx, ny, c, first: int = 0):
+    """The segment ``[lo, hi]`` of lines ``first..m-1`` that all m lines of the face allow.
 
     Arrays (s, t, F): line s constrains the segment ``x0_t + tau d_t`` of
     line t (``x0 = -c n``, ``d = (-ny, nx)``) by ``val + tau den <= 0``.
+    Returns ``lo, hi, live`` (m - first, F); ``lo = hi = 0`` where the segment
+    is empty (``live`` False).  Of coincident lines with the same orientation
+    the one earlier in the face's order keeps its segment.
     """
     m = c.shape[0]
-    w = np.sqrt(np.maximum(r * r - c * c, 0.0))  # (t, F) half-chord
-    cos = nx[:, None] * nx[None]  # (s, t, F): n_s . n_t
-    cos += ny[:, None] * ny[None]
-    den = nx[:, None] * ny[None]  # n_s . d_t
-    den -= ny[:, None] * nx[None]
-    val = c[:, None] - c[None] * cos
+    tx, ty, tc = nx[first:], ny[first:], c[first:]
+    mt = tc.shape[0]
+    w = np.sqrt(np.maximum(r * r - tc * tc, 0.0))  # (t, F) half-chord
+    cos = nx[:, None] * tx[None]  # (s, t, F): n_s . n_t
+    cos += ny[:, None] * ty[None]
+    den = nx[:, None] * ty[None]  # n_s . d_t
+    den -= ny[:, None] * tx[None]
+    val = c[:, None] - tc[None] * cos
     up, dn = _bounds(val, den)
     hi = np.fmin(w, -up)  # tau <= -val/den where den > 0
     lo = np.fmax(-w, -dn)  # tau >= -val/den where den < 0
     live = hi > lo
     par = np.abs(den) <= PARALLEL
-    par[np.arange(m), np.arange(m)] = False
+    own = np.arange(mt) + first  # line t's own row s
+    par[own, np.arange(mt)] = False
     if par.any():  # only lattices and other exact ties get here: parallel pairs bound nothing ...
         f = np.nonzero(par.any(axis=(0, 1)))[0]
         pf, vf, df = par[..., f], val[..., f], den[..., f]
@@ -96,21 +108,30 @@ def _segments(r, h, nx, ny, c):
         # ... but a parallel line outside (val > 0) empties the segment, and of two coincident lines with the
         # same orientation only the first keeps it.
         tol = COINCIDENT * r[f]
-        first = (np.arange(m)[:, None] < np.arange(m)[None, :])[..., None]  # s < t
-        killed = pf & ((vf > tol) | ((np.abs(vf) <= tol) & (cos[..., f] > 0) & first))
+        earlier = (np.arange(m)[:, None] < own[None, :])[..., None]  # s before t
+        killed = pf & ((vf > tol) | ((np.abs(vf) <= tol) & (cos[..., f] > 0) & earlier))
         live[:, f] = (hi[:, f] > lo[:, f]) & ~killed.any(axis=0)
-    span = np.where(live, hi - lo, 0.0)
     lo = np.where(live, lo, 0.0)
-    hi = lo + span
-    area = (-0.5 * c * span).sum(axis=0)
-    # Fan triangle (origin, X0, X1), X = x0 + tau d with |x0| = |c| and x0 . d = 0, seen from height h:
-    # Van Oosterom & Strackee, tan(Omega/2) = h (X0 x X1) / (|A||B||C| + (A.B)|C| + (A.C)|B| + (B.C)|A|).
+    hi = np.where(live, hi, 0.0)
+    return lo, hi, live
+
+
+def fan(h, c, lo, hi):
+    """Signed area and solid angle of the fan triangles (origin, X(lo), X(hi)) of segments on lines ``c``.
+
+    ``X(tau) = x0 + tau d`` with ``|x0| = |c|`` and ``x0 . d = 0``, seen from
+    height ``h`` above the origin (Van Oosterom & Strackee 1983:
+    ``tan(Omega/2) = h (X0 x X1) / (|A||B||C| + (A.B)|C| + (A.C)|B| + (B.C)|A|)``).
+    Elementwise; ``h`` broadcasts against the segments.
+    """
+    span = hi - lo
+    area = -0.5 * c * span
     h2 = h * h
     c2 = c * c + h2
     b = np.sqrt(c2 + lo * lo)
     e = np.sqrt(c2 + hi * hi)
     vos = h * (b * e + h * (b + e) + c2 + lo * hi)
-    omega = (2.0 * np.arctan2(-h * c * span, vos)).sum(axis=0)
+    omega = 2.0 * np.arctan2(-h * c * span, vos)
     return area, omega
 
 
@@ -130,7 +151,7 @@ def _bounds(val, den):
     return up, dn
 
 
-def _allowed_arc(r, nx, ny, c):
+def allowed_arc(r, nx, ny, c):
     """Total angle of the circle |x| = r that no line excludes (the arcs of the region's boundary).
 
     Line t excludes the arc of half-width ``alpha = arccos(-c/r)`` around its
