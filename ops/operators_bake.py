@@ -291,6 +291,15 @@ def _ss_inputs(obj, depsgraph, V, graph_key: str, mm: float, parts: bool = False
     return SSJobInputs(settings, material, field, field_fp, key, extra)
 
 
+def _check_writable(directory: str) -> None:
+    """Refuse, before any work, a cache directory this machine cannot write (a read-only farm share)."""
+    from ..translucency_addon.errors import CacheError
+
+    problem = cache_files.unwritable(directory)
+    if problem:
+        raise CacheError(problem)
+
+
 def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
     """Gather the bake's inputs on the main thread (raises ``TranslucencyError``)."""
     from ..translucency_addon import bake as bake_mod
@@ -312,6 +321,7 @@ def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
     if ss is not None:
         key = ss.key
     directory, note = cache_files.cache_directory(scene)
+    _check_writable(directory)
     final = os.path.join(directory, cache_files.cache_file_name(obj.name, key))
     notes = [w for w in (scale_warning, note) if w]
     return BakeJob(obj.name, V, F, settings, final, notes, ss=ss, composite=composite)
@@ -341,6 +351,7 @@ def prepare_ss_job(context, obj) -> BakeJob:
         composite = inner_parts.bake_inputs(obj, depsgraph, V, F, base.settings)
     ss = _ss_inputs(obj, depsgraph, V, graph_key(base), mm, parts=composite is not None)
     directory, note = cache_files.cache_directory(scene)
+    _check_writable(directory)
     final = os.path.join(directory, cache_files.cache_file_name(obj.name, ss.key))
     notes = [w for w in (scale_warning, note) if w]
     return BakeJob(obj.name, V, F, base.settings, final, notes, ss=ss, base_bake=base, composite=composite)

@@ -290,6 +290,7 @@ def _draw_scene_settings(layout, scene, overlay_drawn: bool = False) -> None:
     box = layout.box()
     box.label(text="Scene", icon='SCENE_DATA')
     box.prop(settings, "cache_directory")
+    box.prop(settings, "missing_cache_in_render")
     box.prop(settings, "solver_backend")
     box.prop(settings, "tolerance")
     box.prop(settings, "live_update")

@@ -672,6 +672,22 @@ class TranslucencySceneSettings(bpy.types.PropertyGroup):
         ),
         default=True,
     )
+    missing_cache_in_render: EnumProperty(
+        name="Cache Missing in Render",
+        description=(
+            "What a render does when an object's bake cache is missing, stale, unreadable or from another "
+            "version of the extension (a render farm worker without the cache folder); renders never bake"
+        ),
+        items=(
+            ("FAIL", "Fail the Frame",
+             "Background renders (blender -b, render farms) stop with exit code 1 and the reason, so the farm "
+             "marks the frame failed; in the UI the object renders without its pass and the error is shown"),
+            ("SKIP", "Render Without",
+             "Render the frame without the object's Translucency pass (its attribute is removed, never a stale "
+             "frame's), and log why"),
+        ),
+        default="FAIL",
+    )
 
 
 CLASSES = (TranslucencyInnerPart, TranslucencyLevelStats, TranslucencyObjectStatus, TranslucencyObjectSettings,
