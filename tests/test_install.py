@@ -51,8 +51,27 @@ def extension_zip(tmp_path_factory):
         capture_output=True, text=True, timeout=1800, cwd=ROOT)
     assert proc.returncode == 0, f"build failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
     summary = json.loads(summary_path.read_text())
-    assert len(summary["zips"]) == 1
-    return Path(summary["zips"][0]), summary
+    # The default build: one zip per platform (the extensions platform's format), each for both Pythons.
+    zips = {Path(z).name: Path(z) for z in summary["zips"]}
+    assert sorted(zips) == sorted(f"translucency-{_version()}-{p.replace('-', '_')}.zip" for p in summary["platforms"])
+    for name, path in zips.items():
+        with zipfile.ZipFile(path) as zf:
+            manifest = _manifest(zf)
+        platform = name.rsplit("-", 1)[1].removesuffix(".zip").replace("_", "-")
+        assert manifest["platforms"] == [platform], (name, manifest["platforms"])
+        assert all(w.removeprefix("./wheels/") in summary["wheels"][platform] for w in manifest["wheels"]), name
+    return zips[f"translucency-{_version()}-linux_x64.zip"], summary
+
+
+def _manifest(zf) -> dict:
+    """The zip's manifest as Blender reads it: a split build writes each zip's own ``platforms`` and ``wheels``
+    into ``[build.generated]``, which override the source manifest's."""
+    manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
+    return {**manifest, **manifest.get("build", {}).get("generated", {})}
+
+
+def _version() -> str:
+    return tomllib.loads((ROOT / "blender_manifest.toml").read_text())["version"]
 
 
 def test_zip_validates_and_holds_only_the_extension(extension_zip):
@@ -62,7 +81,7 @@ def test_zip_validates_and_holds_only_the_extension(extension_zip):
     assert proc.returncode == 0, proc.stdout + proc.stderr
     with zipfile.ZipFile(zip_path) as zf:
         names = zf.namelist()
-        manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
+        manifest = _manifest(zf)
     top = {name.split("/", 1)[0] for name in names}
     assert top <= EXPECTED_TOP_LEVEL | {"gpu_shaders"}, top - EXPECTED_TOP_LEVEL
     assert EXPECTED_TOP_LEVEL <= top
@@ -74,7 +93,7 @@ def test_zip_validates_and_holds_only_the_extension(extension_zip):
     # Blender older than 4.2 has no extension system and refuses this manifest;
     # 4.2+ compares blender_version_min before installing.
     assert tuple(int(x) for x in manifest["blender_version_min"].split(".")) == (4, 2, 0)
-    assert "linux-x64" in manifest["platforms"]
+    assert manifest["platforms"] == ["linux-x64"]
     wheels = [Path(w).name for w in manifest["wheels"]]
     assert sorted("wheels/" + w for w in wheels) == sorted(n for n in names if n.startswith("wheels/") and n != "wheels/")
     assert not [w for w in wheels if w.startswith("numpy-")], "numpy ships with Blender"

@@ -170,6 +170,7 @@ def test_three_workers_render_what_one_process_renders(render_pass_module, memo_
     # The light moves and brightens: every frame is its own solve, not one frame's values rendered nine times.
     assert np.abs(one[5] - one[1]).max() > 0.1 * one[5].max()
     assert np.abs(one[9] - one[5]).max() > 0.1 * one[9].max()
+    print("worker of frame 5:\n" + "\n".join(line for line in logs[5].splitlines() if "Translucency" in line))
     print("max relative difference of the pass, farm vs one process:",
           json.dumps({f: float(np.abs(farm[f] - one[f]).max() / one[f].max()) for f in FRAMES}))
 
