@@ -65,6 +65,8 @@ _WORKER = textwrap.dedent(r"""
 
     bpy.app.handlers.render_write.append(keep)
     bpy.ops.render.render(animation=True)
+    bpy.app.handlers.render_write.remove(keep)
+    module.unregister()  # bpy 4.2 as a module crashes at exit while a property with a Python callback is registered
     print("WORKER DONE", flush=True)
 """)
 
@@ -241,3 +243,33 @@ def test_bake_refuses_a_read_only_cache_directory(blender, addon, memo_bakes, tm
             assert memo_bakes.calls == 0  # refused before the bake started
     finally:
         share.chmod(0o755)
+
+
+def test_a_cache_moved_into_the_cache_directory_is_found_by_name(blender, addon, memo_bakes, tmp_path, capfd):
+    """A cache baked into another folder (an absolute Cache Directory, or the temporary folder of an unsaved
+    .blend), then copied next to the .blend: found by its file name in the scene's Cache Directory, and the
+    log says where; the stored path is not rewritten (a render changes nothing)."""
+    from translucency.ops import runtime, state
+
+    scene = bpy.context.scene
+    scene.translucency.cache_directory = str(tmp_path / "elsewhere") + os.sep
+    obj = sphere()
+    add_light(location=(3.0, 0.0, 1.0))
+    activate(obj)
+    assert bpy.ops.translucency.bake(base_triangles=200) == {'FINISHED'}
+    stored = obj.translucency.cache_filepath
+    (baked,) = (tmp_path / "elsewhere").glob("*.npz")
+    assert os.path.isabs(stored) and os.path.samefile(stored, baked)
+    shot = tmp_path / "shot"
+    (shot / "translucency_cache").mkdir(parents=True)
+    scene.translucency.cache_directory = "//translucency_cache/"
+    bpy.ops.wm.save_as_mainfile(filepath=str(shot / "shot.blend"))
+    shutil.move(baked, shot / "translucency_cache" / baked.name)  # the farm copy: the old folder is gone
+    state.clear()
+    capfd.readouterr()
+    report = runtime.solve_object(obj, scene, force=True)
+    assert report is not None and report.ms_ran
+    out = capfd.readouterr().out
+    found = shot / "translucency_cache" / baked.name
+    assert f"the cache of 'Blob' is not at {stored} (the path the .blend stores); using {found}" in out, out
+    assert obj.translucency.cache_filepath == stored
