@@ -221,8 +221,10 @@ def _bake_solve_render(tmp_path) -> None:
     assert rgb[0, 0].max() == 0.0, "the pass is not zero off the object (the image corner)"
 
 
-def test_install_on_other_blender():
-    """TRANSLUCENCY_BPY=4.5 runs this file again in .venv-bpy45 (bpy 4.5 LTS), likewise 4.2, 5.0, 5.1."""
+def test_install_on_other_blender(extension_zip, tmp_path):
+    """TRANSLUCENCY_BPY=4.5 runs this file again in .venv-bpy45 (bpy 4.5 LTS), likewise 4.2, 5.0, 5.1; then the
+    render-pass and render-farm tests there, with the engine's wheels for that Python (the ones the Linux zip
+    bundles) on PYTHONPATH, never installed into that environment."""
     wanted = os.environ.get("TRANSLUCENCY_BPY", "").strip()
     if not wanted:
         pytest.skip("set TRANSLUCENCY_BPY=4.5 (or another bpy version) to also install into that Blender")
@@ -244,4 +246,19 @@ def test_install_on_other_blender():
                            str(ROOT / "tests" / "test_install.py")],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=1800)
     print(proc.stdout[-3000:])
+    assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-3000:]
+
+    abi = subprocess.run([str(python), "-c", "import sys; print(f'cp{sys.version_info[0]}{sys.version_info[1]}')"],
+                         capture_output=True, text=True, timeout=60).stdout.strip()
+    _zip, summary = extension_zip
+    wheels = [ROOT / "wheels" / w for w in summary["wheels"]["linux-x64"] if f"-{abi}-" in w or _abi3_serves(w, abi)]
+    assert len(wheels) == len(BUNDLED), wheels
+    site = tmp_path / "engine-wheels"
+    unpack = subprocess.run([str(python), "-m", "pip", "install", "-q", "--no-deps", "--disable-pip-version-check",
+                             "--target", str(site), *map(str, wheels)], capture_output=True, text=True, timeout=600)
+    assert unpack.returncode == 0, unpack.stdout + unpack.stderr
+    proc = subprocess.run([str(python), "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                           str(ROOT / "tests" / "test_render_pass.py"), str(ROOT / "tests" / "test_render_farm.py")],
+                          cwd=ROOT, env=dict(env, PYTHONPATH=str(site)), capture_output=True, text=True, timeout=1800)
+    print(proc.stdout[-1500:])
     assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-3000:]
