@@ -4,8 +4,9 @@
 A render farm shares the folder: paths are stored blend-relative when the
 .blend is saved; an unsaved .blend uses the temporary folder and says so.
 Every worker finds the cache through the stored path or, when that is not
-there (a cache baked before the .blend was saved where it is now), by its
-file name in the scene's Cache Directory (:func:`find_cache`).  A render only
+there, from the copy packed into the .blend (:func:`pack_cache`, for
+single-file farms), or by its file name in the scene's Cache Directory (a
+cache baked before the .blend was saved where it is now; :func:`find_cache`).  A render only
 reads caches; a missing one raises :class:`CacheError` naming the file, the
 stored path and what to copy (:func:`missing_message`); the render's policy
 is the scene's ``missing_cache_in_render`` (``handlers``).  A bake refuses a
@@ -75,6 +76,8 @@ def find_cache(obj) -> tuple[str, str]:
     does not exist) and no note.  The file's key is checked when it loads.
     """
     path = resolve_cache_path(obj)
+    if path and not os.path.exists(path) and packed_text(obj) is not None:
+        return _from_packed(obj), f"using the cache of '{obj.name}' packed into the .blend ({path} is not here)"
     if not path or os.path.exists(path):
         return path, ""
     name = os.path.basename(path)
@@ -98,6 +101,69 @@ def missing_message(obj, path: str) -> str:
     return (f"the bake cache of '{obj.name}' is not on this machine: {path} does not exist ({where}). "
             "Copy the cache folder together with the .blend (README, Render farms), or bake again here; "
             "a render never bakes")
+
+
+PACKED_PREFIX = ".translucency_cache "  # a hidden Text datablock per packed cache (leading dot: hidden)
+
+
+def packed_text(obj):
+    """The Text datablock holding ``obj``'s packed cache, or None."""
+    name = obj.translucency.packed_cache
+    return bpy.data.texts.get(name) if name else None
+
+
+def pack_cache(obj) -> tuple[str, int]:
+    """Pack the object's cache file into the .blend (a hidden Text datablock, base64 in lines of 76 characters:
+    Blender has no packed-file slot for arbitrary files).  Returns ``(text name, bytes packed)``; raises
+    :class:`CacheError` when the cache is not on this machine."""
+    import base64
+
+    from ..translucency_addon.errors import CacheError
+
+    path, _note = find_cache(obj)
+    if not path or not os.path.isfile(path):
+        raise CacheError(missing_message(obj, path) if path else f"'{obj.name}' is not baked yet: press Bake first")
+    with open(path, "rb") as fh:
+        data = fh.read()
+    unpack_cache(obj)
+    text = bpy.data.texts.new(PACKED_PREFIX + os.path.basename(path))
+    text.from_string(base64.encodebytes(data).decode("ascii"))
+    text.use_fake_user = True
+    obj.translucency.packed_cache = text.name
+    return text.name, len(data)
+
+
+def unpack_cache(obj) -> bool:
+    """Remove the object's packed cache from the .blend (the cache file is not touched)."""
+    text = packed_text(obj)
+    obj.translucency.packed_cache = ""
+    if text is None:
+        return False
+    bpy.data.texts.remove(text)
+    return True
+
+
+def _from_packed(obj) -> str:
+    """The packed cache written to this machine's temporary folder (once per content), or '' when not packed.
+
+    A worker rendering a single .blend has no cache folder; the temporary folder is where a render may write.
+    The bytes are checked like any cache file when they load (format, key, ``allow_pickle=False``)."""
+    import base64
+    import hashlib
+
+    text = packed_text(obj)
+    if text is None:
+        return ""
+    data = base64.decodebytes(text.as_string().encode("ascii"))
+    folder = os.path.join(tempfile.gettempdir(), "translucency_packed")
+    os.makedirs(folder, exist_ok=True)
+    path = os.path.join(folder, hashlib.sha1(data).hexdigest()[:16] + "_" + text.name[len(PACKED_PREFIX):])
+    if not os.path.isfile(path) or os.path.getsize(path) != len(data):
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".npz", dir=folder)
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    return path
 
 
 def unwritable(directory: str) -> str:

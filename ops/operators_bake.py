@@ -255,6 +255,9 @@ class BakeJob:
             messages = [('INFO', f"Baked '{obj.name}' in {self.seconds:.1f} s: {done.bake_stats}"
                          + (f"; single scattering: {done.ss_bake_stats}" if ss is not None else ""))]
         messages += [('WARNING', f"'{obj.name}': {w}") for w in warnings]
+        if s.packed_cache:  # the packed copy follows the bake
+            name, size = cache_files.pack_cache(obj)
+            messages.append(('INFO', f"'{obj.name}': the new cache is packed into the .blend ({size / 2**20:.1f} MiB)"))
         try:
             report = runtime.solve_object(obj, context.scene, context.evaluated_depsgraph_get(), force=True)
         except TranslucencyError as ex:
@@ -537,6 +540,7 @@ class TRANSLUCENCY_OT_free_bake(bpy.types.Operator):
         removed_attr = attributes.remove_attribute(obj)
         removed_attr = attributes.remove_attribute(obj, attributes.SS_ATTRIBUTE_NAME) or removed_attr
         had_bake = bool(s.cache_filepath or s.bake_key)
+        cache_files.unpack_cache(obj)
         s.cache_filepath = ""
         s.bake_key = ""
         status.clear_bake_status(obj)
@@ -551,4 +555,43 @@ class TRANSLUCENCY_OT_free_bake(bpy.types.Operator):
         return {'FINISHED'}
 
 
-CLASSES = (TRANSLUCENCY_OT_bake, TRANSLUCENCY_OT_bake_single_scattering, TRANSLUCENCY_OT_free_bake)
+class TRANSLUCENCY_OT_pack_cache(bpy.types.Operator):
+    """Pack the active object's bake cache into the .blend (for render farms that take a single file), or unpack it.
+    The .blend grows by the cache's size x 4/3"""
+
+    bl_idname = "translucency.pack_cache"
+    bl_label = "Pack Cache into .blend"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    unpack: BoolProperty(
+        name="Unpack",
+        description="Remove the packed copy from the .blend (the cache file stays where it is)",
+        default=False,
+    )
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        return obj is not None and obj.type == 'MESH' and state.is_baked(obj)
+
+    def execute(self, context):
+        from ..translucency_addon.errors import TranslucencyError
+
+        obj = context.active_object
+        if self.unpack:
+            removed = cache_files.unpack_cache(obj)
+            self.report({'INFO'}, f"'{obj.name}': " + ("the packed cache was removed from the .blend" if removed
+                                                       else "nothing was packed"))
+            return {'FINISHED'}
+        try:
+            name, size = cache_files.pack_cache(obj)
+        except TranslucencyError as ex:
+            self.report({'ERROR'}, f"Cannot pack the cache of '{obj.name}': {ex}")
+            return {'CANCELLED'}
+        self.report({'INFO'}, f"'{obj.name}': cache packed into the .blend ({size / 2**20:.1f} MiB, Text '{name}'); "
+                              "save the .blend; a worker without the cache folder reads it from there")
+        return {'FINISHED'}
+
+
+CLASSES = (TRANSLUCENCY_OT_bake, TRANSLUCENCY_OT_bake_single_scattering, TRANSLUCENCY_OT_free_bake,
+           TRANSLUCENCY_OT_pack_cache)

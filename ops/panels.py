@@ -150,6 +150,12 @@ def _draw_object_settings(layout, obj, context=None) -> None:
     box = col.box()
     box.label(text="Cache", icon='FILE_CACHE')
     box.prop(settings, "cache_filepath")
+    if settings.packed_cache:
+        row = box.row()
+        row.label(text="Packed into the .blend (render farms that take one file)", icon='PACKAGE')
+        row.operator("translucency.pack_cache", text="", icon='X').unpack = True
+    else:
+        box.operator("translucency.pack_cache", icon='PACKAGE')
 
 
 def _draw_scale(box, obj, context) -> None:

@@ -605,6 +605,14 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         subtype='FILE_PATH',
         options=PATH_OPTIONS,
     )
+    packed_cache: StringProperty(
+        name="Packed Cache",
+        description=(
+            "Name of the hidden Text datablock holding this object's bake cache packed into the .blend (base64), "
+            "for single-file render farms; empty when not packed (written by Pack Cache)"
+        ),
+        default="",
+    )
     bake_key: StringProperty(
         name="Bake Key",
         description="Hash of the baked mesh and bake settings; a cache with another key is stale (written by the bake operator)",

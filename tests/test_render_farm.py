@@ -273,3 +273,34 @@ def test_a_cache_moved_into_the_cache_directory_is_found_by_name(blender, addon,
     found = shot / "translucency_cache" / baked.name
     assert f"the cache of 'Blob' is not at {stored} (the path the .blend stores); using {found}" in out, out
     assert obj.translucency.cache_filepath == stored
+
+
+def test_a_single_file_farm_renders_from_the_cache_packed_into_the_blend(render_pass_module, memo_bakes, tmp_path):
+    """Pack Cache: the .blend alone renders on a worker (the cache comes out of the .blend into the temporary
+    folder, checked like any cache file), with the radiance this process solves for the same frame."""
+    from translucency.ops import attributes, runtime
+
+    src = _shot(tmp_path, render_pass_module)
+    obj = bpy.data.objects["Blob"]
+    size = os.path.getsize(next((src / "translucency_cache").glob("*.npz")))
+    assert bpy.ops.translucency.pack_cache() == {'FINISHED'}
+    text = bpy.data.texts[obj.translucency.packed_cache]
+    assert text.name.startswith(".translucency_cache Blob_") and text.use_fake_user
+    bpy.ops.wm.save_mainfile()
+    single = tmp_path / "single_file"
+    single.mkdir()
+    shutil.copy(src / "shot.blend", single / "shot.blend")
+    log = _run(single / "shot.blend", 5, 5, tmp_path / "out_packed")
+    assert "WORKER DONE" in log and "using the cache of 'Blob' packed into the .blend" in log, log[-3000:]
+    assert sorted(p.name for p in single.iterdir()) == ["shot.blend"]
+    worker = np.load(tmp_path / "out_packed" / "radiance_0005.npy")
+    scene = bpy.context.scene
+    scene.frame_set(5)
+    runtime.solve_object(obj, scene, use_camera=True, force=True)
+    np.testing.assert_allclose(worker, attributes.read_radiance(obj), rtol=1e-5, atol=1e-7 * worker.max())
+    assert _passes(tmp_path / "out_packed", [5])[5].max() > 0
+    # Unpack: the Text is gone, the cache file stays.
+    assert bpy.ops.translucency.pack_cache(unpack=True) == {'FINISHED'}
+    assert obj.translucency.packed_cache == ""
+    assert not [t for t in bpy.data.texts if t.name.startswith(".translucency_cache")]
+    assert os.path.getsize(next((src / "translucency_cache").glob("*.npz"))) == size
