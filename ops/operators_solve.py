@@ -95,7 +95,8 @@ def _nothing_to_solve(scene) -> str:
     disabled = [ob.name for ob in meshes if not ob.translucency.enabled and state.is_baked(ob)]
     parts = [f"{len(meshes)} mesh objects in the scene, {len(enabled)} with Translucency enabled"]
     if unbaked:
-        parts.append(f"not baked: {', '.join(unbaked[:5])}{' ...' if len(unbaked) > 5 else ''} (select one, press Bake)")
+        more = " ..." if len(unbaked) > 5 else ""
+        parts.append(f"not baked: {', '.join(unbaked[:5])}{more} (select one, press Bake)")
     if disabled:
         parts.append(f"baked but disabled: {', '.join(disabled[:5])} (turn on Enabled)")
     if not enabled and not disabled:

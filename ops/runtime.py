@@ -102,7 +102,8 @@ class SolveReport:
         if self.vnm_backend:
             parts.append(f"Voxel Number Map {1000 * self.vnm_seconds:.1f} ms on the {self.vnm_backend}")
         if not parts:
-            parts.append("diffusion turned off; nothing else to evaluate")
+            parts.append("diffusion turned off and no other pass baked or on, so nothing was evaluated (turn "
+                         "Multiple Scattering back on, or bake Single Scattering and turn it on)")
         if self.deformed:
             parts.append(self.deformed[0].lower() + self.deformed[1:])
         return f"'{self.name}' " + "; ".join(parts)
