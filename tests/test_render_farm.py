@@ -304,3 +304,32 @@ def test_a_single_file_farm_renders_from_the_cache_packed_into_the_blend(render_
     assert obj.translucency.packed_cache == ""
     assert not [t for t in bpy.data.texts if t.name.startswith(".translucency_cache")]
     assert os.path.getsize(next((src / "translucency_cache").glob("*.npz"))) == size
+
+
+def test_a_stale_cache_in_a_render_is_named_and_never_rendered(render_pass_module, memo_bakes, tmp_path, capfd):
+    """A cache file that holds another bake than the object's (same name, another key: a folder copied from an
+    older version of the shot): the render names it and renders without the pass, never the stale values.
+    (In-process with "Render Without": "Fail the Frame" would end this test process.)"""
+    from translucency.ops import state
+
+    src = _shot(tmp_path, render_pass_module)
+    scene = bpy.context.scene
+    obj = bpy.data.objects["Blob"]
+    (npz,) = (src / "translucency_cache").glob("*.npz")
+    with np.load(npz, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(arrays["meta"].tobytes())
+    meta["key"] = "0" * 64
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(npz, **arrays)
+    before = _snapshot(src)
+    state.clear()
+    scene.translucency.missing_cache_in_render = 'SKIP'
+    scene.render.filepath = str(tmp_path / "stale_")
+    capfd.readouterr()
+    scene.frame_set(5)
+    bpy.ops.render.render(write_still=True)
+    out = capfd.readouterr().out
+    assert "frame 5: 'Blob' renders WITHOUT its Translucency pass: bake cache" in out and "is stale" in out, out
+    assert obj.data.attributes.get("translucency_radiance") is None
+    assert _snapshot(src) == before
