@@ -304,6 +304,16 @@ def test_a_single_file_farm_renders_from_the_cache_packed_into_the_blend(render_
     assert obj.translucency.packed_cache == ""
     assert not [t for t in bpy.data.texts if t.name.startswith(".translucency_cache")]
     assert os.path.getsize(next((src / "translucency_cache").glob("*.npz"))) == size
+    # A re-bake re-packs the new cache; Free Bake removes the packed copy with the bake.
+    assert bpy.ops.translucency.pack_cache() == {'FINISHED'}
+    old_key = obj.translucency.bake_key
+    assert bpy.ops.translucency.bake(base_triangles=160) == {'FINISHED'}  # another graph, another key
+    assert obj.translucency.bake_key != old_key
+    (packed,) = [t for t in bpy.data.texts if t.name.startswith(".translucency_cache")]
+    assert packed.name == obj.translucency.packed_cache and obj.translucency.bake_key[:16] in packed.name
+    assert bpy.ops.translucency.free_bake() == {'FINISHED'}
+    assert not [t for t in bpy.data.texts if t.name.startswith(".translucency_cache")]
+    assert obj.translucency.packed_cache == ""
 
 
 def test_a_stale_cache_in_a_render_is_named_and_never_rendered(render_pass_module, memo_bakes, tmp_path, capfd):
