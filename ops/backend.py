@@ -99,7 +99,9 @@ def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "f
     except Exception as ex:  # noqa: BLE001 - a missing or broken GPU layer
         return Placement("CPU", f"the {kind} GPU layer is not available ({type(ex).__name__}: {ex}); using the CPU")
     if not ok:
-        return Placement("CPU", f"the GPU cannot run {kind} ({why}); using the CPU")
+        return Placement("CPU", f"the GPU cannot run {kind} ({why}); using the CPU (the GPU needs Blender with a "
+                                "display or an EGL device; set Scene > Translucency > Solver to CPU to choose the "
+                                "CPU yourself)")
     if kind in SOFTWARE_SLOWER and prefer == "AUTO":
         from ..gpu_shaders.single_scattering import SOFTWARE_RENDERERS
 

@@ -3,6 +3,14 @@
 
 A render farm shares the folder: paths are stored blend-relative when the
 .blend is saved; an unsaved .blend uses the temporary folder and says so.
+Every worker finds the cache through the stored path or, when that is not
+there, from the copy packed into the .blend (:func:`pack_cache`, for
+single-file farms), or by its file name in the scene's Cache Directory (a
+cache baked before the .blend was saved where it is now; :func:`find_cache`).  A render only
+reads caches; a missing one raises :class:`CacheError` naming the file, the
+stored path and what to copy (:func:`missing_message`); the render's policy
+is the scene's ``missing_cache_in_render`` (``handlers``).  A bake refuses a
+directory it cannot write (:func:`unwritable`) before it starts.
 
 Staleness tells a **pose** from a change: an evaluated mesh with the baked
 vertices and polygons at other positions (an armature, shape keys, a lattice,
@@ -58,6 +66,124 @@ def resolve_cache_path(obj) -> str:
     return os.path.normpath(bpy.path.abspath(path)) if path else ""
 
 
+def find_cache(obj) -> tuple[str, str]:
+    """``(path, note)``: the object's cache file on this machine.
+
+    The stored path when the file is there; otherwise the same file name in a
+    scene's Cache Directory (the .blend and its cache folder copied together,
+    a cache baked while the .blend was unsaved or saved elsewhere), with a
+    ``note`` saying where it was found; otherwise the stored path (which then
+    does not exist) and no note.  The file's key is checked when it loads.
+    """
+    path = resolve_cache_path(obj)
+    if path and not os.path.exists(path) and packed_text(obj) is not None:
+        return _from_packed(obj), f"using the cache of '{obj.name}' packed into the .blend ({path} is not here)"
+    if not path or os.path.exists(path):
+        return path, ""
+    name = os.path.basename(path)
+    for scene in [bpy.context.scene] + list(bpy.data.scenes):
+        if scene is None or not hasattr(scene, "translucency"):
+            continue
+        directory, unsaved = cache_directory(scene)
+        candidate = os.path.join(directory, name)
+        if unsaved is None and os.path.exists(candidate):
+            return candidate, (f"the cache of '{obj.name}' is not at {path} (the path the .blend stores); "
+                               f"using {candidate} from the scene's Cache Directory")
+    return path, ""
+
+
+def missing_message(obj, path: str) -> str:
+    """Why a render or solve on this machine has no cache for ``obj``, and what to copy."""
+    stored = obj.translucency.cache_filepath
+    where = (f"the .blend stores '{stored}', relative to the .blend in "
+             f"{os.path.dirname(bpy.data.filepath) or '(unsaved)'}" if stored.startswith("//")
+             else f"the .blend stores the absolute path '{stored}'")
+    return (f"the bake cache of '{obj.name}' is not on this machine: {path} does not exist ({where}). "
+            "Copy the cache folder together with the .blend (README, Render farms), or bake again here; "
+            "a render never bakes")
+
+
+PACKED_PREFIX = ".translucency_cache "  # a hidden Text datablock per packed cache (leading dot: hidden)
+
+
+def packed_text(obj):
+    """The Text datablock holding ``obj``'s packed cache, or None."""
+    name = obj.translucency.packed_cache
+    return bpy.data.texts.get(name) if name else None
+
+
+def pack_cache(obj) -> tuple[str, int]:
+    """Pack the object's cache file into the .blend (a hidden Text datablock, base64 in lines of 76 characters:
+    Blender has no packed-file slot for arbitrary files).  Returns ``(text name, bytes packed)``; raises
+    :class:`CacheError` when the cache is not on this machine."""
+    import base64
+
+    from ..translucency_addon.errors import CacheError
+
+    path, _note = find_cache(obj)
+    if not path or not os.path.isfile(path):
+        raise CacheError(missing_message(obj, path) if path else f"'{obj.name}' is not baked yet: press Bake first")
+    with open(path, "rb") as fh:
+        data = fh.read()
+    unpack_cache(obj)
+    text = bpy.data.texts.new(PACKED_PREFIX + os.path.basename(path))
+    text.from_string(base64.encodebytes(data).decode("ascii"))
+    text.use_fake_user = True
+    obj.translucency.packed_cache = text.name
+    return text.name, len(data)
+
+
+def unpack_cache(obj) -> bool:
+    """Remove the object's packed cache from the .blend (the cache file is not touched)."""
+    text = packed_text(obj)
+    obj.translucency.packed_cache = ""
+    if text is None:
+        return False
+    bpy.data.texts.remove(text)
+    return True
+
+
+def _from_packed(obj) -> str:
+    """The packed cache written to this machine's temporary folder (once per content), or '' when not packed.
+
+    A worker rendering a single .blend has no cache folder; the temporary folder is where a render may write.
+    The bytes are checked like any cache file when they load (format, key, ``allow_pickle=False``)."""
+    import base64
+    import hashlib
+
+    text = packed_text(obj)
+    if text is None:
+        return ""
+    data = base64.decodebytes(text.as_string().encode("ascii"))
+    folder = os.path.join(tempfile.gettempdir(), "translucency_packed")
+    os.makedirs(folder, exist_ok=True)
+    path = os.path.join(folder, hashlib.sha1(data).hexdigest()[:16] + "_" + text.name[len(PACKED_PREFIX):])
+    if not os.path.isfile(path) or os.path.getsize(path) != len(data):
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".npz", dir=folder)
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    return path
+
+
+def unwritable(directory: str) -> str:
+    """Why a bake cannot write into ``directory`` ('' when it can): it, or the nearest existing folder
+    above it that would hold it, is read-only for this user (file permissions or a read-only mount)."""
+    probe = os.path.abspath(directory)
+    while not os.path.isdir(probe):
+        parent = os.path.dirname(probe)
+        if parent == probe:
+            break
+        probe = parent
+    if os.access(probe, os.W_OK | os.X_OK):
+        return ""
+    what = (f"the cache directory {directory} is read-only" if probe == os.path.abspath(directory) else
+            f"{probe} is read-only, so the cache directory {directory} cannot be created there")
+    return (f"cannot write the bake cache: {what} for this user. Choose a writable Cache Directory "
+            "(Scene > Translucency > Cache Directory; // means next to the .blend) or make it writable, then "
+            "bake again; nothing was written")
+
+
 def ensure_state(obj, retry: bool = False) -> ObjectState:
     """The object's state, loading its bake from the cache file when needed.
 
@@ -74,7 +200,7 @@ def ensure_state(obj, retry: bool = False) -> ObjectState:
             return st
         drop_state(obj.name)
         settings = obj.translucency
-        path = resolve_cache_path(obj)
+        path, found_note = find_cache(obj)
         if not path or not settings.bake_key:
             raise CacheError(f"'{obj.name}' is not baked yet: press Bake in the Translucency panel")
         try:
@@ -86,6 +212,8 @@ def ensure_state(obj, retry: bool = False) -> ObjectState:
         if failed is not None and failed[0] == inputs and not retry:
             raise CacheError(failed[1])
         try:
+            if mtime is None:
+                raise CacheError(missing_message(obj, path))
             bake = load_bake(path, expected_key=settings.bake_key)
         except CacheError as ex:
             _FAILED[obj.name] = (inputs, str(ex))
@@ -95,6 +223,8 @@ def ensure_state(obj, retry: bool = False) -> ObjectState:
         CACHE_STATUS.pop(obj.name, None)
         st = ObjectState(name=obj.name, key=bake.key, cache_path=path, bake=bake)
         _STATES[obj.name] = st
+        if found_note:
+            log(f"'{obj.name}': {found_note}")
         log(f"loaded the bake of '{obj.name}' from {path}")
         return st
 
@@ -108,9 +238,11 @@ def check_cache(obj, depsgraph=None) -> str:
     from ..translucency_addon.errors import TranslucencyError
 
     settings = obj.translucency
-    path = resolve_cache_path(obj)
+    path, _note = find_cache(obj)
     if not path:
         return "Not baked"
+    if not os.path.exists(path):
+        return f"Cache problem: {missing_message(obj, path)}"
     try:
         meta = read_meta(path)
     except TranslucencyError as ex:

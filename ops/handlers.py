@@ -25,6 +25,12 @@
   nothing else here: each solve compares the evaluated mesh with the bake
   (``cache_files``) and solves a pose on the deformed graph
   (``deformation``), or reports a change of topology.
+* a render (any of the above) never bakes and never writes a cache: an object
+  whose cache is missing, stale, unreadable or from another version of the
+  extension loses its radiance attribute for the frame, and the scene's
+  ``missing_cache_in_render`` decides: ``FAIL`` stops a background render
+  with exit code 1 and the reason (a farm marks the frame failed), ``SKIP``
+  renders it without the pass (:func:`_render_without_cache`).
 * ``render_init``/``render_pre``/``render_post``/``render_cancel``/
   ``render_complete``: track whether a render is running (for the log).
 * ``load_post``: drop all runtime state (GPU memory too), move the status a
@@ -54,7 +60,7 @@ from __future__ import annotations
 import bpy
 from bpy.app.handlers import persistent
 
-from . import cache_files, live, runtime, state, status
+from . import attributes, cache_files, live, runtime, state, status
 
 _MARK = "_translucency_handler"
 
@@ -109,13 +115,53 @@ def on_frame_change_post(scene, depsgraph=None):
     rendering = depsgraph is not None and getattr(depsgraph, "mode", "VIEWPORT") == 'RENDER'
     if not rendering and not scene.translucency.live_update:
         return
-    reports = runtime.solve_scene(scene, depsgraph, use_camera=rendering, playback=not rendering and status.playing())
+    failed = []
+    reports = runtime.solve_scene(scene, depsgraph, use_camera=rendering, playback=not rendering and status.playing(),
+                                  failed=failed)
     if rendering:
         for r in reports:
             state.log(f"frame {scene.frame_current}: {r.describe()}, view towards the camera")
+        cache_problems = [(name, message) for name, message, cache in failed if cache]
+        if cache_problems:
+            _render_without_cache(scene, cache_problems)
     else:
         live.announce_fluids(reports)
     live.report_info()
+
+
+FARM_EXIT_CODE = 1  # a background render stopped by a missing or unusable cache (render farms read it)
+
+
+def _render_without_cache(scene, problems: list[tuple[str, str]]) -> None:
+    """A render found no usable cache for some objects (a farm worker without the cache folder).
+
+    Nothing is baked here.  Each object's radiance attribute is removed, so the frame can never carry the
+    values the .blend was saved with (another frame's).  ``missing_cache_in_render``: ``FAIL`` (default)
+    stops a background render (``blender -b``, the bpy module) with :data:`FARM_EXIT_CODE` before the frame
+    is written, so Flamenco or Deadline marks the frame failed, with the reason as the last lines of the
+    log; in the UI (where a render cannot be stopped from here) and with ``SKIP`` the frame renders without
+    the objects' pass and the log says so.
+    """
+    import os
+    import sys
+
+    frame = scene.frame_current
+    for name, _message in problems:
+        obj = bpy.data.objects.get(name)
+        if obj is not None and obj.type == 'MESH':
+            attributes.remove_attribute(obj)
+            attributes.remove_attribute(obj, attributes.SS_ATTRIBUTE_NAME)
+    reasons = "; ".join(f"'{name}': {message}" for name, message in problems)
+    if scene.translucency.missing_cache_in_render == 'FAIL' and bpy.app.background:
+        text = (f"Translucency: frame {frame} FAILED, the render stops with exit code {FARM_EXIT_CODE} and writes "
+                f"no image: {reasons}. (Scene > Translucency > Cache Missing in Render = 'Render Without' renders "
+                "such frames without the pass instead.)")
+        for stream in (sys.stdout, sys.stderr):
+            print(text, file=stream, flush=True)
+        os._exit(FARM_EXIT_CODE)  # a handler cannot cancel a render; SystemExit would be printed and ignored
+    for name, message in problems:
+        state.log(f"frame {frame}: '{name}' renders WITHOUT its Translucency pass: {message}",
+                  once_key=("render-without", name, message, frame))
 
 
 @persistent

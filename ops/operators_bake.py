@@ -255,6 +255,9 @@ class BakeJob:
             messages = [('INFO', f"Baked '{obj.name}' in {self.seconds:.1f} s: {done.bake_stats}"
                          + (f"; single scattering: {done.ss_bake_stats}" if ss is not None else ""))]
         messages += [('WARNING', f"'{obj.name}': {w}") for w in warnings]
+        if s.packed_cache:  # the packed copy follows the bake
+            name, size = cache_files.pack_cache(obj)
+            messages.append(('INFO', f"'{obj.name}': the new cache is packed into the .blend ({size / 2**20:.1f} MiB)"))
         try:
             report = runtime.solve_object(obj, context.scene, context.evaluated_depsgraph_get(), force=True)
         except TranslucencyError as ex:
@@ -291,6 +294,15 @@ def _ss_inputs(obj, depsgraph, V, graph_key: str, mm: float, parts: bool = False
     return SSJobInputs(settings, material, field, field_fp, key, extra)
 
 
+def _check_writable(directory: str) -> None:
+    """Refuse, before any work, a cache directory this machine cannot write (a read-only farm share)."""
+    from ..translucency_addon.errors import CacheError
+
+    problem = cache_files.unwritable(directory)
+    if problem:
+        raise CacheError(problem)
+
+
 def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
     """Gather the bake's inputs on the main thread (raises ``TranslucencyError``)."""
     from ..translucency_addon import bake as bake_mod
@@ -312,6 +324,7 @@ def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
     if ss is not None:
         key = ss.key
     directory, note = cache_files.cache_directory(scene)
+    _check_writable(directory)
     final = os.path.join(directory, cache_files.cache_file_name(obj.name, key))
     notes = [w for w in (scale_warning, note) if w]
     return BakeJob(obj.name, V, F, settings, final, notes, ss=ss, composite=composite)
@@ -341,6 +354,7 @@ def prepare_ss_job(context, obj) -> BakeJob:
         composite = inner_parts.bake_inputs(obj, depsgraph, V, F, base.settings)
     ss = _ss_inputs(obj, depsgraph, V, graph_key(base), mm, parts=composite is not None)
     directory, note = cache_files.cache_directory(scene)
+    _check_writable(directory)
     final = os.path.join(directory, cache_files.cache_file_name(obj.name, ss.key))
     notes = [w for w in (scale_warning, note) if w]
     return BakeJob(obj.name, V, F, base.settings, final, notes, ss=ss, base_bake=base, composite=composite)
@@ -526,6 +540,7 @@ class TRANSLUCENCY_OT_free_bake(bpy.types.Operator):
         removed_attr = attributes.remove_attribute(obj)
         removed_attr = attributes.remove_attribute(obj, attributes.SS_ATTRIBUTE_NAME) or removed_attr
         had_bake = bool(s.cache_filepath or s.bake_key)
+        cache_files.unpack_cache(obj)
         s.cache_filepath = ""
         s.bake_key = ""
         status.clear_bake_status(obj)
@@ -540,4 +555,43 @@ class TRANSLUCENCY_OT_free_bake(bpy.types.Operator):
         return {'FINISHED'}
 
 
-CLASSES = (TRANSLUCENCY_OT_bake, TRANSLUCENCY_OT_bake_single_scattering, TRANSLUCENCY_OT_free_bake)
+class TRANSLUCENCY_OT_pack_cache(bpy.types.Operator):
+    """Pack the active object's bake cache into the .blend (for render farms that take a single file), or unpack it.
+    The .blend grows by the cache's size x 4/3"""
+
+    bl_idname = "translucency.pack_cache"
+    bl_label = "Pack Cache into .blend"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    unpack: BoolProperty(
+        name="Unpack",
+        description="Remove the packed copy from the .blend (the cache file stays where it is)",
+        default=False,
+    )
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.active_object
+        return obj is not None and obj.type == 'MESH' and state.is_baked(obj)
+
+    def execute(self, context):
+        from ..translucency_addon.errors import TranslucencyError
+
+        obj = context.active_object
+        if self.unpack:
+            removed = cache_files.unpack_cache(obj)
+            self.report({'INFO'}, f"'{obj.name}': " + ("the packed cache was removed from the .blend" if removed
+                                                       else "nothing was packed"))
+            return {'FINISHED'}
+        try:
+            name, size = cache_files.pack_cache(obj)
+        except TranslucencyError as ex:
+            self.report({'ERROR'}, f"Cannot pack the cache of '{obj.name}': {ex}")
+            return {'CANCELLED'}
+        self.report({'INFO'}, f"'{obj.name}': cache packed into the .blend ({size / 2**20:.1f} MiB, Text '{name}'); "
+                              "save the .blend; a worker without the cache folder reads it from there")
+        return {'FINISHED'}
+
+
+CLASSES = (TRANSLUCENCY_OT_bake, TRANSLUCENCY_OT_bake_single_scattering, TRANSLUCENCY_OT_free_bake,
+           TRANSLUCENCY_OT_pack_cache)

@@ -57,7 +57,7 @@ class TRANSLUCENCY_OT_solve(bpy.types.Operator):
         else:
             objects = [context.active_object]
         if not objects:
-            self.report({'WARNING'}, "No enabled, baked object or fluid to solve")
+            self.report({'WARNING'}, _nothing_to_solve(scene))
             return {'CANCELLED'}
         depsgraph = context.evaluated_depsgraph_get()
         failed = 0
@@ -85,6 +85,23 @@ class TRANSLUCENCY_OT_solve(bpy.types.Operator):
             for warning in (st.warnings if st is not None else ()):
                 self.report({'WARNING'}, f"'{obj.name}': {warning}")
         return {'CANCELLED'} if failed == len(objects) else {'FINISHED'}
+
+
+def _nothing_to_solve(scene) -> str:
+    """Why Solve All found nothing, in counts, and what to change."""
+    meshes = [ob for ob in scene.objects if ob.type == 'MESH' and hasattr(ob, "translucency")]
+    enabled = [ob for ob in meshes if ob.translucency.enabled]
+    unbaked = [ob.name for ob in enabled if not state.is_baked(ob) and not state.is_fluid(ob)]
+    disabled = [ob.name for ob in meshes if not ob.translucency.enabled and state.is_baked(ob)]
+    parts = [f"{len(meshes)} mesh objects in the scene, {len(enabled)} with Translucency enabled"]
+    if unbaked:
+        more = " ..." if len(unbaked) > 5 else ""
+        parts.append(f"not baked: {', '.join(unbaked[:5])}{more} (select one, press Bake)")
+    if disabled:
+        parts.append(f"baked but disabled: {', '.join(disabled[:5])} (turn on Enabled)")
+    if not enabled and not disabled:
+        parts.append("turn on Enabled in a mesh's Translucency panel and press Bake, or set its Source to Fluid")
+    return "No enabled, baked object or fluid to solve: " + "; ".join(parts)
 
 
 class TRANSLUCENCY_OT_report(bpy.types.Operator):

@@ -150,6 +150,12 @@ def _draw_object_settings(layout, obj, context=None) -> None:
     box = col.box()
     box.label(text="Cache", icon='FILE_CACHE')
     box.prop(settings, "cache_filepath")
+    if settings.packed_cache:
+        row = box.row()
+        row.label(text="Packed into the .blend (render farms that take one file)", icon='PACKAGE')
+        row.operator("translucency.pack_cache", text="", icon='X').unpack = True
+    else:
+        box.operator("translucency.pack_cache", icon='PACKAGE')
 
 
 def _draw_scale(box, obj, context) -> None:
@@ -290,6 +296,7 @@ def _draw_scene_settings(layout, scene, overlay_drawn: bool = False) -> None:
     box = layout.box()
     box.label(text="Scene", icon='SCENE_DATA')
     box.prop(settings, "cache_directory")
+    box.prop(settings, "missing_cache_in_render")
     box.prop(settings, "solver_backend")
     box.prop(settings, "tolerance")
     box.prop(settings, "live_update")

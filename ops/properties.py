@@ -605,6 +605,14 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         subtype='FILE_PATH',
         options=PATH_OPTIONS,
     )
+    packed_cache: StringProperty(
+        name="Packed Cache",
+        description=(
+            "Name of the hidden Text datablock holding this object's bake cache packed into the .blend (base64), "
+            "for single-file render farms; empty when not packed (written by Pack Cache)"
+        ),
+        default="",
+    )
     bake_key: StringProperty(
         name="Bake Key",
         description="Hash of the baked mesh and bake settings; a cache with another key is stale (written by the bake operator)",
@@ -671,6 +679,22 @@ class TranslucencySceneSettings(bpy.types.PropertyGroup):
             "changes, and on every frame change (renders always re-solve)"
         ),
         default=True,
+    )
+    missing_cache_in_render: EnumProperty(
+        name="Cache Missing in Render",
+        description=(
+            "What a render does when an object's bake cache is missing, stale, unreadable or from another "
+            "version of the extension (a render farm worker without the cache folder); renders never bake"
+        ),
+        items=(
+            ("FAIL", "Fail the Frame",
+             "Background renders (blender -b, render farms) stop with exit code 1 and the reason, so the farm "
+             "marks the frame failed; in the UI the object renders without its pass and the error is shown"),
+            ("SKIP", "Render Without",
+             "Render the frame without the object's Translucency pass (its attribute is removed, never a stale "
+             "frame's), and log why"),
+        ),
+        default="FAIL",
     )
 
 

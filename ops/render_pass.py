@@ -291,7 +291,8 @@ class TRANSLUCENCY_OT_add_to_material(bpy.types.Operator):
         passes = AOV_NAME + (f" and {SS_AOV_NAME}" if single else "")
         self.report({'INFO'}, f"{passes} pass added to {len(materials)} material(s)")
         if obj.data.attributes.get(ATTRIBUTE) is None and carrier_modifier(obj) is None:
-            self.report({'WARNING'}, f"'{obj.name}' has no solved radiance yet: the pass stays black until a solve")
+            self.report({'WARNING'}, f"'{obj.name}' has no solved radiance yet: the pass stays black until a "
+                                          "solve (press Solve; renders solve every frame of a baked object)")
         return {'FINISHED'}
 
 

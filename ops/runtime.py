@@ -102,7 +102,8 @@ class SolveReport:
         if self.vnm_backend:
             parts.append(f"Voxel Number Map {1000 * self.vnm_seconds:.1f} ms on the {self.vnm_backend}")
         if not parts:
-            parts.append("diffusion turned off; nothing else to evaluate")
+            parts.append("diffusion turned off and no other pass baked or on, so nothing was evaluated (turn "
+                         "Multiple Scattering back on, or bake Single Scattering and turn it on)")
         if self.deformed:
             parts.append(self.deformed[0].lower() + self.deformed[1:])
         return f"'{self.name}' " + "; ".join(parts)
@@ -488,15 +489,18 @@ def _report(st: state.ObjectState, frame: FrameInputs, ms: Diffusion) -> SolveRe
 
 
 def solve_scene(scene=None, depsgraph=None, *, use_camera: bool = False, force: bool = False,
-                playback: bool = False) -> list:
+                playback: bool = False, failed: list | None = None) -> list:
     """Solve every enabled, baked object and every enabled fluid of ``scene``; errors are logged, never raised.
 
     ``playback``: the viewport is playing the animation; a fluid whose last frame took longer than
     :data:`.status.FLUID_LIVE_BUDGET` is not solved now but reported ``deferred`` (the caller leaves it to
     the throttled live check, so playback does not wait for it).  Returns the :class:`SolveReport` (or
     :class:`.fluid_runtime.FluidReport`) of every object that was (re-)solved or deferred.
+    ``failed``: a list that receives ``(object name, message, cache problem?)`` for every object whose
+    solve raised (a cache problem: :class:`CacheError`, missing, stale, unreadable, another version's),
+    for the render's policy (``handlers``).
     """
-    from ..translucency_addon.errors import TranslucencyError
+    from ..translucency_addon.errors import CacheError, TranslucencyError
 
     scene = scene or bpy.context.scene
     if depsgraph is None:
@@ -511,9 +515,13 @@ def solve_scene(scene=None, depsgraph=None, *, use_camera: bool = False, force: 
             report = solve_object(obj, scene, depsgraph, use_camera=use_camera, force=force)
         except TranslucencyError as ex:
             _report_error(obj, str(ex))
+            if failed is not None:
+                failed.append((obj.name, str(ex), isinstance(ex, CacheError)))
             continue
         except Exception as ex:  # noqa: BLE001 - a handler must never raise into Blender
             _report_error(obj, f"{type(ex).__name__}: {ex}", tb=traceback.format_exc())
+            if failed is not None:
+                failed.append((obj.name, f"{type(ex).__name__}: {ex}", False))
             continue
         if report is not None:
             reports.append(report)

@@ -157,11 +157,13 @@ def test_cache_errors(tmp_path):
     # wrong version
     arrays = cache.bake_to_arrays(bake)
     meta = json.loads(arrays["meta"].tobytes())
-    meta["format"] = 999
+    assert meta["extension_version"] == cache.__version__  # who wrote it
+    meta["format"], meta["extension_version"] = 999, "9.9.9"  # a cache from another version of the extension
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     wrong = tmp_path / "wrong.npz"
     np.savez(wrong, **arrays)
-    with pytest.raises(CacheError, match="format version 999"):
+    with pytest.raises(CacheError, match=r"format version 999, written by Translucency 9\.9\.9; this version "
+                                         r"\(Translucency 0\.1\.0\) reads 1, 2\. Install the same extension version"):
         cache.load_bake(wrong)
     # a pickled object array is refused, never executed
     arrays = cache.bake_to_arrays(bake)

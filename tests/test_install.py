@@ -51,8 +51,27 @@ def extension_zip(tmp_path_factory):
         capture_output=True, text=True, timeout=1800, cwd=ROOT)
     assert proc.returncode == 0, f"build failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
     summary = json.loads(summary_path.read_text())
-    assert len(summary["zips"]) == 1
-    return Path(summary["zips"][0]), summary
+    # The default build: one zip per platform (the extensions platform's format), each for both Pythons.
+    zips = {Path(z).name: Path(z) for z in summary["zips"]}
+    assert sorted(zips) == sorted(f"translucency-{_version()}-{p.replace('-', '_')}.zip" for p in summary["platforms"])
+    for name, path in zips.items():
+        with zipfile.ZipFile(path) as zf:
+            manifest = _manifest(zf)
+        platform = name.rsplit("-", 1)[1].removesuffix(".zip").replace("_", "-")
+        assert manifest["platforms"] == [platform], (name, manifest["platforms"])
+        assert all(w.removeprefix("./wheels/") in summary["wheels"][platform] for w in manifest["wheels"]), name
+    return zips[f"translucency-{_version()}-linux_x64.zip"], summary
+
+
+def _manifest(zf) -> dict:
+    """The zip's manifest as Blender reads it: a split build writes each zip's own ``platforms`` and ``wheels``
+    into ``[build.generated]``, which override the source manifest's."""
+    manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
+    return {**manifest, **manifest.get("build", {}).get("generated", {})}
+
+
+def _version() -> str:
+    return tomllib.loads((ROOT / "blender_manifest.toml").read_text())["version"]
 
 
 def test_zip_validates_and_holds_only_the_extension(extension_zip):
@@ -62,7 +81,7 @@ def test_zip_validates_and_holds_only_the_extension(extension_zip):
     assert proc.returncode == 0, proc.stdout + proc.stderr
     with zipfile.ZipFile(zip_path) as zf:
         names = zf.namelist()
-        manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
+        manifest = _manifest(zf)
     top = {name.split("/", 1)[0] for name in names}
     assert top <= EXPECTED_TOP_LEVEL | {"gpu_shaders"}, top - EXPECTED_TOP_LEVEL
     assert EXPECTED_TOP_LEVEL <= top
@@ -74,7 +93,7 @@ def test_zip_validates_and_holds_only_the_extension(extension_zip):
     # Blender older than 4.2 has no extension system and refuses this manifest;
     # 4.2+ compares blender_version_min before installing.
     assert tuple(int(x) for x in manifest["blender_version_min"].split(".")) == (4, 2, 0)
-    assert "linux-x64" in manifest["platforms"]
+    assert manifest["platforms"] == ["linux-x64"]
     wheels = [Path(w).name for w in manifest["wheels"]]
     assert sorted("wheels/" + w for w in wheels) == sorted(n for n in names if n.startswith("wheels/") and n != "wheels/")
     assert not [w for w in wheels if w.startswith("numpy-")], "numpy ships with Blender"
@@ -202,8 +221,10 @@ def _bake_solve_render(tmp_path) -> None:
     assert rgb[0, 0].max() == 0.0, "the pass is not zero off the object (the image corner)"
 
 
-def test_install_on_other_blender():
-    """TRANSLUCENCY_BPY=4.5 runs this file again in .venv-bpy45 (bpy 4.5 LTS), likewise 4.2, 5.0, 5.1."""
+def test_install_on_other_blender(extension_zip, tmp_path):
+    """TRANSLUCENCY_BPY=4.5 runs this file again in .venv-bpy45 (bpy 4.5 LTS), likewise 4.2, 5.0, 5.1; then the
+    render-pass and render-farm tests there, with the engine's wheels for that Python (the ones the Linux zip
+    bundles) on PYTHONPATH, never installed into that environment."""
     wanted = os.environ.get("TRANSLUCENCY_BPY", "").strip()
     if not wanted:
         pytest.skip("set TRANSLUCENCY_BPY=4.5 (or another bpy version) to also install into that Blender")
@@ -225,4 +246,19 @@ def test_install_on_other_blender():
                            str(ROOT / "tests" / "test_install.py")],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=1800)
     print(proc.stdout[-3000:])
+    assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-3000:]
+
+    abi = subprocess.run([str(python), "-c", "import sys; print(f'cp{sys.version_info[0]}{sys.version_info[1]}')"],
+                         capture_output=True, text=True, timeout=60).stdout.strip()
+    _zip, summary = extension_zip
+    wheels = [ROOT / "wheels" / w for w in summary["wheels"]["linux-x64"] if f"-{abi}-" in w or _abi3_serves(w, abi)]
+    assert len(wheels) == len(BUNDLED), wheels
+    site = tmp_path / "engine-wheels"
+    unpack = subprocess.run([str(python), "-m", "pip", "install", "-q", "--no-deps", "--disable-pip-version-check",
+                             "--target", str(site), *map(str, wheels)], capture_output=True, text=True, timeout=600)
+    assert unpack.returncode == 0, unpack.stdout + unpack.stderr
+    proc = subprocess.run([str(python), "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                           str(ROOT / "tests" / "test_render_pass.py"), str(ROOT / "tests" / "test_render_farm.py")],
+                          cwd=ROOT, env=dict(env, PYTHONPATH=str(site)), capture_output=True, text=True, timeout=1800)
+    print(proc.stdout[-1500:])
     assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-3000:]

@@ -107,3 +107,19 @@ def test_an_unlit_object_gets_exactly_zero_without_a_solve(blender, cache_dir, m
     assert "unlit" in state.PLANS[obj.name].reason
     L = radiance(obj)
     assert L is not None and np.all(L == 0.0)
+    # The panel's plan says which light misses, by how much, and what to change (issue 19).
+    from translucency.ops import status
+
+    text = status.plan_summary(obj.name)
+    assert "'Away' (spot) is aimed 180 deg away from the object's centre" in text, text
+    assert "Give a light power, aim a spot or area light at the object" in text, text
+
+
+def test_solve_all_with_nothing_baked_says_what_to_do(blender, cache_dir, capfd):
+    obj = sphere()
+    obj.translucency.enabled = True
+    assert bpy.ops.translucency.solve(all_objects=True) == {'CANCELLED'}
+    out = capfd.readouterr()
+    text = out.out + out.err
+    assert ("No enabled, baked object or fluid to solve: 1 mesh objects in the scene, 1 with Translucency enabled; "
+            "not baked: Blob (select one, press Bake)") in text, text

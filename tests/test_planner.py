@@ -158,6 +158,39 @@ def test_cli_plan_prints_reasons(tmp_path):
     assert "diffusion invalid (reduced albedo 0.07" in r.stdout
 
 
+def test_cli_plan_of_ketchup_under_a_sun_says_why_per_channel_and_what_to_change(tmp_path):
+    """Issue 19: the plan of a ketchup ball under a sun names every channel's decision with its numbers (reduced
+    albedo, optical thickness, share of the brightest channel) and says what would make the other pass run;
+    an unlit object says which light fails and how, never a bare 'skipped'."""
+    b = baked("sphere", mm_per_unit=15.0)
+    c = cache.save_bake(tmp_path / "s.npz", b)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+    def plan(*args):
+        r = subprocess.run([sys.executable, "-m", "translucency_addon", "plan", c, "--material", "ketchup", *args],
+                           capture_output=True, text=True, env=env)
+        assert r.returncode == 0, r.stderr
+        return r.stdout
+
+    out = plan("--sun", "0,0,-1:1000")
+    lines = out.splitlines()
+    ms = lines[lines.index("  multiple scattering [R--]") + 1:][:3]
+    assert ms[0].startswith("    R: diffusion valid (reduced albedo 0.747, ") and "transport mean free paths" in ms[0]
+    for line, (C, albedo) in zip(ms[1:], (("G", "0.07"), ("B", "0.02"))):
+        assert line == (f"    {C}: diffusion invalid (reduced albedo {albedo} < 0.5) and it returns < 0.01 % of the "
+                        "brightest channel"), out
+    hint = [line for line in lines if line.startswith("  better: ")]
+    assert hint == ["  better: GB: single scattering would be more accurate on 100 % of the surface (low albedo); "
+                    "bake it to use it (bake single scattering: in Blender turn on Single Scattering and press Bake "
+                    "(or Bake Single Scattering); on the command line, bake --single-scattering --material NAME)"], out
+
+    dark = plan("--sun", "0,0,-1:0")
+    assert dark.splitlines()[0] == (
+        "object: skipped -- unlit: no light reaches it ('sun' (sun) has no power (colour x strength = "
+        "[0.0, 0.0, 0.0]); there is no world light). Give a light power, aim a spot or area light at the object, "
+        "or give the World a colour and strength"), dark
+
+
 # ---------------------------------------------------------------- the path tracer decides
 def _reference(scene):
     sys.path.insert(0, str(ROOT))
@@ -378,6 +411,38 @@ def test_fluid_plan_says_particles_and_validity():
     assert "diffusion doubtful in RGB" in describe_plan(film) and "a particle fluid has no other pass" in \
         describe_plan(film)
     assert "single scattering" not in describe_plan(film)  # no advice to bake what a fluid cannot have
-    assert plan_fluid(ball, 0.5, 1.0, milk, [], None).reason == "unlit: no light reaches it"
+    assert plan_fluid(ball, 0.5, 1.0, milk, [], None).reason == (
+        "unlit: no light reaches it (no lights; there is no world light). Give a light power, aim a spot or area "
+        "light at the object, or give the World a colour and strength")
     off = plan_fluid(ball, 0.5, 1.0, milk, SUN, None, overrides={"multiple": False})
-    assert not off.run and off.reason == "every pass is turned off in the object's settings"
+    assert not off.run and off.reason.startswith("every pass is turned off in the object's settings: turn Multiple "
+                                                 "Scattering")
+
+
+def test_unlit_names_each_light_and_why_in_numbers():
+    """A spot aimed away and a black world: which light misses, by how many degrees, and what to change."""
+    b = baked("sphere", mm_per_unit=15.0)
+    spot = Light("spot", intensity=100.0, position=(0.0, 0.0, 5.0), direction=(0.0, 0.0, 1.0),
+                 spot_size=np.radians(40.0), name="Key")
+    plan = plan_object(b, material_from_preset("marble"), [spot], Environment((0.0, 0.0, 0.0)), name="ball")
+    assert not plan.run
+    assert plan.reason.startswith("unlit: no light reaches it ('Key' (spot) is aimed 180 deg away from the object's "
+                                  "centre; the object covers "), plan.reason
+    assert "its cone's half-angle is 20 deg; the world is black). Give a light power, aim a spot or area light" \
+        in plan.reason, plan.reason
+    assert describe_plan(plan).startswith("ball: skipped -- unlit: ")
+
+
+def test_every_cli_option_says_what_it_does():
+    """``--help`` of every subcommand explains each option (issue 19: messages that explain themselves)."""
+    import argparse
+
+    from translucency_addon.__main__ import build_parser
+
+    parser = build_parser()
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    assert set(sub.choices) == {"bake", "solve", "plan", "fluid"}
+    bare = [f"{name} {action.dest}" for name, command in sub.choices.items() for action in command._actions
+            if not action.help]
+    assert bare == [], f"options without help: {bare}"
+    assert "COMMAND --help" in parser.format_help()

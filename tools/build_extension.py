@@ -14,9 +14,11 @@
    from the wheels' tags (``python_versions`` in the built package is their
    union, so 5.2 no longer refuses it as "isn't compatible with (3.11)") and,
    when it installs, unpacks only the wheels that match its own Python and
-   platform.  The extensions platform accepts such a package;
-   ``--split-platforms`` makes one per platform, each still serving both
-   Pythons.
+   platform.  By default the build writes **one zip per platform** (Blender's
+   ``build --split-platforms``), each still serving both Pythons: what the
+   extensions platform expects, and a quarter of the download.
+   ``--all-platforms-zip`` writes the single zip with every platform's
+   wheels instead (one file for every machine, about four times larger).
 2. Check each wheel's ``Requires-Dist``: nothing may be needed besides numpy.
 3. Rewrite ``platforms`` and ``wheels`` in ``blender_manifest.toml``.
 4. Build the zip with Blender's own ``blender_ext.py build`` (it ships inside
@@ -25,7 +27,8 @@
 
 Usage::
 
-    .venv/bin/python tools/build_extension.py                  # all platforms -> dist/
+    .venv/bin/python tools/build_extension.py                  # one zip per platform -> dist/
+    .venv/bin/python tools/build_extension.py --all-platforms-zip   # one zip for every platform
     .venv/bin/python tools/build_extension.py --platforms linux-x64
     .venv/bin/python tools/build_extension.py --offline        # reuse wheels/ only
 
@@ -343,7 +346,7 @@ def build_lock():
         yield
 
 
-def build(platforms: list[str], output_dir: Path, offline: bool = False, split: bool = False) -> dict:
+def build(platforms: list[str], output_dir: Path, offline: bool = False, split: bool = True) -> dict:
     start = time.time()
     pins = read_pins()
     log(f"bundled wheels: {', '.join(f'{d}=={v}' for d, v in pins.items() if d in BUNDLED)} "
@@ -392,9 +395,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n", 1)[0])
     parser.add_argument("--platforms", default=",".join(PLATFORM_TAGS),
                         help=f"comma-separated Blender platforms (default: {','.join(PLATFORM_TAGS)})")
-    parser.add_argument("--output-dir", type=Path, default=ROOT / "dist", help="where the zip goes (default: dist/)")
+    parser.add_argument("--output-dir", type=Path, default=ROOT / "dist", help="where the zips go (default: dist/)")
     parser.add_argument("--offline", action="store_true", help="use only wheels already in wheels/")
-    parser.add_argument("--split-platforms", action="store_true", help="one zip per platform")
+    shape = parser.add_mutually_exclusive_group()
+    shape.add_argument("--split-platforms", dest="split", action="store_true", default=True,
+                       help="one zip per platform (the default; what the extensions platform expects)")
+    shape.add_argument("--all-platforms-zip", dest="split", action="store_false",
+                       help="one zip holding every platform's wheels instead (about 4x the size of one platform's)")
     parser.add_argument("--json", type=Path, help="also write the summary to this JSON file")
     args = parser.parse_args(argv)
     platforms = [p.strip() for p in args.platforms.split(",") if p.strip()]
@@ -405,7 +412,7 @@ def main(argv: list[str] | None = None) -> int:
         if required not in platforms:
             platforms.insert(0, required)
     try:
-        summary = build(platforms, args.output_dir.resolve(), offline=args.offline, split=args.split_platforms)
+        summary = build(platforms, args.output_dir.resolve(), offline=args.offline, split=args.split)
     except BuildError as ex:
         print(f"build_extension: error: {ex}", file=sys.stderr)
         return 1

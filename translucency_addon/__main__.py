@@ -75,13 +75,16 @@ def _field(text):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m translucency_addon", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m translucency_addon", description=__doc__.split("\n\n")[0],
+                                 epilog="Run 'python -m translucency_addon COMMAND --help' for a command's options. "
+                                        "Errors exit with status 2 and a line 'error: ...' that names the problem.")
     sub = ap.add_subparsers(dest="command", required=True)
 
     b = sub.add_parser("bake", help="bake the multi-resolution QuadGraph of a mesh")
     b.add_argument("mesh", help="triangle mesh (.obj), in object units")
     b.add_argument("-o", "--output", required=True, help="cache file to write (.npz)")
-    b.add_argument("--quality", default="preview", choices=["draft", "preview", "final"])
+    b.add_argument("--quality", default="preview", choices=["draft", "preview", "final"],
+                   help="graph resolution and level count (draft: fastest bake, coarsest graph; default preview)")
     b.add_argument("--levels", type=int, default=None, help="number of multi-resolution levels (default: the quality's)")
     b.add_argument("--mm-per-unit", type=float, default=1.0, help="millimetres per mesh unit (default 1)")
     b.add_argument("--sky-directions", type=int, default=0,
@@ -106,6 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", action="store_true", help="print the statistics as JSON")
 
     s = sub.add_parser("solve", help="solve the diffusion (and single scattering) for a baked mesh")
+    s.description = ("Solve a baked mesh under the given lights: diffusion on the QuadGraph, plus single scattering "
+                     "and the Voxel Number Map when the cache holds them (the --stats file says why a term was "
+                     "left out).")
     s.add_argument("cache", help="bake cache (.npz) from 'bake'")
     s.add_argument("-o", "--output", required=True, help="RGB radiance per vertex of the baked mesh (.npy)")
     _material_args(s, "")
@@ -114,7 +120,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sun light DX,DY,DZ:E -- direction the light travels (object space) and irradiance in W/m^2")
     s.add_argument("--point", type=_point, action="append", default=[],
                    help="point light X,Y,Z:W -- position (object units) and radiant power in W (isotropic)")
-    s.add_argument("--solver", choices=["paper", "fast", "direct"], default="fast")
+    s.add_argument("--solver", choices=["paper", "fast", "direct"], default="fast",
+                   help="paper: Jacobi relaxation (eqs. 8-9, slow on fine graphs); fast: Chebyshev (default); "
+                        "direct: sparse LU (exact, memory grows fast)")
     s.add_argument("--tol", type=float, default=1e-4, help="relative residual tolerance (default 1e-4)")
     s.add_argument("--no-shadows", action="store_true", help="ignore occlusion of point and sun lights")
     s.add_argument("--mm-per-unit", type=float, default=None, help="override the baked scene scale")
@@ -133,13 +141,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     _fluid_parser(sub)
 
-    p = sub.add_parser("plan", help="print which passes the planner would run for a baked mesh")
-    p.add_argument("cache")
-    p.add_argument("--material", default="marble")
-    p.add_argument("--env", type=_rgb, default=None)
-    p.add_argument("--sun", type=_sun, action="append", default=[])
-    p.add_argument("--point", type=_point, action="append", default=[])
-    p.add_argument("--mm-per-unit", type=float, default=None)
+    p = sub.add_parser("plan", help="print which passes the planner would run for a baked mesh, and why",
+                       description="Print which passes (diffusion, single scattering, Voxel Number Map) and colour "
+                                   "channels the planner runs for a baked mesh under the given lights, with each "
+                                   "channel's reason in numbers (reduced albedo, optical thickness, share of the "
+                                   "brightest channel) and what would make a skipped pass run.")
+    p.add_argument("cache", help="bake cache (.npz) from 'bake'")
+    p.add_argument("--material", default="marble",
+                   help="preset name (marble, skimmilk, skin1, ketchup, ...; default marble)")
+    p.add_argument("--env", type=_rgb, default=None, help="uniform environment radiance R,G,B (default: none)")
+    p.add_argument("--sun", type=_sun, action="append", default=[],
+                   help="sun light DX,DY,DZ:E -- direction the light travels (object space) and irradiance in W/m^2")
+    p.add_argument("--point", type=_point, action="append", default=[],
+                   help="point light X,Y,Z:W -- position (object units) and radiant power in W (isotropic)")
+    p.add_argument("--mm-per-unit", type=float, default=None, help="override the baked scene scale (mm per unit)")
     return ap
 
 

@@ -20,6 +20,7 @@ import zlib
 
 import numpy as np
 
+from . import __version__
 from .bake import Bake, BakeSettings
 from .errors import CacheError
 from .quadgraph import GraphLevel
@@ -63,6 +64,7 @@ def bake_to_arrays(bake: Bake) -> dict:
     meta = {
         "magic": MAGIC,
         "format": CACHE_FORMAT,
+        "extension_version": __version__,  # who wrote it: named when another version cannot read it
         "key": bake.key,
         "mm_per_unit": bake.mm_per_unit,
         "settings": bake.settings.__dict__,
@@ -142,9 +144,12 @@ def _meta(z, path) -> dict:
     if meta.get("magic") != MAGIC:
         raise CacheError(f"{path!r} is not a Translucency bake cache")
     if meta.get("format") not in READABLE_FORMATS:
+        writer = meta.get("extension_version")
+        by = f"Translucency {writer}" if writer else "a Translucency older than 0.1.0"
         raise CacheError(
-            f"bake cache {path!r} has format version {meta.get('format')}, this version reads "
-            f"{', '.join(str(f) for f in READABLE_FORMATS)}; re-bake the object"
+            f"bake cache {path!r} has format version {meta.get('format')}, written by {by}; this version "
+            f"(Translucency {__version__}) reads {', '.join(str(f) for f in READABLE_FORMATS)}. Install the same "
+            "extension version on every machine that renders the file, or re-bake the object with this one"
         )
     return meta
 

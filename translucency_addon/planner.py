@@ -78,6 +78,9 @@ from .materials import Material, reduced_albedo
 
 ALBEDO_MIN = 0.5
 THICK_MIN = 1.0
+# What makes the single-scattering pass available, in Blender and on the command line (plans' hints).
+SS_HINT = ("Bake single scattering: in Blender turn on Single Scattering and press Bake (or Bake Single "
+           "Scattering); on the command line, bake --single-scattering --material NAME")
 NEGLIGIBLE = 0.01
 CHANNELS = ("R", "G", "B")
 
@@ -263,6 +266,33 @@ def light_reaching(lights, environment, center, radius_units: float, mm_per_unit
     return total, reaching
 
 
+def unlit_reason(lights, environment, center, radius_units: float) -> str:
+    """Why no light reaches an object, light by light in numbers, and what to change (a plan's skip)."""
+    why = []
+    c = np.asarray(center, dtype=np.float64)
+    for light in lights or ():
+        label = f"'{light.name or light.kind}' ({light.kind})"
+        if not np.any(light.rgb > 0):
+            why.append(f"{label} has no power (colour x strength = {np.round(light.rgb, 6).tolist()})")
+            continue
+        if light.kind in ("spot", "area"):
+            delta = c - np.asarray(light.position)
+            dist = float(np.linalg.norm(delta))
+            if dist > radius_units:
+                axis = np.degrees(np.arccos(np.clip(float(np.dot(delta / dist, light.unit_direction)), -1, 1)))
+                edge = np.degrees(np.arcsin(min(1.0, radius_units / dist)))
+                reach = np.degrees(0.5 * light.spot_size) if light.kind == "spot" else 90.0
+                what = "its cone's half-angle" if light.kind == "spot" else "the side it emits to"
+                why.append(f"{label} is aimed {axis:.0f} deg away from the object's centre; the object covers "
+                           f"{edge:.0f} deg around it and {what} is {reach:.0f} deg")
+    if environment is None or environment.is_black:
+        why.append("the world is black" if environment is not None else "there is no world light")
+    if not lights:
+        why.insert(0, "no lights")
+    return ("unlit: no light reaches it (" + "; ".join(why) + "). Give a light power, aim a spot or area light "
+            "at the object, or give the World a colour and strength")
+
+
 def plan_object(bake, material: Material, lights=(), environment: Environment | None = None, *,
                 field_values=None, has_single_scattering: bool | None = None, in_view: bool = True,
                 enabled: bool = True, overrides: dict | None = None, name: str = "object",
@@ -387,9 +417,10 @@ def plan_fluid(points, radius: float, mm_per_unit: float, material: Material, li
 
 def _skipped(name: str, enabled: bool, in_view: bool) -> Plan | None:
     if not enabled:
-        return Plan(name, False, "translucency disabled")
+        return Plan(name, False, "translucency disabled: turn on Enabled in the object's Translucency panel")
     if not in_view:
-        return Plan(name, False, "outside the camera view: nothing to compute")
+        return Plan(name, False, "outside the camera view: nothing to compute (its bounding sphere is outside the "
+                                 "render camera's frustum; it is solved again when the camera sees it)")
     return None
 
 
@@ -412,7 +443,7 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
     facts = {"thin_mm": geo["thin_mm"], "radius_mm": geo["radius_mm"], "irradiance": E.tolist(),
              "lights_reaching": [getattr(light, "name", "") for light in reaching]}
     if not np.any(E > 0) and not any(overrides.values()):
-        return Plan(name, False, "unlit: no light reaches it", facts=facts)
+        return Plan(name, False, unlit_reason(lights, environment, geo["center"], geo["radius_units"]), facts=facts)
     sa, ss = bulk
     sa_s, ss_s = surface
     n_surface = len(area)
@@ -516,7 +547,8 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
         chans = "".join(CHANNELS[c] for c in sorted(unbaked))
         share = max(unbaked.values())
         what = "thin parts" if any(thin_frac[c] > 0 for c in unbaked) else "low albedo"
-        todo = "bake it to use it" if not has_single_scattering else "turn it on to use it"
+        todo = ("bake it to use it (" + SS_HINT[0].lower() + SS_HINT[1:] + ")" if not has_single_scattering
+                else "turn it on to use it (the object's Single Scattering setting)")
         advice.append(f"{chans}: single scattering would be more accurate on {_pct(share)} of the surface "
                       f"({what}); {todo}")
 
@@ -651,9 +683,14 @@ def _nothing_runs(multiple: PassDecision, single: PassDecision | None, ss_availa
     forced_off = multiple.forced and not any(multiple.channels) and (single is None or single.forced
                                                                      or not ss_available)
     if forced_off:
-        return "every pass is turned off in the object's settings"
-    return "no pass returns light (" + "; ".join(multiple.reasons) + ")" + (
-        "" if ss_available or single is None else "; single scattering is not baked")
+        return ("every pass is turned off in the object's settings: turn Multiple Scattering (or Single "
+                "Scattering, once baked) back on in its Translucency panel")
+    if ss_available or single is None:
+        hint = ("a material with a higher reduced albedo (sigma_s' / (sigma_a + sigma_s')) above "
+                f"{ALBEDO_MIN} returns light by diffusion")
+        return "no pass returns light (" + "; ".join(multiple.reasons) + "). " + hint[0].upper() + hint[1:]
+    return ("no pass returns light (" + "; ".join(multiple.reasons) + "; single scattering is not baked). "
+            + SS_HINT + " to render the light these channels scatter once")
 
 
 def _fluid_validity(plan: Plan) -> str:

@@ -472,7 +472,9 @@ CACHE_DAMAGE = {
     "corrupt bytes": ("flip", r"is corrupt or truncated"),
     "random bytes": ("random", r"is corrupt or truncated"),
     "wrong version": (_edit_meta(format=cache.CACHE_FORMAT + 98),
-                      rf"has format version {cache.CACHE_FORMAT + 98}, this version reads {', '.join(str(f) for f in cache.READABLE_FORMATS)}"),
+                      rf"has format version {cache.CACHE_FORMAT + 98}, written by Translucency .*; this version "
+                      rf"\(Translucency .*\) reads {', '.join(str(f) for f in cache.READABLE_FORMATS)}\. Install the same "
+                      "extension version on every machine"),
     "not a cache": ("foreign", r"is not a Translucency bake cache"),
     "wrong magic": (_edit_meta(magic="something-else"), r"is not a Translucency bake cache"),
     "neighbour index out of range": (_edit_array("L1/neighbors", (0, 0), 10**8),
