@@ -12,10 +12,11 @@ Conventions (Cycles' ``direction_to_equirectangular``, Blender's image rows
 bottom to top): pixel (row i, column j) of an H x W map is the direction with
 elevation ``pi ((i + 0.5) / H - 0.5)`` and azimuth ``atan2(y, x) = pi (1 - 2 (j + 0.5) / W)``.
 
-Quadrature: every pixel is one sample with its exact solid angle
-``(2 pi / W) (sin(el_top) - sin(el_bottom))``, so a constant map integrates to
-4 pi exactly and the projection of a map is the exact projection of the
-piecewise-constant function it holds.
+Quadrature: every pixel is one sample at its centre with its exact solid
+angle ``(2 pi / W) (sin(el_top) - sin(el_bottom))``, so a constant map
+integrates to 4 pi exactly; the basis is taken at the centre (midpoint rule),
+an error of O(1/H^2) in the other coefficients (2e-3 of the DC term at
+H = 64, 3e-5 at H = 512: ``tests/test_environment_map.py``).
 
 Downsampling (:func:`downsample`) averages blocks weighted by solid angle, so
 every block keeps its power; it works in row bands so a 16k x 8k map needs
