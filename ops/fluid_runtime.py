@@ -197,7 +197,9 @@ def gather(obj, scene, depsgraph, st: state.FluidObjectState, use_camera: bool) 
                  "inside for the light to diffuse in")
     if not empty and radius <= 0.0:
         raise _particle_error(_zero_radius(scene, auto, suggested * scale))
-    environment, world_warning, world_sun = scene_inputs.world_environment(scene.world, matrix)
+    environment, world_warning, world_sun = scene_inputs.world_environment(
+        scene.world, matrix, getattr(depsgraph, "mode", "VIEWPORT") != 'RENDER'
+        and threading.current_thread() is threading.main_thread())
     lights = tuple(scene_inputs.collect_lights(depsgraph, matrix,
                                                scene_inputs.metres_per_world_unit(obj, scene, mm, matrix))) + world_sun
     plan = None

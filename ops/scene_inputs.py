@@ -268,7 +268,7 @@ def _active_world_output(tree):
     return outputs[0] if outputs else None
 
 
-def world_environment(world, obj_matrix=None):
+def world_environment(world, obj_matrix=None, can_render: bool = True):
     """``(Environment or None, warning or None, lights)`` for the scene's world, in the object's space.
 
     A world without nodes (its colour) and a Background node with unlinked
@@ -282,16 +282,19 @@ def world_environment(world, obj_matrix=None):
     """
     from ..translucency_addon.lights import Environment
     from ..translucency_addon.world_nodes import WorldNodeError
-    from .world import world_light
+    from .world import set_status_line, world_light
 
     if world is None:
+        set_status_line("World: none; only the lights reach the object")
         return None, None, ()
     tree = world.node_tree
     if not compat.uses_nodes(world):
         rgb = tuple(float(c) for c in world.color[:3])
+        set_status_line(f"World: uniform radiance ({rgb[0]:.3g}, {rgb[1]:.3g}, {rgb[2]:.3g}), exact")
         return (Environment(radiance=rgb) if max(rgb) > 0 else None), None, ()
     out = _active_world_output(tree)
     if out is not None and not out.inputs["Surface"].is_linked:
+        set_status_line(f"World: '{world.name}' has nothing linked to its output; it sends no light")
         return None, None, ()
     node = _follow_reroutes(out.inputs["Surface"]) if out is not None else None
     if node is not None and node.type == 'BACKGROUND':
@@ -299,9 +302,11 @@ def world_environment(world, obj_matrix=None):
         if not color_in.is_linked and not strength_in.is_linked:
             strength = float(strength_in.default_value)
             rgb = tuple(float(c) * strength for c in color_in.default_value[:3])
+            set_status_line(f"World: uniform Background ({rgb[0]:.3g}, {rgb[1]:.3g}, {rgb[2]:.3g}) W/(m\u00b2 sr), "
+                            "exact")
             return (Environment(radiance=rgb) if max(rgb) > 0 and strength > 0 else None), None, ()
     try:
-        env, sun, _ = world_light(world, obj_matrix)
+        env, sun, _ = world_light(world, obj_matrix, can_render)
         return env, None, (() if sun is None else (sun,))
     except WorldNodeError as ex:
         strength = 1.0

@@ -37,6 +37,7 @@ a warning that names the node and what to change; nothing is written.
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 import time
 from dataclasses import dataclass
@@ -51,6 +52,7 @@ SKY_SIZE = (1024, 512)
 SKY_SAMPLES = 16
 _CACHE: dict = {}  # key -> WorldResult (the last few worlds)
 _CACHE_SIZE = 4
+_BAKING: list = []  # the sky node being baked (no bake inside a bake)
 
 
 @dataclass(frozen=True)
@@ -69,6 +71,11 @@ def status_line() -> str:
 
 
 _LAST: dict = {}
+
+
+def set_status_line(text: str) -> None:
+    """Record what the World became when it did not go through :func:`world_light` (a uniform colour, none)."""
+    _LAST["note"] = text
 
 
 # ------------------------------------------------------------------ node tree -> description
@@ -115,7 +122,7 @@ def describe_tree(world):
             if links:
                 wn.links[sock.identifier] = (links[0].from_node.name, links[0].from_socket.name)
                 todo.append(links[0].from_node)
-            else:
+            elif not sock.hide_value:  # a hidden value is an implicit input (a texture's coordinates)
                 v = _value(sock)
                 if v is not None:
                     wn.values[sock.identifier] = v
@@ -202,20 +209,24 @@ def image_pixels(img, name: str) -> np.ndarray:
     return px
 
 
-def bake_sky(node) -> np.ndarray:
+def bake_sky(node, can_render: bool = True) -> np.ndarray:
     """The Sky Texture ``node`` as Cycles evaluates it: an equirectangular (512, 1024, 3) map of its radiance.
 
     Renders the sky alone (Background strength 1) in a temporary scene through an
     equirectangular camera turned (90, 0, -90) degrees, which maps the image onto
     world directions in Cycles' equirectangular convention (checked in
-    ``tests/test_world.py``).  Everything created is removed again.
+    ``tests/test_world.py``: the sun found in the bake lies where the node's
+    Sun Elevation and Sun Rotation put it, within 0.1 degree).  Everything
+    created is removed again (the Render Result too, unless it existed; if it
+    did, it now shows the sky).
     """
     from ..translucency_addon.world_nodes import WorldNodeError
 
-    if bpy.app.is_job_running('RENDER'):
+    if not can_render or _BAKING or bpy.app.is_job_running('RENDER'):
         raise WorldNodeError(f"Sky Texture '{node.name}' is evaluated by a Cycles render of the sky, which cannot "
                              "run inside another render; solve once outside a render (the Solve button or the "
                              "viewport) to bake it for this session")
+    _BAKING.append(node.name)
     scene = bpy.data.scenes.new("translucency_sky_bake")
     world = bpy.data.worlds.new("translucency_sky_bake")
     cam = bpy.data.cameras.new("translucency_sky_bake")
@@ -223,6 +234,7 @@ def bake_sky(node) -> np.ndarray:
     tmp = tempfile.mkdtemp(prefix="translucency-sky-")
     path = os.path.join(tmp, "sky.exr")
     img = None
+    had_result = bpy.data.images.get("Render Result") is not None
     try:
         tree = compat.ensure_node_tree(world)
         tree.nodes.clear()
@@ -255,7 +267,11 @@ def bake_sky(node) -> np.ndarray:
         r.image_settings.file_format = 'OPEN_EXR'
         r.image_settings.color_depth = '32'
         r.filepath = path
-        bpy.ops.render.render(write_still=True, scene=scene.name)
+        try:
+            bpy.ops.render.render(write_still=True, scene=scene.name)
+        except RuntimeError as ex:  # the operator's poll refuses while another render runs
+            raise WorldNodeError(f"Sky Texture '{node.name}': the Cycles render that evaluates the sky could not "
+                                 f"run ({str(ex).strip()}); solve once outside a render to bake it") from None
         if not os.path.exists(path):
             raise WorldNodeError(f"Sky Texture '{node.name}': the Cycles render of the sky wrote nothing")
         img = bpy.data.images.load(path)
@@ -263,21 +279,21 @@ def bake_sky(node) -> np.ndarray:
         img.pixels.foreach_get(buf)
         return np.ascontiguousarray(buf.reshape(SKY_SIZE[1], SKY_SIZE[0], 4)[..., :3])
     finally:
-        if img is not None:
-            bpy.data.images.remove(img)
-        bpy.data.scenes.remove(scene)
-        bpy.data.objects.remove(cam_ob)
-        bpy.data.cameras.remove(cam)
-        bpy.data.worlds.remove(world)
-        for f in os.listdir(tmp):
-            os.remove(os.path.join(tmp, f))
-        os.rmdir(tmp)
+        _BAKING.clear()
+        shutil.rmtree(tmp, ignore_errors=True)
+        for collection, block in ((bpy.data.images, img), (bpy.data.scenes, scene), (bpy.data.objects, cam_ob),
+                                  (bpy.data.cameras, cam), (bpy.data.worlds, world)):
+            if block is not None:
+                collection.remove(block)
+        result = bpy.data.images.get("Render Result")
+        if result is not None and not had_result:
+            bpy.data.images.remove(result)
 
 
 # ------------------------------------------------------------------ evaluation, cached
 
 
-def evaluate_world(world) -> WorldResult:
+def evaluate_world(world, can_render: bool = True) -> WorldResult:
     """The World's SH and sun in world space, evaluated once per change (cached)."""
     from ..translucency_addon import environment_map as em
     from ..translucency_addon.world_nodes import content_hash, evaluate, sample_grid
@@ -294,7 +310,7 @@ def evaluate_world(world) -> WorldResult:
             graph.images[node_name] = image_pixels(src, node_name)
             names.append(f"HDRI '{os.path.basename(src.filepath_raw) or src.name}'")
         else:
-            graph.images[node_name] = bake_sky(src)
+            graph.images[node_name] = bake_sky(src, can_render)
             names.append(f"Sky Texture '{node_name}' ({src.sky_type.replace('_', ' ').title()}, baked by Cycles)")
     h, w = sample_grid(graph, MAX_WIDTH)
     dirs = em.equirect_directions(h, w).reshape(-1, 3)
@@ -321,17 +337,18 @@ def clear_cache() -> None:
     _LAST.clear()
 
 
-def world_light(world, obj_matrix=None):
+def world_light(world, obj_matrix=None, can_render: bool = True):
     """``(Environment or None, sun Light or None, warning or None)`` in the object's space.
 
-    ``obj_matrix``: the object's world matrix (None: world space).  Raises
+    ``obj_matrix``: the object's world matrix (None: world space).  ``can_render``: False inside a
+    render (a render depsgraph, a render thread), where a Sky Texture cannot be baked.  Raises
     :class:`translucency_addon.world_nodes.WorldNodeError` when the World holds
     something that is not evaluated (the caller falls back and warns).
     """
     from ..translucency_addon.environment_map import rotate_sh
     from ..translucency_addon.lights import Environment, Light
 
-    res = evaluate_world(world)
+    res = evaluate_world(world, can_render)
     _LAST["note"] = res.note
     Q = np.eye(3)
     if obj_matrix is not None:
