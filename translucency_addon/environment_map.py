@@ -84,13 +84,15 @@ def sample_equirect(pixels: np.ndarray, dirs: np.ndarray, interpolation: str = "
     return (top * (1 - fy) + bot * fy).astype(np.float64)
 
 
-def downsample(pixels: np.ndarray, max_width: int = 2048, band_rows: int = 256) -> np.ndarray:
+def downsample(pixels: np.ndarray, max_width: int = 2048, band_rows: int | None = None,
+               band_bytes: int = 64 << 20) -> np.ndarray:
     """An (h, w, c>=3) map reduced by an integer factor f so its width is at most ``max_width``.
 
     Each f x f block becomes its solid-angle-weighted mean, so each block's power
     (radiance x solid angle) is kept exactly.  Works in bands of ``band_rows``
-    output rows (float64 only for one band), so the extra memory stays bounded
-    whatever the input size.  Returns float32 (h/f, w/f, 3); the input is returned
+    output rows (default: as many as fit ``band_bytes`` of float64 input), so
+    the extra memory stays bounded whatever the input size (about 150 MiB for a
+    16k map, ``bench/world.py``).  Returns float32 (h/f, w/f, 3); the input is returned
     (first three channels) when it is already small enough.
     """
     h, w = pixels.shape[:2]
@@ -100,6 +102,8 @@ def downsample(pixels: np.ndarray, max_width: int = 2048, band_rows: int = 256) 
     if f == 1:
         return np.ascontiguousarray(pixels[..., :3], dtype=np.float32)
     H, W = h // f, w // f
+    if band_rows is None:
+        band_rows = max(1, band_bytes // (f * w * 3 * 8))
     omega = equirect_solid_angles(h, w)  # per input row (the same for every column)
     out = np.empty((H, W, 3), dtype=np.float32)
     for r0 in range(0, H, band_rows):
