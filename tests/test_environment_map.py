@@ -191,3 +191,12 @@ def test_unevaluable_worlds_are_refused_with_the_node_named():
     g.output = "nothing"
     with pytest.raises(WorldNodeError, match="no World Output"):
         world_eval(g, fibonacci_directions(5))
+
+
+def test_the_hdri_accuracy_section_survives_the_main_accuracy_bench(tmp_path):
+    from bench.accuracy_text import kept_sections
+    from bench.world import HEADING
+
+    report = tmp_path / "accuracy.md"
+    report.write_text("# Accuracy\n\n## Something the main bench rewrites\n\nold\n\n" + HEADING + "\nrow\n")
+    assert kept_sections(report).strip() == (HEADING + "\nrow").strip()

@@ -105,6 +105,9 @@ def test_hdri_world_solves_in_the_viewport_and_f12_with_its_sun_as_a_light(rende
 
     obj = world_sphere(w)  # the viewport path (Solve)
     no_world_warning(obj)
+    from translucency.ops import status
+
+    assert status.world_line(obj) == (line, False)  # what the panel shows under Solve
     L = radiance_of(obj)
     assert np.isfinite(L).all() and L.max() > 0
     bpy.ops.translucency.add_to_material()
