@@ -192,7 +192,8 @@ def image_pixels(img, name: str) -> np.ndarray:
     w, h = img.size
     if w == 0 or h == 0 or not img.has_data and (img.pixels is None or len(img.pixels) == 0):
         path = bpy.path.abspath(img.filepath_raw) if img.filepath_raw else "(no file)"
-        why = "the file does not exist" if img.filepath_raw and not os.path.exists(path) else "Blender could not read it"
+        missing = img.filepath_raw and not os.path.exists(path)
+        why = "the file does not exist" if missing else "Blender could not read it"
         raise WorldNodeError(f"Environment Texture '{name}': image '{img.name}' did not load ({why}: {path}); "
                              "fix the path (File > External Data > Find Missing Files) or pick another image")
     c = img.channels

@@ -238,9 +238,9 @@ def extract_sun(pixels: np.ndarray, *, max_solid_angle: float = SUN_MAX_SOLID_AN
     region = region2[:, :w] | region2[:, w:]
     sa = float(np.sum(omega[region]))
     if sa > max_solid_angle:
+        across = 2 * np.degrees(np.arccos(1 - max_solid_angle / (2 * np.pi)))
         return None, pixels, (f"no sun: the bright region around the peak covers {sa:.3g} sr, more than "
-                              f"{max_solid_angle:.3g} sr (a disk {2 * np.degrees(np.arccos(1 - max_solid_angle / (2 * np.pi))):.0f} "
-                              "degrees across); it stays in the SH")
+                              f"{max_solid_angle:.3g} sr (a disk {across:.0f} degrees across); it stays in the SH")
     ring = ndimage.binary_dilation(np.concatenate([region] * 3, axis=1), iterations=2)[:, w:2 * w] & ~region
     fill = (np.sum(p[ring] * omega[ring][:, None], axis=0) / max(np.sum(omega[ring]), 1e-300)
             if ring.any() else np.zeros(3))
