@@ -137,6 +137,20 @@ def test_mapping_rotation_turns_the_hdri_sun_and_the_sh(blender):
     assert np.abs(env1.sh - env0.sh).max() > 0.2 * scale  # it did turn
 
 
+def test_the_world_is_evaluated_once_per_change(blender):
+    from translucency.ops import world
+
+    world.clear_cache()
+    w = hdri_world(backdrop=False)
+    first = world.evaluate_world(w)
+    assert world.evaluate_world(w) is first  # the next frame: no pixels read, nothing projected
+    w.node_tree.nodes["Background"].inputs["Strength"].default_value = 2.0
+    second = world.evaluate_world(w)
+    assert second is not first
+    np.testing.assert_allclose(second.sh, 2.0 * first.sh, rtol=1e-6)
+    assert second.sun.irradiance == pytest.approx(tuple(2.0 * x for x in first.sun.irradiance), rel=1e-6)
+
+
 def test_sky_texture_world_is_baked_by_cycles_and_solves_in_f12(render_pass, tmp_path):
     from translucency.ops import scene_inputs, state, world
 
