@@ -197,9 +197,11 @@ def gather(obj, scene, depsgraph, st: state.FluidObjectState, use_camera: bool) 
                  "inside for the light to diffuse in")
     if not empty and radius <= 0.0:
         raise _particle_error(_zero_radius(scene, auto, suggested * scale))
+    environment, world_warning, world_sun = scene_inputs.world_environment(
+        scene.world, matrix, getattr(depsgraph, "mode", "VIEWPORT") != 'RENDER'
+        and threading.current_thread() is threading.main_thread())
     lights = tuple(scene_inputs.collect_lights(depsgraph, matrix,
-                                               scene_inputs.metres_per_world_unit(obj, scene, mm, matrix)))
-    environment, world_warning = scene_inputs.world_environment(scene.world)
+                                               scene_inputs.metres_per_world_unit(obj, scene, mm, matrix))) + world_sun
     plan = None
     occluders = occ_sig = None
     if not empty:
@@ -250,7 +252,7 @@ def _signature(frame: FluidInputs) -> tuple:
     reaching = set(plan.facts.get("lights_reaching", ())) if plan is not None else set()
     return (_digest(frame.particles.points), _digest(frame.particles.ids), _digest(frame.field), round(frame.radius, 12),
             frame.material, round(frame.mm, 9), tuple(light for light in frame.lights if light.name in reaching),
-            None if frame.environment is None else tuple(frame.environment.radiance), frame.occ_sig,
+            scene_inputs.environment_signature(frame.environment), frame.occ_sig,
             _digest(frame.output.positions), frame.carried, frame.tolerance, frame.empty,
             None if plan is None else (plan.run, plan.multiple.channels if plan.multiple is not None else None))
 

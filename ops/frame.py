@@ -89,7 +89,7 @@ class FrameInputs:
 
     @property
     def env_sig(self) -> tuple | None:
-        return None if self.environment is None else tuple(self.environment.radiance)
+        return scene_inputs.environment_signature(self.environment)
 
     def solve_options(self):
         """The diffusion solver's options for this frame (the scene's tolerance)."""
@@ -116,13 +116,14 @@ def gather(obj, scene, depsgraph, st: ObjectState, use_camera: bool) -> FrameInp
     part_media = inner_parts.part_media(obj) if st.bake.composite is not None else None
     want_ms = bool(settings.use_multiple_scattering)
     field_sig = _field(obj, settings, depsgraph, st, want_ms)
-    lights = tuple(scene_inputs.collect_lights(depsgraph, matrix, metres_per_bu))
-    environment, world_warning = scene_inputs.world_environment(scene.world)
+    off_main = threading.current_thread() is not threading.main_thread()
+    rendering = getattr(depsgraph, "mode", "VIEWPORT") == 'RENDER'
+    environment, world_warning, world_sun = scene_inputs.world_environment(scene.world, matrix,
+                                                                           not (rendering or off_main))
+    lights = tuple(scene_inputs.collect_lights(depsgraph, matrix, metres_per_bu)) + world_sun
     in_view = scene_inputs.in_camera_view(scene, depsgraph, obj) if use_camera else True
     plan = make_plan(obj.name, st, settings, material, lights, environment, mm, in_view)
 
-    off_main = threading.current_thread() is not threading.main_thread()
-    rendering = getattr(depsgraph, "mode", "VIEWPORT") == 'RENDER'
     has_ss = st.bake.single_scattering is not None
     use_ms = want_ms and plan.run and plan.multiple.runs
     use_ss = plan.run and plan.single.runs and has_ss

@@ -140,6 +140,7 @@ def _draw_object_settings(layout, obj, context=None) -> None:
         box.label(text=f"Voxel Number Map: {solved.vnm_seconds * 1000:.1f} ms on the {solved.vnm_backend}")
     if solved.vnm_message:
         _draw_multiline(box, solved.vnm_message, icon='INFO')
+    _draw_world(box, obj)
     _draw_plan(box, obj)
     if solved.ss_message:
         stale = "re-bake" in solved.ss_message or "not baked" in solved.ss_message
@@ -209,6 +210,18 @@ def _draw_material(col, obj) -> None:
     else:
         sub.prop_search(settings, "field_vertex_group", obj, "vertex_groups")
 
+
+
+def _draw_world(box, obj) -> None:
+    """What the World became (SH order, an HDRI's sun as a light), or why it fell back."""
+    try:
+        text, warning = status.world_line(obj)
+    except Exception:  # noqa: BLE001 - drawing must never fail
+        text, warning = "", False
+    if text:
+        sub = box.column()
+        sub.alert = warning
+        _draw_multiline(sub, text, icon='ERROR' if warning else 'WORLD')
 
 
 def _draw_plan(box, obj) -> None:

@@ -32,6 +32,8 @@ Area         power P [W]                            one-sided Lambertian emitter
 Area, Normalize off  power P per unit area          ``P A / pi`` (A = area in world units)
 Sun          strength S [W/m^2]                     irradiance ``S`` W/m^2
 World        Background colour C, strength S        uniform radiance ``C S`` W/(m^2 sr)
+World        any other node tree (``ops/world.py``)  order-2 SH radiance + an HDRI's
+                                                    sun as a ``sun`` light (W/m^2)
 ===========  =====================================  ==========================
 
 Every light power is also multiplied by ``2 ** exposure`` (Blender 4.0+) and
@@ -266,41 +268,62 @@ def _active_world_output(tree):
     return outputs[0] if outputs else None
 
 
-def world_environment(world):
-    """``(Environment or None, warning or None)`` for the scene's world.
+def world_environment(world, obj_matrix=None, can_render: bool = True):
+    """``(Environment or None, warning or None, lights)`` for the scene's world, in the object's space.
 
-    Supported exactly: a world without nodes (its colour) and a Background
-    node with unlinked Color and Strength.  Anything else (sky or image
-    textures, mixes) is approximated by the world's viewport colour times the
-    Background strength, with a warning.
+    A world without nodes (its colour) and a Background node with unlinked
+    Color and Strength are a uniform radiance, exact.  Any other node tree is
+    evaluated as Cycles sees it from the object (:mod:`.world`: images, a Sky
+    Texture baked by Cycles, Mapping, mixes, Light Path's Is Camera Ray),
+    projected to SH, and an HDRI's sun comes back in ``lights`` as a
+    directional light.  What :mod:`.world` cannot evaluate falls back to the
+    world's viewport colour times the Background strength, with a warning that
+    names the node and what to change.
     """
     from ..translucency_addon.lights import Environment
+    from ..translucency_addon.world_nodes import WorldNodeError
+    from .world import set_status_line, world_light
 
     if world is None:
-        return None, None
+        set_status_line("World: none; only the lights reach the object")
+        return None, None, ()
     tree = world.node_tree
     if not compat.uses_nodes(world):
         rgb = tuple(float(c) for c in world.color[:3])
-        return (Environment(radiance=rgb) if max(rgb) > 0 else None), None
+        set_status_line(f"World: uniform radiance ({rgb[0]:.3g}, {rgb[1]:.3g}, {rgb[2]:.3g}), exact")
+        return (Environment(radiance=rgb) if max(rgb) > 0 else None), None, ()
     out = _active_world_output(tree)
-    if out is None or not out.inputs["Surface"].is_linked:
-        return None, None
-    node = _follow_reroutes(out.inputs["Surface"])
+    if out is not None and not out.inputs["Surface"].is_linked:
+        set_status_line(f"World: '{world.name}' has nothing linked to its output; it sends no light")
+        return None, None, ()
+    node = _follow_reroutes(out.inputs["Surface"]) if out is not None else None
     if node is not None and node.type == 'BACKGROUND':
         color_in, strength_in = node.inputs["Color"], node.inputs["Strength"]
-        strength = 1.0 if strength_in.is_linked else float(strength_in.default_value)
         if not color_in.is_linked and not strength_in.is_linked:
+            strength = float(strength_in.default_value)
             rgb = tuple(float(c) * strength for c in color_in.default_value[:3])
-            return (Environment(radiance=rgb) if max(rgb) > 0 and strength > 0 else None), None
+            set_status_line(f"World: uniform Background ({rgb[0]:.3g}, {rgb[1]:.3g}, {rgb[2]:.3g}) W/(m\u00b2 sr), "
+                            "exact")
+            return (Environment(radiance=rgb) if max(rgb) > 0 and strength > 0 else None), None, ()
+    try:
+        env, sun, _ = world_light(world, obj_matrix, can_render)
+        return env, None, (() if sun is None else (sun,))
+    except WorldNodeError as ex:
+        strength = 1.0
+        if node is not None and node.type == 'BACKGROUND' and not node.inputs["Strength"].is_linked:
+            strength = float(node.inputs["Strength"].default_value)
         rgb = tuple(float(c) * strength for c in world.color[:3])
-        warning = (f"world '{world.name}': only a uniform Background colour is supported; the linked "
-                   "Color/Strength input is approximated by the world's viewport colour (World > "
-                   "Viewport Display)")
-        return (Environment(radiance=rgb) if max(rgb) > 0 else None), warning
-    rgb = tuple(float(c) for c in world.color[:3])
-    warning = (f"world '{world.name}': only a uniform Background node is supported; the world is "
-               "approximated by its viewport colour (World > Viewport Display)")
-    return (Environment(radiance=rgb) if max(rgb) > 0 else None), warning
+        warning = (f"world '{world.name}' approximated by its viewport colour x strength "
+                   f"({rgb[0]:.3g}, {rgb[1]:.3g}, {rgb[2]:.3g}) (World > Viewport Display): {ex}")
+        return (Environment(radiance=rgb) if max(rgb) > 0 else None), warning, ()
+
+
+def environment_signature(env) -> tuple | None:
+    """What a solve depends on in an environment: its uniform radiance and its SH coefficients."""
+    if env is None:
+        return None
+    sh = None if env.sh is None else array_digest(np.asarray(env.sh, dtype=np.float64))
+    return (tuple(env.radiance), sh)
 
 
 # ------------------------------------------------------------------ occluders

@@ -188,6 +188,18 @@ def solve_status(obj) -> SolveStatus:
         vnm_message=st.vnm_backend_message if st.vnm_backend else "")
 
 
+def world_line(obj) -> tuple[str, bool]:
+    """The World's line for the panel and whether it is a warning: the fallback's reason when the object's last
+    frame fell back, else what the World became (``ops.world.status_line``: SH order, the HDRI's sun)."""
+    from . import world
+
+    st = state.get_state(obj)
+    for w in (st.warnings if st is not None else ()):
+        if w.startswith("world '"):
+            return w, True
+    return world.status_line(), False
+
+
 def last_solve() -> dict:
     """The last solve of any object: ``{"name", "seconds", "residual", "backend"}`` (empty before one)."""
     return dict(state.LAST_SOLVE)

@@ -108,8 +108,8 @@ def _predicted(addon, plane, scene) -> np.ndarray:
     assert warning is None
     m_per_bu = scene_inputs.metres_per_world_unit(plane, scene, mm)
     lights = scene_inputs.collect_lights(depsgraph, matrix, m_per_bu)
-    env, env_warning = scene_inputs.world_environment(scene.world)
-    assert env_warning is None
+    env, env_warning, world_sun = scene_inputs.world_environment(scene.world)
+    assert env_warning is None and world_sun == ()
     W = _pixel_points()
     to_obj = np.array(matrix.inverted())
     P = W.reshape(-1, 3) @ to_obj[:3, :3].T + to_obj[:3, 3]
@@ -224,10 +224,11 @@ def test_exposure_and_linked_world_warning(blender, addon):
 
     ensure_node_tree(world)
     tree = world.node_tree
-    sky = tree.nodes.new("ShaderNodeTexSky")
+    script = tree.nodes.new("ShaderNodeScript")  # OSL: only Cycles' OSL back end runs it
     background = next(n for n in tree.nodes if n.type == 'BACKGROUND')
-    tree.links.new(sky.outputs[0], background.inputs["Color"])
+    script.outputs.new('NodeSocketColor', "Color") if not script.outputs else None
+    tree.links.new(script.outputs[0], background.inputs["Color"])
     world.color = (0.2, 0.3, 0.4)
-    env, warning = scene_inputs.world_environment(world)
-    assert warning and "uniform" in warning
+    env, warning, world_sun = scene_inputs.world_environment(world)
+    assert warning and "viewport colour" in warning and "Script (OSL) node" in warning and world_sun == ()
     assert env.radiance == pytest.approx((0.2, 0.3, 0.4))

@@ -21,6 +21,7 @@ FLOORS = (
     ("inner_parts",),
     ("state", "fluid_sources"),
     ("scene_inputs", "backend"),
+    ("world",),
     ("compat", "dependencies", "quality_costs"),
 )
 # panels calls the draw_settings hooks of overlay and render_pass, which share its floor

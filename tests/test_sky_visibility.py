@@ -171,7 +171,7 @@ def test_the_operator_bakes_sky_visibility_and_solves_with_the_bounce(blender, a
     from translucency.translucency_addon.diffusion import DiffusionSolver, SolveOptions
 
     written = radiance(obj)
-    env, _ = scene_inputs.world_environment(bpy.context.scene.world)
+    env, _, _ = scene_inputs.world_environment(bpy.context.scene.world)
     engine = DiffusionSolver(st.bake.with_scale(10.0), scene_inputs.build_material(s),
                              options=SolveOptions(tol=1e-7, sky_occlusion=True))
     with_bounce = engine.vertex_radiance(engine.solve_interreflected(environment=env, bounces=1)[0])
