@@ -107,6 +107,30 @@ def compare(image, mask, ref) -> dict:
             "mean_ratio": [float(x) for x in image[P].mean(0) / ref.image[P].mean(0)]}
 
 
+def quartile_ratios(image, mask, ref) -> list:
+    """Mean ours / reference over the pixels in each quartile of the reference's brightness (darkest first)."""
+    P = comparison_mask(mask, ref.mask)
+    r, o = ref.image.mean(-1), image.mean(-1)
+    q = np.quantile(r[P], [0.0, 0.25, 0.5, 0.75, 1.0])
+    q[-1] = np.inf
+    return [float(o[P & (r >= a) & (r < b)].mean() / r[P & (r >= a) & (r < b)].mean()) for a, b in zip(q[:-1], q[1:])]
+
+
+def add_quartiles(res: dict) -> dict:
+    """Fill ``quartiles`` of rows from a run that did not store them, from its saved images (IMAGES)."""
+    for name, rec in res["scenes"].items():
+        ref = None
+        for k, row in enumerate(rec["rows"]):
+            f = IMAGES / f"{name}_{k}.npz"
+            if "quartiles" in row or not f.exists():
+                continue
+            if ref is None:
+                ref = LS.get_reference(next(s for s in LS.reference_scenes() if s.name == name))
+            with np.load(f, allow_pickle=False) as z:
+                row["quartiles"] = quartile_ratios(z["image"], z["mask"], ref)
+    return res
+
+
 def compare_binned(image, mask, ref, k: int = 2) -> dict:
     """:func:`compare` on k x k blocks of pixels (all k^2 inside the eroded comparison mask): the
     reference's noise falls by k, the smooth model error hardly changes.  A check that the
@@ -155,7 +179,7 @@ def run(names=None, log=print) -> dict:
             img, mask, _, dt, bake_s, nodes, resid = render_ours(ev, sc, quality, tol, lights)
             row = {"label": label, "quality": quality, "tol": tol, "first_ms": 1e3 * dt, "bake_s": bake_s,
                    "nodes": list(nodes), "residual": resid, **compare(img, mask, ref),
-                   "binned": compare_binned(img, mask, ref)}
+                   "binned": compare_binned(img, mask, ref), "quartiles": quartile_ratios(img, mask, ref)}
             IMAGES.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(IMAGES / f"{sc.name}_{len(rec['rows'])}.npz", image=img, mask=mask)
             rec["rows"].append(row)
@@ -235,11 +259,17 @@ def findings(res: dict) -> list:
             ok = conv["debiased"] <= TARGET
             line += f"; target {_pct(TARGET)}: **{'met' if ok else 'missed'}**"
         line += "."
+        if "quartiles" in conv:
+            line += (" Mean ours / reference by quartile of the reference's brightness, darkest first: "
+                     + ", ".join(f"{x:.2f}" for x in conv["quartiles"]) + ".")
         if patches is not None and prev is not None:
             line += (f" The point light against the emitter as {PATCHES} area lights on its surface (Preview): "
                      f"{_pct(prev['debiased'])} -> {_pct(patches['debiased'])} debiased, mean "
                      + ", ".join(f"{x:.3f}" for x in prev["mean_ratio"]) + " -> "
                      + ", ".join(f"{x:.3f}" for x in patches["mean_ratio"])
+                     + ("; by brightness quartile " + ", ".join(f"{x:.2f}" for x in prev["quartiles"]) + " -> "
+                        + ", ".join(f"{x:.2f}" for x in patches["quartiles"])
+                        if "quartiles" in prev and "quartiles" in patches else "")
                      + ": that part of the error is the point light standing in for an emitter of this size "
                      "(its penumbra, and the light it sends past the horizon of the surface points near the "
                      "terminator); the rest is the transport model and the discretisation.")
@@ -249,6 +279,8 @@ def findings(res: dict) -> list:
 
 def write(res: dict, path: Path) -> None:
     from bench.accuracy_text import replace_section
+
+    res = add_quartiles(res)
 
     text = path.read_text() if path.exists() else ""
     path.write_text(replace_section(text, HEADING, section(res)))
