@@ -26,15 +26,19 @@ The light comes from the right, above and in front (``LIGHT_DIR``); the camera l
 the image shows the lit side on the right and light that crossed the object on the left.  The size
 is a compromise: the reference hits the emitter only by chance (a fraction of about
 (1 - cos asin(a/d)) of the paths that leave the lit side), so a smaller emitter costs
-quadratically more samples for the same noise; a/d = 0.3 gives a noise floor of about 7 % at
-2048 spp per channel on the sphere (a few minutes).
+quadratically more samples for the same noise; a/d = 0.3 gave noise floors of 6.3 % (near sphere,
+2048 spp per channel, 21 min), 13.1 % (near bunny, 1024 spp, 11 min), 12.7 % (far sphere, 1024 spp,
+14 min) and 10.0 % (square, 1024 spp, 11 min) on 2 cores shared with other jobs (load average ~10).
 
 **Spot lights are not in the set.**  A spot needs a hard-edged cone: the emitter inside a black
 shade with an opening (``RefEmitter("shaded_sphere")``).  The shade must be several times larger
 than the emitter for a sharp edge (penumbra +-asin(a / shade radius)), and must stay clear of the
 object, so the emitter seen from the object is small: with a = 3 mm in a 12 mm shade 40 mm away
-(penumbra +-14 degrees) the path tracer hits it (0.075 / 0.3)^2 = 16x less often than the near
-sphere, i.e. about 16x the samples (over an hour per channel here) for the same noise floor.
+(penumbra +-14 degrees) the path tracer hits it about (0.075 / 0.3)^2 = 16x less often than the
+near sphere, i.e. about 16x the samples for the same noise floor (estimated from the near sphere's
+cost: 7 min per channel for 2048 spp on these shared cores, so about 2 h per channel).  The shaded
+sphere itself renders as it should (``tests/test_light_reference.py``: light through the opening,
+exactly none with the opening turned away).
 """
 
 from __future__ import annotations

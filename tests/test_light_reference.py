@@ -123,3 +123,25 @@ def test_principled_base_color_inverts_the_albedo_fit():
         assert not clamped and 0.0 < A < 1.0
         assert chiang_alpha(A) == pytest.approx(alpha, abs=1e-9)
     assert chiang_alpha(0.0) == pytest.approx(0.0, abs=1e-3)
+
+
+def test_shaded_sphere_emits_only_into_its_cone():
+    """The spot stand-in: the emitter inside a black shade lights the object through the opening, and
+    nothing when the opening faces away (the shade mesh, its placement and its black BSDF)."""
+    from bench import accuracy_scenes as S
+    from bench.reference.mitsuba_ref import render_reference
+    from bench.reference.scene import RefScene
+
+    V, F, mpu = S.mesh("sphere")
+    d = np.array([1.0, 0.0, 0.0])  # beside the object, out of the camera's frame
+    means = []
+    for facing in (-d, d):
+        em = RefEmitter("shaded_sphere", tuple(3.0 * d), 0.5, (40.0, 40.0, 40.0), direction=tuple(facing),
+                        cone_deg=60.0, shade_radius=1.2)
+        sc = RefScene(V, F, mpu, S.material("skin1"), S.camera_for(V, (8, 8)), emitters=(em,), resolution=(8, 8),
+                      spp=16, name="shaded")
+        ref = render_reference(sc, batches=2, reflection_spp_factor=1)
+        means.append(float(ref.full[ref.mask].mean()))
+    lit, away = means
+    assert lit > 0.01, means
+    assert away == 0.0, means
