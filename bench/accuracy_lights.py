@@ -259,6 +259,14 @@ def findings(res: dict) -> list:
             ok = conv["debiased"] <= TARGET
             line += f"; target {_pct(TARGET)}: **{'met' if ok else 'missed'}**"
         line += "."
+        if rec["emitter"]["kind"] == "rectangle":
+            em = rec["emitter"]
+            d = em["distance_mm"] - LS.OBJECT_RADIUS_MM[name.split("_")[0]]
+            R = 2.0 * em["radius_mm"] / math.sqrt(math.pi)  # the disc of the square's area
+            line += (f" The engine's area light is a far-field model (a point with a cosine lobe): on the axis of "
+                     f"a Lambertian disc of radius R at distance d the exact irradiance is pi L R^2 / (R^2 + d^2), "
+                     f"the point's pi L R^2 / d^2, so at the sphere's nearest point (d = {d:.0f} mm, R = {R:.1f} mm) "
+                     f"the engine's light is {100 * (R / d) ** 2:.0f} % too bright: the model, not the units.")
         if "quartiles" in conv:
             line += (" Mean ours / reference by quartile of the reference's brightness, darkest first: "
                      + ", ".join(f"{x:.2f}" for x in conv["quartiles"]) + ".")

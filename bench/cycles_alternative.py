@@ -405,7 +405,7 @@ def run(scene_names=SCENES, setups=SETUPS, spps=SPP, log=print) -> dict:
             rec["setups"][setup] = {"info": info, "one_spp_s": t1, "rows": rows}
         out["scenes"][name] = rec
     out["seconds"] = time.perf_counter() - t_all
-    out["load"] = [load0, os.getloadavg()[0]]
+    out["load"] = [load0, os.getloadavg()[0]]  # at the start and at the end
     return out
 
 
@@ -519,13 +519,14 @@ def notes(res: dict) -> str:
         "within the reference's noise on these 12-40 mm marble objects; the cap biases objects that are large "
         "against the transport mean free path and absorb little (a marble statue, a glass of milk, snow), "
         "dark, most where light crosses the object (the side away from the light), and no Cycles setting lifts it.",
-        "* **Principled Random Walk** is biased by construction: Cycles ends each walk after 256 steps (it "
-        "then gives up the light), models no reflection back into the medium at the boundary, and maps Base "
-        "Color to the albedo with a fit; its error stops falling at the level shown above, whatever the samples.",
+        "* **Principled Random Walk** converges to something else: Cycles ends each walk after 256 steps "
+        "(`../shared/NOTES.md`; the light of a longer walk is lost), crosses the boundary with its own "
+        "subsurface entry and exit rather than the smooth dielectric of the reference, and maps Base Color to "
+        "the albedo through a fit; its error stops falling at the level shown above, whatever the samples.",
         "* **The denoiser** removes most of the noise at a few samples but leaves its own bias (a plateau that "
         "more samples lower only slowly).",
         "* All times are CPU times on shared cores"
-        + (f" (load average {res['load'][0]:.1f} at the start, {res['load'][1]:.1f} at the end of this run)"
+        + (f" (1-min load average between {min(res['load']):.1f} and {max(res['load']):.1f} during this run)"
            if res.get("load") else "")
         + ": Cycles and our solve ran in the same process under the same load, so compare the ratios, "
         "not the seconds."]
