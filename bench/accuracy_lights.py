@@ -184,7 +184,8 @@ def run(names=None, log=print) -> dict:
             np.savez_compressed(IMAGES / f"{sc.name}_{len(rec['rows'])}.npz", image=img, mask=mask)
             rec["rows"].append(row)
             log(f"  {label:40s} first {row['first_ms']:8.0f} ms  err {row['err']:.4f} floor {row['floor']:.4f} "
-                f"debiased {row['debiased']:.4f} +- {row['debiased_sd']:.4f} binned {row['binned']['debiased']:.4f} mean "
+                f"debiased {row['debiased']:.4f} +- {row['debiased_sd']:.4f} "
+                f"binned {row['binned']['debiased']:.4f} mean "
                 + ", ".join(f"{x:.3f}" for x in row["mean_ratio"]))
         out["scenes"][sc.name] = rec
     out["seconds"] = time.perf_counter() - t_all
@@ -226,20 +227,22 @@ def section(res: dict) -> str:
          "statistical error, propagated). Target (issue 17): <= 3.0 % debiased for the marble sphere and bunny "
          "under the near spherical light, converged Final graph.", "",
          "| scene | reference light <-> engine light | reference spp (batches), s | our solve | first frame ms "
-         "| error | noise floor | debiased | R, G, B | 2x2 binned: error / floor / debiased | mean ours / ref (R, G, B) |",
+         "| error | noise floor | debiased | R, G, B | 2x2 binned: error / floor / debiased "
+         "| mean ours / ref (R, G, B) |",
          "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, rec in res["scenes"].items():
         em, li = rec["emitter"], rec["light"]
         lab = (f"{KIND[em['kind']]} r = {em['radius_mm']:.1f} mm at {em['distance_mm']:.0f} mm <-> "
                f"{ENGINE[li['kind']]} {1e3 * li['intensity_W_sr']:.3g} mW/sr")
         for i, r in enumerate(rec["rows"]):
-            head = (f"| {name} | {lab} | {rec['ref_spp']:,} ({rec['ref_batches']}), {rec['ref_seconds']:.0f} |" if i == 0
-                    else "| | | |")
+            head = "| | | |"
+            if i == 0:
+                head = f"| {name} | {lab} | {rec['ref_spp']:,} ({rec['ref_batches']}), {rec['ref_seconds']:.0f} |"
             L.append(f"{head} {r['label']} | {r['first_ms']:,.0f} | {_pct(r['err'])} | {_pct(r['floor'])} | "
                      f"{_pct(r['debiased'])} +- {100 * r['debiased_sd']:.1f} | "
                      + ", ".join(f"{100 * x:.1f}" for x in r["err_rgb"]) + " | "
-                     + (f"{_pct(r['binned']['err'])} / {_pct(r['binned']['floor'])} / {_pct(r['binned']['debiased'])} | "
-                        if "binned" in r else "- | ")
+                     + (f"{_pct(r['binned']['err'])} / {_pct(r['binned']['floor'])} / "
+                        f"{_pct(r['binned']['debiased'])} | " if "binned" in r else "- | ")
                      + ", ".join(f"{x:.3f}" for x in r["mean_ratio"]) + " |")
     L.append("")
     L += findings(res)

@@ -19,6 +19,11 @@ coefficients as our engine and the reference (``bench/accuracy_scenes.py``):
   alpha = 1 - (4.09712 + 4.20863 A - sqrt(9.59217 + 41.6808 A + 17.7126 A^2))^2), IOR = eta,
   Roughness 0.
 
+Scenes: the marble sphere under the uniform world (the validated set-up's scene) and the marble bunny
+under the sky (the report's headline) -- the two report scenes whose cached references match today's
+scene keys (the other sky scenes' cached files carry older keys, and this script never starts a
+reference render).
+
 Both: one RGB render (as a user renders), the scene's sky lobe built with world nodes (the
 direction from Texture Coordinate > Generated, checked against ``Environment.radiance_at`` below),
 orthographic camera, box filter 1 px, every bounce limit at Cycles' maximum (1,024) with no
@@ -428,6 +433,7 @@ def section(res: dict) -> str:
          "**Glass + Volume** (Glass BSDF, Volume Scatter + Volume Absorption inside; the set-up "
          "`bench/reference/cycles_ref.py` validated against Mitsuba) and **Principled, Random Walk** "
          "(Subsurface Radius = the mean free path, Base Color from Chiang et al. 2016's albedo inversion). "
+         "Scenes: the marble sphere under the uniform world and the marble bunny under the sky (the headline). "
          "One RGB render per row, every bounce limit at 1,024 (Cycles' maximum), no clamping, adaptive "
          "sampling off, "
          + ("with and without OpenImageDenoise (OIDN, in this bpy build)." if res["oidn"] else
