@@ -244,6 +244,10 @@ def prune_references(quick: bool = False) -> list:
     from bench.reference.mitsuba_ref import scene_key
 
     keep = {f"{s.name}-{scene_key(s)}.npz" for s in reference_scenes(quick)}
+    if not quick:  # the local-light references (bench/light_scenes.py) share the directory
+        from bench import light_scenes
+
+        keep |= {f"{s.name}-{scene_key(s, batches=light_scenes.BATCHES)}.npz" for s in light_scenes.reference_scenes()}
     gone = [p for p in reference_dir(quick).glob("*.npz") if p.name not in keep]
     for p in gone:
         p.unlink()

@@ -476,7 +476,9 @@ def findings_model(b):
 # Sections other benches write into docs/accuracy.md (replace_section); a rewrite by bench/accuracy.py keeps them.
 KEPT_SECTIONS = ("## Particle fluids (Voronoi-fluid cells, issue 14)\n", "## Deformation without a re-bake\n",
                  "## Objects with inner parts (issue 15): cavities, several media, an opaque part\n",
-                 "## HDRI world (issue 19): the add-on against Cycles\n")
+                 "## HDRI world (issue 19): the add-on against Cycles\n",
+                 "## Local lights against the path tracer (issue 17)\n",
+                 "## The user's alternative: Cycles, timed (issue 17)\n")
 
 
 def section_span(text: str, head: str):

@@ -227,6 +227,8 @@ def _emitters(scene: RefScene, channel: int, variant: str, mi) -> dict:
             "neither shadow-test through the boundary nor hit a delta light by refraction, so their "
             "translucency is black. Use an environment (uniform, or bench.reference.scene.sky_environment).")
     out = {}
+    for k, em in enumerate(scene.emitters):
+        out.update(_area_emitter(scene, em, k, channel, variant, mi))
     env = scene.environment
     if env is not None and not env.is_black:
         if env.sh is not None and np.any(env.sh):
@@ -236,6 +238,32 @@ def _emitters(scene: RefScene, channel: int, variant: str, mi) -> dict:
             if value > 0:
                 out["environment"] = {"type": "constant", "radiance": _grey(value, variant)}
     return out
+
+
+def _area_emitter(scene: RefScene, em, k: int, channel: int, variant: str, mi) -> dict:
+    """Mitsuba shapes for one :class:`~bench.reference.scene.RefEmitter` (in mm), black where they do
+    not emit (a path that hits them ends there).  A sphere emits on its whole surface, a rectangle
+    on the side its normal faces (Mitsuba's ``area`` emitter is one-sided, towards the shape's
+    normal); a shaded sphere adds its black shade (an open mesh) around the sphere."""
+    s = scene.mm_per_unit
+    black = {"type": "diffuse", "reflectance": _grey(0.0, variant)}
+    light = {"type": "area", "radiance": _grey(float(em.radiance[channel]), variant)}
+    c = [float(x) * s for x in em.position]
+    if em.kind in ("sphere", "shaded_sphere"):
+        out = {f"emitter_{k}": {"type": "sphere", "center": c, "radius": float(em.radius) * s, "bsdf": black,
+                                "emitter": light}}
+        if em.kind == "shaded_sphere":
+            V, F = em.shade_mesh()
+            path = Path(_scratch_ply()).with_name(f"shade{k}.ply")
+            _write_ply(path, V * s, F)
+            out[f"shade_{k}"] = {"type": "ply", "filename": str(path), "face_normals": True, "bsdf": black}
+        return out
+    d = np.asarray(em.direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    up = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    h = float(em.radius) * s
+    to_world = _look_at(mi, c, np.asarray(c) + d, up) @ mi.ScalarTransform4f().scale([h, h, 1.0])
+    return {f"emitter_{k}": {"type": "rectangle", "to_world": to_world, "bsdf": black, "emitter": light}}
 
 
 def _grid_points(scene: RefScene):
@@ -414,6 +442,7 @@ def render_reference(
     spp_batch = max(1, math.ceil(spp / batches))
     env = scene.environment
     grey_lights = env is None or (len(set(env.radiance)) == 1 and (env.sh is None or np.allclose(env.sh, env.sh[:, :1])))
+    grey_lights = grey_lights and all(len(set(em.radiance)) == 1 for em in scene.emitters)
     _emitters(scene, 0, variant, mi)  # refuse what cannot be rendered before any work
     with tempfile.TemporaryDirectory(prefix="translucency-ref-") as tmp:
         ply = Path(tmp) / "object.ply"
@@ -464,6 +493,8 @@ def scene_key(scene: RefScene, **render_kwargs) -> str:
         "smooth": scene.smooth_normals, "grid": scene.grid_resolution, "sphere": repr(scene.analytic_sphere),
         "render": {k: repr(v) for k, v in sorted(render_kwargs.items())}, "version": 1,
     }
+    if scene.emitters:  # added with issue 17: scenes without emitters keep their keys
+        desc["emitters"] = [repr(e) for e in scene.emitters]
     if scene.parts:  # added with issue 15: scenes without parts keep the keys they always had
         desc["parts"] = [[p.name, p.role, repr(p.medium), p.eta] for p in scene.parts]
         for p in scene.parts:

@@ -158,6 +158,90 @@ class RefPart:
     eta: float = 1.0
 
 
+EMITTER_KINDS = ("sphere", "rectangle", "shaded_sphere")
+
+
+@dataclass(frozen=True)
+class RefEmitter:
+    """An area emitter the path tracer can render, and its engine counterpart (issue 17).
+
+    A delta light behind a smooth dielectric contributes nothing to a unidirectional path tracer
+    (``mitsuba_ref._emitters``), but a path leaving the object can *hit* an emitter of finite size.
+    Geometry in object units (like ``RefScene.V``); ``radiance`` in W/(m^2 sr) per channel.
+
+    * ``"sphere"``: a uniform Lambertian sphere of ``radius`` centred at ``position``.  Seen from a
+      point x at distance d >= radius whose tangent plane does not cut it, it gives the irradiance
+      E = pi L (a / d)^2 cos(theta) *exactly* (a in the same unit as d), i.e. what a point light of
+      radiant intensity I = pi a^2 L [W/sr, a in metres] at its centre gives (the engine's
+      ``light_irradiance``: I / r^2 with r in metres).  Its power is 4 pi I = 4 pi^2 a^2 L
+      [W]; a Blender point light of that power has I = P / (4 pi) (``ops/scene_inputs``).  The two
+      differ only where the sphere is partly below a surface point's horizon or partly shadowed
+      (the penumbra a point light does not have), and by the Fresnel factor's variation across
+      the sphere's solid angle.
+    * ``"rectangle"``: a one-sided Lambertian square of side ``2 * radius`` at ``position``,
+      emitting towards ``direction``.  Radiant intensity I(w) = L A cos(w, n) with A its area in
+      m^2: the engine's ``area`` light (far field, ``intensity = L A`` along the normal; a Blender
+      area light of power P has I = P / pi along its normal, so P = pi L A).
+    * ``"shaded_sphere"``: the sphere inside a black spherical shade of radius ``shade_radius``
+      with a circular opening of full angle ``cone_deg`` around ``direction``: a spot light with a
+      hard edge (Blender's spot with blend 0) blurred by a penumbra of about
+      +-asin(radius / shade_radius).  Mitsuba's own ``spot`` is a delta light, which it cannot
+      render through the boundary.
+    """
+
+    kind: str
+    position: tuple
+    radius: float
+    radiance: tuple = (1.0, 1.0, 1.0)
+    direction: tuple = (0.0, 0.0, -1.0)
+    cone_deg: float = 60.0
+    shade_radius: float = 0.0
+
+    def __post_init__(self):
+        if self.kind not in EMITTER_KINDS:
+            raise ValueError(f"emitter kind must be one of {', '.join(EMITTER_KINDS)}, got {self.kind!r}")
+        if not (np.isfinite(self.radius) and self.radius > 0):
+            raise ValueError(f"emitter radius must be > 0, got {self.radius}")
+        if self.kind == "shaded_sphere" and not (self.shade_radius > self.radius and 0 < self.cone_deg < 180):
+            raise ValueError("a shaded sphere needs shade_radius > radius and 0 < cone_deg < 180")
+        if min(self.radiance) < 0:
+            raise ValueError(f"emitter radiance must be >= 0, got {self.radiance}")
+
+    def engine_light(self, mm_per_unit: float) -> Light:
+        """The engine's counterpart (module docstring): same position, same radiant intensity."""
+        a_m = self.radius * mm_per_unit * 1e-3
+        col = tuple(float(c) for c in self.radiance)
+        pos = tuple(float(x) for x in self.position)
+        if self.kind == "sphere":
+            return Light("point", color=col, intensity=np.pi * a_m * a_m, position=pos, name="sphere emitter")
+        if self.kind == "rectangle":
+            return Light("area", color=col, intensity=(2.0 * a_m) ** 2, position=pos,
+                         direction=tuple(_unit(self.direction, "emitter direction")), name="rectangle emitter")
+        return Light("spot", color=col, intensity=np.pi * a_m * a_m, position=pos,
+                     direction=tuple(_unit(self.direction, "emitter direction")),
+                     spot_size=float(np.radians(self.cone_deg)), spot_blend=0.0, name="shaded sphere emitter")
+
+    def shade_mesh(self, segments: int = 96):
+        """The shade of a ``shaded_sphere``: a UV sphere of ``shade_radius`` without the facets whose
+        centroid lies inside the opening's cone (object units)."""
+        V, F = uv_sphere(self.shade_radius, segments)
+        d = _unit(self.direction, "emitter direction")
+        z = np.array([0.0, 0.0, 1.0])
+        # rotate +z onto d (Rodrigues), then move to the emitter's position
+        v = np.cross(z, d)
+        c = float(z @ d)
+        if np.linalg.norm(v) < 1e-12:
+            R = np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+        else:
+            K = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+            R = np.eye(3) + K + K @ K / (1.0 + c)
+        V = V @ R.T
+        cen = V[F].mean(axis=1)
+        cen /= np.linalg.norm(cen, axis=1, keepdims=True)
+        keep = cen @ d < np.cos(np.radians(0.5 * self.cone_deg))
+        return V + np.asarray(self.position, dtype=np.float64), F[keep]
+
+
 @dataclass
 class RefScene:
     """One matched scene for the reference renderer and for our solver."""
@@ -184,6 +268,9 @@ class RefScene:
     # Inner parts (issue 15): RefPart shapes inside the object, rendered with their own media and
     # interfaces (mitsuba_ref._parts).  Our side reads them as a translucency_addon CompositeObject.
     parts: tuple = ()
+    # Area emitters (issue 17): RefEmitter shapes the path tracer renders; our side lights the
+    # object with their engine counterparts (RefEmitter.engine_light).
+    emitters: tuple = ()
 
     def __post_init__(self):
         self.V = np.asarray(self.V, dtype=np.float64).reshape(-1, 3)
@@ -199,6 +286,9 @@ class RefScene:
         for light in self.lights:
             if not isinstance(light, Light):
                 raise TypeError(f"lights must be translucency_addon.lights.Light, got {type(light).__name__}")
+        for em in self.emitters:
+            if not isinstance(em, RefEmitter):
+                raise TypeError(f"emitters must be RefEmitter, got {type(em).__name__}")
         W, H = self.resolution
         self.resolution = (int(W), int(H))
         if min(self.resolution) < 1 or self.spp < 1:
@@ -207,6 +297,10 @@ class RefScene:
     @property
     def bbox(self) -> tuple[np.ndarray, np.ndarray]:
         return self.V.min(axis=0), self.V.max(axis=0)
+
+    def engine_lights(self) -> list:
+        """The engine's lights for this scene: ``lights`` plus each emitter's counterpart."""
+        return list(self.lights) + [em.engine_light(self.mm_per_unit) for em in self.emitters]
 
     def field_values(self, points) -> np.ndarray | None:
         """Mixing field at object-space points, or None for a homogeneous material."""
