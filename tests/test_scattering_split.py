@@ -92,3 +92,62 @@ def test_split_conserves_and_limits():
     x, w = 0.5 * (x + 1), 0.5 * w
     L = split.single_radiance(np.ones((400, 3)), np.full((400, 3), 0.84), x)
     assert 2 * np.pi * np.sum(L[:, 0] * x * w) == pytest.approx(float(split.single_escape(0.84)), rel=0.01)
+
+
+# --- per scene family, against the path tracer -------------------------------------------------
+
+@pytest.fixture(scope="module")
+def evaluator():
+    from bench.accuracy_core import Evaluator
+
+    return Evaluator(bake_cache=None, log=lambda *_: None)
+
+
+def _images(ev, scene):
+    """Diffusion alone, every term on, and the once-scattered light counted twice (the closed-form term added
+    to the unsplit diffusion), on the scene's Draft bake with sky visibility, as the add-on solves."""
+    from dataclasses import replace
+
+    from bench.accuracy_core import SUPERSAMPLE, solve, view_dirs
+    from bench.reference.raster import rasterize
+    from translucency_addon.diffusion import DiffusionSolver, SolveOptions
+
+    bk, _ = ev.bake(scene, quality="draft")
+    solver = DiffusionSolver(bk, scene.material, ev.field_values(scene, bk), SolveOptions(solver="fast", tol=1e-5))
+    vd = view_dirs(scene)
+    alone = solve(solver, environment=scene.environment)[0]
+    every = solve(solver, environment=scene.environment, single=(True, True, True))[0]
+    L = {"diffusion": solver.vertex_radiance(alone, vd), "every term": solver.vertex_radiance(every, vd),
+         "double": solver.vertex_radiance(replace(alone, q_incident=list(alone.q), single=(True,) * 3), vd)}
+    return {k: rasterize(scene.V, scene.F, v, scene.camera, scene.resolution, supersample=SUPERSAMPLE)
+            for k, v in L.items()}, every, solver
+
+
+@pytest.mark.parametrize("name", ["sphere_marble_sky", "sphere_skin1_sky"])
+def test_every_term_on_is_never_worse_than_diffusion_alone(evaluator, name):
+    """All terms on against diffusion alone against the cached Mitsuba reference (bench/data/reference).
+
+    Measured (Draft graph, debiased relative RMS): marble 1.53 % alone, 1.80 % every term on (the split's
+    mean is 1.7 % darker; over a half-space the split matches the random walk head-on where diffusion alone
+    is 1.5 % bright, so diffusion's +0.6 % here is a compensation of errors, docs/accuracy.md), counted twice
+    8 %; skin1 11.8 % alone, 6.8 % every term on.  "Never worse" is held to the reference's noise floor."""
+    from bench import accuracy_scenes as scenes
+    from bench.reference.metrics import relative_rms
+
+    scene = next(s for s in scenes.reference_scenes() if s.name == name)
+    ref = scenes.get_reference(scene)
+    images, result, solver = _images(evaluator, scene)
+    err = {}
+    for k, ras in images.items():
+        b = relative_rms(ras.image, ref.image, ras.mask, ref.mask, stderr=ref.stderr)
+        err[k] = float(np.sqrt(max(b.rel_rms**2 - b.noise_floor**2, 0.0)))
+        floor = b.noise_floor
+    print(name, {k: round(100 * v, 2) for k, v in err.items()}, "floor", round(100 * floor, 2))
+    # never worse, to within the reference's own noise (marble: +0.4 points on this Draft graph, +0.2 on
+    # the converged Final graph, with a noise floor of 0.7 %; see the docstring)
+    assert err["every term"] <= err["diffusion"] + floor
+    if name == "sphere_skin1_sky":  # where single scattering is a large share, the split is a large gain
+        assert err["every term"] < err["diffusion"] - 0.03
+    assert err["double"] > err["every term"] + floor  # the metric sees a double count
+    pb = solver.power_balance(result)
+    assert np.all(pb["out"] + pb["single"] <= pb["incident"])  # the terms together never create light
