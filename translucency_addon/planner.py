@@ -52,7 +52,9 @@ below and in the tests.
   ``NEGLIGIBLE`` (1 %) of the object's peak (the brightest channel's
   half-space return ``s(alpha) + M(alpha)`` times the light reaching it), and
   the reasons say how much each term brings.  It needs no bake (it is a
-  closed form); turning single scattering off turns it off.
+  closed form), so it does not depend on the RBF pass being baked or on;
+  ``overrides={"split": False}`` turns it off (diffusion alone), and forcing
+  the RBF pass on everywhere (``{"single": True}``) turns it off too.
 * **Objects with inner parts** (cavities, other media, opaque parts: ``bake.composite``): diffusion
   keeps its validity test (a marble with a hollow runs diffusion with the cavity exchange, and both
   single-scattering passes stay off as contained in it).  Where diffusion is invalid, the pass that
@@ -536,7 +538,7 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
     ss_cf = split_model.single_escape(albedo_1) * E
     ms_cf = split_model.multiple_escape(albedo_1) * E
     peak = max(float(np.max(ss_cf + ms_cf)), 1e-300)
-    split_on = overrides.get("single") is not False and single_pass
+    split_on = overrides.get("split") is not False and single_pass
     split = tuple(bool(split_on and ms_ch[c] and ss_cf[c] >= NEGLIGIBLE * peak) for c in range(3))
     facts.update(ss_closed_form=ss_cf.tolist(), ms_closed_form=ms_cf.tolist())
 
@@ -559,7 +561,7 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
             ss_why.append(split_reason(c) if ms_ch[c] and not ss_replaces[c] and split_on else f"{C}: not baked")
         elif not ss_available:
             ss_ch.append(False)
-            ss_why.append(f"{C}: turned off")
+            ss_why.append(split_reason(c) if ms_ch[c] and split_on else f"{C}: turned off")
         elif ms_ch[c] and not ss_replaces[c]:
             ss_ch.append(False)
             ss_why.append(split_reason(c))
