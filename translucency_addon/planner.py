@@ -547,7 +547,7 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
         if split[c]:
             return (f"{C}: contained in the diffusion term, which splits it off in closed form (first-scatter "
                     f"split): single scattering brings {_pct(ss_cf[c] / peak)} and multiple scattering "
-                    f"{_pct(ms_cf[c] / peak)} of the object's peak")
+                    f"{_pct(ms_cf[c] / peak)} of the object's peak (half-space estimate)")
         return (f"{C}: contained in the diffusion term; split off it would bring {_pct(ss_cf[c] / peak)} of the "
                 f"object's peak (< {_pct(NEGLIGIBLE)}): not split")
 
