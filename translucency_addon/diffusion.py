@@ -173,20 +173,6 @@ class SolveResult:
 
 
 
-def equivalent_radius_mm(bake) -> float | None:
-    """3V/A of the bake's mesh in mm (a sphere's radius; the split's object size), None without a closed mesh."""
-    from .meshio import signed_volume, triangle_areas
-
-    V, F = getattr(bake, "mesh_vertices", None), getattr(bake, "mesh_faces", None)
-    if V is None or F is None or len(F) == 0:
-        return None
-    area = float(triangle_areas(V, F).sum())
-    vol = abs(float(signed_volume(V, F)))
-    if not (area > 0 and vol > 0 and np.isfinite(vol)):
-        return None
-    return 3.0 * vol / area * float(bake.mm_per_unit)
-
-
 class DiffusionSolver:
     """Multiple scattering for one baked object: material, lights -> radiance per vertex.
 
@@ -224,15 +210,12 @@ class DiffusionSolver:
             raise MaterialError(f"field values needed for {len(levels)} levels, got {len(field_values)}")
         self.systems = []
         self.surface_albedo = []  # per level (n_surface, 3): sigma_s'/sigma_t at the surface nodes (the split)
-        self.surface_tau = []  # per level (n_surface, 3): the object's equivalent radius 3V/A in mean free paths
-        radius_mm = equivalent_radius_mm(self.bake)
         for i, lv in enumerate(levels):
             fv = None if field_values is None else np.asarray(field_values[i])
             if fv is not None and fv.shape[0] != lv.n_nodes:
                 raise MaterialError(f"level {i}: field has {fv.shape[0]} values for {lv.n_nodes} nodes")
             sa, ss = node_coefficients(material, fv, lv.n_nodes)
             self.surface_albedo.append(albedo(sa[lv.n_inner:], ss[lv.n_inner:]))
-            self.surface_tau.append(None if radius_mm is None else radius_mm * (sa + ss)[lv.n_inner:])
             self.systems.append(assemble(lv, sa, ss, material.eta, self.bake.mm_per_unit, self.options.scheme()))
 
     # -- lights ----------------------------------------------------------------
@@ -404,9 +387,8 @@ class DiffusionSolver:
         In the channels of ``single`` (default: all when ``options.single_scattering``) the light that
         entered, q, is split over the local half-space (:mod:`.single_scattering.closed_form`): the part
         ``s(alpha) q`` that leaves after one scattering is the closed-form single-scattering term the output
-        adds (:meth:`single_radiance_at`), and the diffusion solves for ``m q`` (``m <= 1 - s``), the source
-        whose return is the multiple scattering: M(alpha) over a half-space, carried to the object's size by
-        its equivalent radius 3V/A (eq. 4 there); alpha and the mean free path are each surface node's.
+        adds (:meth:`single_radiance_at`), and the diffusion solves for ``m(alpha) q`` (``m <= 1 - s``), the
+        source whose half-space return is the multiple scattering M(alpha); alpha is each surface node's.
         So both terms add up, each path once, node by node in a heterogeneous medium.
         """
         if single is None:
@@ -421,7 +403,7 @@ class DiffusionSolver:
             if qi is None:
                 out.append(None)
                 continue
-            m = split.source_factor(self.surface_albedo[i], self.surface_tau[i])
+            m = split.source_factor(self.surface_albedo[i])
             out.append(np.asarray(qi) * np.where(on, m, 1.0))
         return out, list(q), single
 

@@ -73,21 +73,6 @@ did not leave by single scattering: energy bound), and where B vanishes (alpha b
 where the boundary-source diffusion returns nothing) m is the once-scattered light that stays,
 ``alpha - s``.
 
-**Objects of finite size.**  The ratio M/B is a half-space's: there the source that sits deeper (the
-second scattering, about a mean free path down, against the boundary source's ~2/3) is absorbed more on
-the long walks into an infinite medium.  In an object not much larger than the diffusion length
-``1/sigma_tr`` (marble: 8.5 mm in red, a 12 mm sphere) those walks cannot happen: the object absorbs only a
-few per cent of what enters, and M/B would take 1.6 % of the light away that the object really returns
-(measured on the path-traced marble spheres).  So the extra absorption is written as a fraction r of the
-boundary source's own absorption, ``(1 - s) B - M = r (1 - s)(1 - B)`` over the half-space, and carried to
-the object by its own return: a diffusion sphere of the object's equivalent radius ``3V/A`` (exact for a
-sphere) lit uniformly returns ``R_sph`` (:meth:`HalfSpaceSplit.sphere_return`), and::
-
-    m = (1 - s) f,    f = clip(1 - r (1 - R_sph)/R_sph,  M/((1 - s) B),  1)                     (4)
-
-which is M/B for a half-space (R_sph = B) and ``1 - s`` for an object that absorbs nothing (everything
-that single scattering does not send out comes back by multiple scattering).
-
 Against transport (the Monte Carlo random walk, eta = 1.3, diffuse light; docs/accuracy.md): total
 returned light at alpha = 0.68, 0.84, 0.96 (skin1's B, G, R) is 0.121, 0.219, 0.441; diffusion alone
 gives 0.129, 0.245, 0.481 (+6 %, +12 %, +9 %), the split 0.131, 0.236, 0.463 (+8 %, +8 %, +5 %); at
@@ -156,15 +141,6 @@ class HalfSpaceSplit:
         self.B_table = self._boundary(a)
         m = np.where(self.B_table > 1e-9, self.M_table / np.maximum(self.B_table, 1e-300), a - self.s_table)
         self.m_table = np.clip(np.minimum(m, 1.0 - self.s_table), 0.0, None)
-        # r: the multiple-scattering source's extra absorption over the boundary source's, per unit of the
-        # boundary source's own absorption (eq. 4); hs: the half-space factor M / ((1 - s) B)
-        rest = 1.0 - self.s_table
-        self.r_table = np.where(self.B_table < 1.0 - 1e-9,
-                                (rest * self.B_table - self.M_table) / np.maximum(rest * (1.0 - self.B_table), 1e-300),
-                                0.0)
-        self.r_table[-1] = self.r_table[-2]  # alpha = 1: the limit (nothing is absorbed either way)
-        self.hs_table = np.where(self.B_table > 1e-9, np.minimum(
-            self.M_table / np.maximum(rest * self.B_table, 1e-300), 1.0), 1.0)
 
     # -- the half-space integrals ------------------------------------------------------------
     def _h(self, m) -> np.ndarray:
@@ -212,36 +188,9 @@ class HalfSpaceSplit:
         """B(alpha): what the boundary-source diffusion alone returns from a half-space."""
         return self._lookup(self.B_table, alpha)
 
-    def sphere_return(self, alpha, tau) -> np.ndarray:
-        """The boundary-source diffusion's return from a sphere of radius ``tau`` mean free paths lit uniformly.
-
-        ``phi = C sinh(sigma_tr r)/r``; the boundary condition of eq. 2 gives
-        ``phi(R) = 4q/(1 - F_dr) / (1 + 2 A kappa (sigma_tr coth(sigma_tr R) - 1/R))``; the return is
-        ``(1 - F_dr) J+ / q``.  tau -> infinity: B(alpha); alpha -> 1: 1.
-        """
-        a = np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0)
-        T = np.maximum(np.asarray(tau, dtype=np.float64), 1e-6)
-        s = np.sqrt(3.0 * (1.0 - a))
-        x = s * T
-        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-            coth_term = np.where(x > 1e-4, s / np.tanh(np.maximum(x, 1e-300)) - 1.0 / T, s * x / 3.0)
-        phi = 4.0 / ((1.0 - self.fdr) * (1.0 + 2.0 * self.A / 3.0 * coth_term))
-        return (1.0 - self.fdr) * np.maximum(phi - 2.0, 0.0) / (2.0 * (1.0 + self.fdr))
-
-    def source_factor(self, alpha, tau=None) -> np.ndarray:
-        """m: the diffusion's boundary source is m q when the single-scattering term runs.
-
-        ``tau``: the object's equivalent sphere radius 3V/A in mean free paths (per node; None: a
-        half-space, ``m = M/B``).  See eq. 4 of the module docstring.
-        """
-        if tau is None:
-            return self._lookup(self.m_table, alpha)
-        rest = 1.0 - self.single_escape(alpha)
-        R = self.sphere_return(alpha, tau)
-        r = self._lookup(self.r_table, alpha)
-        hs = self._lookup(self.hs_table, alpha)
-        f = np.clip(1.0 - r * (1.0 - R) / np.maximum(R, 1e-300), hs, 1.0)
-        return rest * f
+    def source_factor(self, alpha) -> np.ndarray:
+        """m(alpha): the diffusion's boundary source is m q when the single-scattering term runs."""
+        return self._lookup(self.m_table, alpha)
 
     def single_radiance(self, q, alpha, cos_o) -> np.ndarray:
         """Eq. (2): outgoing single-scattering radiance (W/(m^2 sr)) for entering light q (W/m^2).
