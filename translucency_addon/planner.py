@@ -327,6 +327,8 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
                  bake.mm_per_unit, bool(has_single_scattering), overrides,
                  ms_cost=lambda channels: 1e-4 * lv.n_nodes * sum(channels) / 3.0,  # ~0.1 us per node-channel sweep x ~50
                  ss_available=ss_available, split_replacement=split,
+                 split_blocked=("the cavity exchange's solve does not carry the split yet (diffusion alone)"
+                                if getattr(getattr(bake, "composite", None), "exchange", None) is not None else ""),
                  # the packed kernel read once per frame (~2 GB/s on a CPU core) plus the light pass
                  vnm_cost=1.0 + 6e-6 * vnm_n * vnm_n / 2.0)
     if parts and plan.facts:
@@ -407,7 +409,7 @@ def _skipped(name: str, enabled: bool, in_view: bool) -> Plan | None:
 
 def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_unit, has_single_scattering,
           overrides, ms_cost, single_pass: bool = True, ss_available: bool | None = None, split_replacement=None,
-          vnm_cost: float = 0.0) -> Plan:
+          vnm_cost: float = 0.0, split_blocked: str = "") -> Plan:
     """The passes of one object from its geometry facts (``geo``, per-node ``area``), its bulk and surface-node
     coefficients, and the light reaching it: the criteria of the module docstring, per channel and node.
 
@@ -538,7 +540,7 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
     ss_cf = split_model.single_escape(albedo_1) * E
     ms_cf = split_model.multiple_escape(albedo_1) * E
     peak = max(float(np.max(ss_cf + ms_cf)), 1e-300)
-    split_on = overrides.get("split") is not False and single_pass
+    split_on = overrides.get("split") is not False and single_pass and not split_blocked
     split = tuple(bool(split_on and ms_ch[c] and ss_cf[c] >= NEGLIGIBLE * peak) for c in range(3))
     facts.update(ss_closed_form=ss_cf.tolist(), ms_closed_form=ms_cf.tolist())
 
@@ -548,6 +550,10 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
             return (f"{C}: contained in the diffusion term, which splits it off in closed form (first-scatter "
                     f"split): single scattering brings {_pct(ss_cf[c] / peak)} and multiple scattering "
                     f"{_pct(ms_cf[c] / peak)} of the object's peak (half-space estimate)")
+        if split_blocked:
+            return f"{C}: contained in the diffusion term; not split off: {split_blocked}"
+        if not split_on:
+            return f"{C}: contained in the diffusion term; not split off (turned off)"
         return (f"{C}: contained in the diffusion term; split off it would bring {_pct(ss_cf[c] / peak)} of the "
                 f"object's peak (< {_pct(NEGLIGIBLE)}): not split")
 
