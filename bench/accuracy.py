@@ -57,7 +57,7 @@ if str(ROOT) not in sys.path:
 import numpy as np  # noqa: E402
 
 from bench import accuracy_scenes as scenes  # noqa: E402
-from bench.accuracy_core import SUPERSAMPLE, Evaluator, solve  # noqa: E402
+from bench.accuracy_core import ALL_TERMS, SUPERSAMPLE, Evaluator, solve  # noqa: E402
 from bench.reference.metrics import relative_rms  # noqa: E402
 
 DOCS = ROOT / "docs"
@@ -68,7 +68,7 @@ SECTIONS = ("presets", "K", "levels", "tol", "solver", "precision", "ss", "model
 HEADLINE = "bunny_marble_sky"
 TARGETS = {"preview": 0.05, "final": 0.02}
 USER_TOL = 1e-4  # the add-on's default tolerance (scene.translucency.tolerance)
-CONVERGED = dict(solver="fast", tol=1e-6)  # continuation of the Final solve (see converged())
+CONVERGED = dict(solver="fast", tol=1e-6, single_scattering=ALL_TERMS)  # continuation of the Final solve
 
 
 class Bench:
@@ -307,12 +307,16 @@ class Bench:
         if not self.quick:
             variants += [("SS 32 directions", dict(n_dirs=32)), ("SS 5k samples", dict(n_samples=5000)),
                          ("SS SH order 2", dict(sh_order=2)), ("SS final voxels", dict(quality="final"))]
+        alone = dict(solver="fast", tol=USER_TOL, single_scattering=False)
         for name in names:
             sc = self.scenes[name]
-            r = self.ev.run(sc, dict(quality=base), dict(solver="fast", tol=USER_TOL), frames=False)
+            r = self.ev.run(sc, dict(quality=base), alone, frames=True)
             self.record("ss", "diffusion only", name, r, ss=None)
+            r = self.ev.run(sc, dict(quality=base), dict(solver="fast", tol=USER_TOL, single_scattering=True),
+                            frames=True)
+            self.record("ss", "every term (split)", name, r, ss=None)
             for label, ss in (variants if name == HEADLINE else variants[:1]):
-                r = self.ev.run(sc, dict(quality=base), dict(solver="fast", tol=USER_TOL), ss=ss, frames=False)
+                r = self.ev.run(sc, dict(quality=base), alone, ss=ss, frames=False)
                 self.record("ss", label, name, r, ss=ss)
 
     def model(self):
@@ -327,8 +331,10 @@ class Bench:
         sc = self.scenes[name]
         base = "draft" if self.quick else "preview"
         bk, bake_s = self.ev.bake(sc, quality=base)
-        solver = self.ev.make_solver(bk, sc, SolveOptions(solver="fast", tol=USER_TOL), "cpu")
-        plain = self.ev.make_solver(bk, sc, SolveOptions(solver="fast", tol=USER_TOL, sky_occlusion=False), "cpu")
+        every = dict(single_scattering=ALL_TERMS)
+        solver = self.ev.make_solver(bk, sc, SolveOptions(solver="fast", tol=USER_TOL, **every), "cpu")
+        plain = self.ev.make_solver(bk, sc, SolveOptions(solver="fast", tol=USER_TOL, sky_occlusion=False, **every),
+                                    "cpu")
         t0 = time.perf_counter()
         q0 = plain.incident([], sc.environment)
         q = solver.incident([], sc.environment)

@@ -34,6 +34,10 @@ from bench.reference.scene import sky_environment
 ROOT = Path(__file__).resolve().parents[1]
 BAKE_CACHE = ROOT / "bench" / "out" / "accuracy_bakes"
 SUPERSAMPLE = 4
+# Every term on, as the add-on's planner runs it on these scenes (issue 17): the diffusion solve splits off the
+# closed-form single scattering (DiffusionSolver.solve(single=...), single_scattering/closed_form.py).  A
+# configuration asks for diffusion alone with solve_options single_scattering=False.
+ALL_TERMS = True
 
 
 def view_dirs(scene) -> np.ndarray:
@@ -182,7 +186,7 @@ class Evaluator:
         from translucency_addon.meshio import vertex_normals
 
         bk, bake_s = self.bake(scene, **bake_settings)
-        opts = SolveOptions(**(solve_options or {}))
+        opts = SolveOptions(**{"single_scattering": ALL_TERMS, **(solve_options or {})})
         solver = self.make_solver(bk, scene, opts, backend)
         vd = view_dirs(scene)
         env = scene.environment

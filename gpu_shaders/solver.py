@@ -194,6 +194,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
             return res
         return GPUSolveResult(phi=res.phi, q=res.q, level_solves=res.level_solves, seconds=res.seconds,
                               scheme=res.scheme, warnings=res.warnings, phi_surface=self.last_surface,
+                              q_incident=res.q_incident, single=res.single,
                               precision=self.precision,
                               generation=self._resident_generation, solver_id=id(self))
 
@@ -375,14 +376,17 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
             cos_o = np.einsum("vj,vj->v", self.bake.mesh_normals, np.asarray(view_dirs, dtype=np.float64))
         g.jplus(self.fdr)  # J+ into the scratch residual texture
         out_scale = 1.0 / (np.pi * self.eta * self.eta * g.q_scale)
-        return self._vmap.radiance(g.r, self.eta, out_scale, cos_o).astype(np.float64)
+        L = self._vmap.radiance(g.r, self.eta, out_scale, cos_o).astype(np.float64)
+        idx, w = self.bake.vertex_map
+        L_ss = self.single_radiance_at(result, idx, w, self.bake.mesh_normals, view_dirs)  # closed form, CPU
+        return L if L_ss is None else L + L_ss
 
     def power_balance(self, result, level: int = -1, clamp: bool = True) -> dict:
         if result.phi[level] is None:
             phi = list(result.phi)
             phi[level] = self.read_phi(result, level)
             result = diffusion.SolveResult(phi=phi, q=result.q, level_solves=result.level_solves,
-                                           scheme=result.scheme)
+                                           scheme=result.scheme, q_incident=result.q_incident, single=result.single)
         return super().power_balance(result, level, clamp)
 
 

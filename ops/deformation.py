@@ -83,7 +83,8 @@ def diffuse(st: state.ObjectState, frame: FrameInputs, number: int, solve_sig, f
             return _radiance(st, last, frame), last.solver, False, 0.0, last.result
         out = frames.solve(V, list(frame.lights), frame.environment, frame=number,
                            view_dirs=view_directions(frame.view, V) if same else None, shadows=True,
-                           occluders=_shadow_bvh(d, V, st.bake.mesh_faces, frame), channels=frame.ms_channels)
+                           occluders=_shadow_bvh(d, V, st.bake.mesh_faces, frame), channels=frame.ms_channels,
+                           single=frame.single_channels)
     except DeformationError as ex:
         d.report = ex.report if isinstance(ex, GraphFolded) else None
         d.refused = str(ex)

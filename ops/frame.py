@@ -76,6 +76,7 @@ class FrameInputs:
     use_vnm: bool  # the Voxel Number Map runs this frame (an object with inner parts)
     part_media: tuple | None  # the inner parts' roles and media now (ops.inner_parts.part_media); None: no parts
     ms_channels: tuple  # the planner's diffusion channels
+    single_channels: tuple  # the channels in which the diffusion solve adds closed-form single scattering (split)
     occluders: object  # other objects' triangles in object space (None without, or when diffusion is off)
     occ_sig: tuple | None
     mapping: MeshMapping | None  # None when no pass runs
@@ -151,6 +152,7 @@ def gather(obj, scene, depsgraph, st: ObjectState, use_camera: bool) -> FrameInp
         ss_order=min(int(settings.ss_sh_order), st.bake.single_scattering.order) if has_ss else 0,
         plan=plan, use_ms=use_ms, use_ss=use_ss, use_vnm=use_vnm, part_media=part_media,
         ms_channels=plan.multiple.channels if plan.multiple is not None else (False, False, False),
+        single_channels=plan.multiple.split if plan.multiple is not None else (False, False, False),
         occluders=occluders, occ_sig=occ_sig,
         mapping=mesh_mapping(obj, st) if use_ms or use_ss or use_vnm else None,
         ss_stale=ss_stale,

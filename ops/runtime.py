@@ -259,7 +259,7 @@ def _signatures(st: state.ObjectState, frame: FrameInputs) -> tuple:
         reaching = set(frame.plan.facts.get("lights_reaching", ()))
         lights_sig = tuple(light for light in frame.lights if light.name in reaching)
         solve_sig = (_solver_sig(frame), frame.material, frame.field_sig, frame.part_media,
-                     lights_sig, frame.env_sig, frame.occ_sig, frame.ms_channels,
+                     lights_sig, frame.env_sig, frame.occ_sig, frame.ms_channels, frame.single_channels,
                      st.geometry_digest if st.pose is not None else None)  # a pose: its positions
     ss_sig = (frame.want_ss, frame.use_ss, frame.split)
     if frame.use_ss:
@@ -378,9 +378,10 @@ def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous):
         return result
     if solver.sky is None:
         return solver.solve(lights, frame.environment, warm_start=previous, shadows=True, occluders=frame.occluders,
-                            channels=frame.ms_channels)
+                            channels=frame.ms_channels, single=frame.single_channels)
     result, st.bounce = solver.solve_interreflected(lights, frame.environment, warm_start=previous, shadows=True,
-                                                    occluders=frame.occluders, channels=frame.ms_channels)
+                                                    occluders=frame.occluders, channels=frame.ms_channels,
+                                                    single=frame.single_channels)
     return result
 
 

@@ -133,7 +133,8 @@ def engine_frames(obj, V, use_camera=False):
     frames = DeformationFrames(bake_at_scale, inputs.material, inputs.field_values, inputs.solve_options(),
                                rig=DeformationRig(bake_at_scale))
     out = frames.solve(V, list(inputs.lights), inputs.environment, view_dirs=view_directions(inputs.view, V),
-                       shadows=True, occluders=inputs.occluders)  # the solver's own BVH of the object + them
+                       shadows=True, occluders=inputs.occluders,  # the solver's own BVH of the object + them
+                       single=inputs.single_channels)  # the planner's first-scatter split, as the add-on solves
     return out, inputs
 
 
@@ -175,7 +176,8 @@ def test_armature_bend_solves_on_the_deformed_graph(blender, addon, cache_dir, m
     # independent: a fresh engine bake of Blender's posed mesh, solved cold
     fresh = bake_mod.bake_mesh(V, F, st.bake.settings)
     solver = DiffusionSolver(fresh.with_scale(inputs.mm), inputs.material, options=inputs.solve_options())
-    L_fresh = solver.vertex_radiance(solver.solve(list(inputs.lights), inputs.environment, shadows=True))
+    L_fresh = solver.vertex_radiance(solver.solve(list(inputs.lights), inputs.environment, shadows=True,
+                                                  single=inputs.single_channels))
     assert rel_rms(posed, L_fresh) < 0.08
     assert rel_rms(rest, L_fresh) > 2.0 * rel_rms(posed, L_fresh)  # the rest result shown on the pose is not
 

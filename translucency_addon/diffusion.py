@@ -127,6 +127,7 @@ from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, energy_imbala
 from .lights import environment_flux, incident_flux, shadow_visibility
 from .materials import Material
 from .radiance import clamp_scale, outgoing_radiance
+from .single_scattering.closed_form import albedo, half_space_split
 
 SOLVERS = ("fast", "paper", "direct", "jacobi")
 
@@ -140,6 +141,10 @@ class SolveOptions:
     coarse_tol: float | None = None  # tolerance on coarser levels (default: tol)
     levels: str = "all"  # "all": multi-resolution warm start; "finest": single level
     sky_occlusion: bool = True  # use the bake's sky visibility (when baked) for environment light
+    # The first-scatter split (single_scattering/closed_form.py): closed-form single scattering added to the
+    # output, the diffusion's boundary source reduced to what scatters more, so the two add up.  True: every
+    # channel; a solve's ``single=`` (the planner's channels) overrides it.
+    single_scattering: bool = False
 
     def scheme(self) -> str:
         return "paper" if self.solver == "paper" else "fv"
@@ -153,6 +158,10 @@ class SolveResult:
     seconds: dict = field(default_factory=dict)
     scheme: str = "fv"
     warnings: list = field(default_factory=list)  # from the light pass (e.g. a light inside the object)
+    # With the first-scatter split: the light that entered (q above is the diffusion's source m q) and the
+    # channels in which the closed-form single scattering is added to the output.
+    q_incident: list | None = None
+    single: tuple = (False, False, False)
 
     @property
     def iterations(self) -> int:
@@ -200,11 +209,13 @@ class DiffusionSolver:
         if field_values is not None and len(field_values) != len(levels):
             raise MaterialError(f"field values needed for {len(levels)} levels, got {len(field_values)}")
         self.systems = []
+        self.surface_albedo = []  # per level (n_surface, 3): sigma_s'/sigma_t at the surface nodes (the split)
         for i, lv in enumerate(levels):
             fv = None if field_values is None else np.asarray(field_values[i])
             if fv is not None and fv.shape[0] != lv.n_nodes:
                 raise MaterialError(f"level {i}: field has {fv.shape[0]} values for {lv.n_nodes} nodes")
             sa, ss = node_coefficients(material, fv, lv.n_nodes)
+            self.surface_albedo.append(albedo(sa[lv.n_inner:], ss[lv.n_inner:]))
             self.systems.append(assemble(lv, sa, ss, material.eta, self.bake.mm_per_unit, self.options.scheme()))
 
     # -- lights ----------------------------------------------------------------
@@ -321,7 +332,7 @@ class DiffusionSolver:
         return warm_start is not None and warm_start.phi[-1] is not None
 
     def solve(self, lights=(), environment=None, *, q=None, warm_start=None, shadows=True,
-              occluders=None, channels=None, bounce=None) -> SolveResult:
+              occluders=None, channels=None, bounce=None, single=None) -> SolveResult:
         """Solve every level coarse to fine (or only the finest, from ``warm_start``).
 
         ``q``: precomputed incident light per level (skips the light pass).
@@ -333,6 +344,9 @@ class DiffusionSolver:
         case), so coarse levels are skipped.
         ``channels``: (bool, bool, bool) from the planner; skipped channels
         cost nothing on the CPU and come out as zero flux.
+        ``single``: (bool, bool, bool), the channels in which the first-scatter split runs
+        (:meth:`split_source`; default ``options.single_scattering``): the diffusion solves for
+        ``m(alpha) q`` and the output adds the closed-form single scattering of q.
         """
         t0 = time.perf_counter()
         opts = self.options
@@ -345,6 +359,7 @@ class DiffusionSolver:
             q = self.incident(lights, environment, shadows=shadows, occluders=occluders, levels=active,
                               bounce=bounce)
             warnings = list(self.warnings)
+        q, q_incident, single = self.split_source(q, single)
         t1 = time.perf_counter()
         mask = (True, True, True) if channels is None else tuple(bool(c) for c in channels)
         self._channels = tuple(c for c in range(3) if mask[c])
@@ -362,7 +377,49 @@ class DiffusionSolver:
                         p[:, off] = 0.0
         t2 = time.perf_counter()
         return SolveResult(phi=phi, q=q, level_solves=solves, scheme=self.systems[-1].scheme,
-                           seconds={"lights": t1 - t0, "solve": t2 - t1, "total": t2 - t0}, warnings=warnings)
+                           seconds={"lights": t1 - t0, "solve": t2 - t1, "total": t2 - t0}, warnings=warnings,
+                           q_incident=q_incident, single=single)
+
+    # -- the first-scatter split -----------------------------------------------------------
+    def split_source(self, q, single=None):
+        """``(diffusion source per level, incident q per level or None, channels)`` of the split.
+
+        In the channels of ``single`` (default: all when ``options.single_scattering``) the light that
+        entered, q, is split over the local half-space (:mod:`.single_scattering.closed_form`): the part
+        ``s(alpha) q`` that leaves after one scattering is the closed-form single-scattering term the output
+        adds (:meth:`single_radiance_at`), and the diffusion solves for ``m(alpha) q`` (``m <= 1 - s``), the
+        source whose half-space return is the multiple scattering M(alpha); alpha is each surface node's.
+        So both terms add up, each path once, node by node in a heterogeneous medium.
+        """
+        if single is None:
+            single = (bool(self.options.single_scattering),) * 3
+        single = tuple(bool(c) for c in single)
+        if not any(single):
+            return q, None, (False, False, False)
+        split = half_space_split(self.eta)
+        on = np.array(single)
+        out = []
+        for i, qi in enumerate(q):
+            if qi is None:
+                out.append(None)
+                continue
+            m = split.source_factor(self.surface_albedo[i])
+            out.append(np.asarray(qi) * np.where(on, m, 1.0))
+        return out, list(q), single
+
+    def single_radiance_at(self, result: SolveResult, idx, w, normals, view_dirs=None) -> np.ndarray | None:
+        """The closed-form single scattering (eq. 2 of :mod:`.single_scattering.closed_form`) at points
+        mapped onto the finest surface nodes, or None when the result has no split."""
+        if result.q_incident is None or not any(result.single) or result.q_incident[-1] is None:
+            return None
+        w = np.asarray(w, dtype=np.float64)
+        idx = np.asarray(idx)
+        q_v = np.einsum("vk,vkc->vc", w, np.asarray(result.q_incident[-1])[idx])
+        a_v = np.einsum("vk,vkc->vc", w, self.surface_albedo[-1][idx])
+        n = np.asarray(normals, dtype=np.float64)
+        cos_o = np.ones(len(n)) if view_dirs is None else np.einsum("vj,vj->v", n, view_dirs)
+        L = half_space_split(self.eta).single_radiance(q_v, a_v, cos_o)
+        return L * np.array(result.single, dtype=np.float64)
 
     def solve_interreflected(self, lights=(), environment=None, *, bounces: int = 1, warm_start=None,
                              bounce=None, **kw) -> tuple:
@@ -487,7 +544,9 @@ class DiffusionSolver:
         j_v = np.einsum("vk,vkc->vc", np.asarray(w, dtype=np.float64), jplus[np.asarray(idx)])
         n = np.asarray(normals, dtype=np.float64)
         cos_o = np.ones(len(n)) if view_dirs is None else np.einsum("vj,vj->v", n, view_dirs)
-        return outgoing_radiance(j_v, cos_o, self.eta)
+        L = outgoing_radiance(j_v, cos_o, self.eta)
+        L_ss = self.single_radiance_at(result, idx, w, normals, view_dirs)
+        return L if L_ss is None else L + L_ss
 
     def power_balance(self, result: SolveResult, level: int = -1, clamp: bool = True) -> dict:
         """Incoming, absorbed and outgoing power (W, per channel) on one level.
@@ -510,5 +569,11 @@ class DiffusionSolver:
         p_in = a @ q
         p_out = a @ ((1.0 - self.fdr) * jp)
         p_abs = np.einsum("nc,nc->c", system.absorption_weights(), phi) * 1e-6  # mm^2 -> m^2
-        return {"in": p_in, "out": p_out, "absorbed": p_abs}
+        out = {"in": p_in, "out": p_out, "absorbed": p_abs}
+        if result.q_incident is not None and result.q_incident[level] is not None:
+            # the split: in = the light that entered; single = what the closed-form term sends out
+            q_in = np.asarray(result.q_incident[level])
+            s = half_space_split(self.eta).single_escape(self.surface_albedo[level]) * np.array(result.single)
+            out.update(incident=a @ q_in, single=a @ (s * q_in))
+        return out
 

@@ -42,11 +42,19 @@ below and in the tests.
 * **Single scattering where diffusion runs** is *contained in the diffusion
   term*: the diffusive-source boundary condition injects all transmitted
   light, so its first scattering near the surface is already in the
-  diffusion solution.  Adding the pass counts it twice: on the path-traced
-  marble sphere diffusion alone is within 2 % (the reference's noise is
-  1.3 %), diffusion plus single scattering 7.5 % off.  The decision reports
-  the bound of what would be double-counted (single-scattering estimate over
-  the diffusion estimate).
+  diffusion solution.  Adding the RBF pass on top counts it twice (on the
+  path-traced marble sphere diffusion alone is within 2 %, diffusion plus
+  that pass 7.5 % off), so the RBF pass stays off there.  Instead the diffusion
+  solve splits it off (:attr:`PassDecision.split`, the first-scatter split of
+  :mod:`.single_scattering.closed_form`): closed-form single scattering of the
+  local half-space plus the diffusion of what scatters more, which add up.
+  It runs in every channel where its single-scattering term brings at least
+  ``NEGLIGIBLE`` (1 %) of the object's peak (the brightest channel's
+  half-space return ``s(alpha) + M(alpha)`` times the light reaching it), and
+  the reasons say how much each term brings.  It needs no bake (it is a
+  closed form), so it does not depend on the RBF pass being baked or on;
+  ``overrides={"split": False}`` turns it off (diffusion alone), and forcing
+  the RBF pass on everywhere (``{"single": True}``) turns it off too.
 * **Objects with inner parts** (cavities, other media, opaque parts: ``bake.composite``): diffusion
   keeps its validity test (a marble with a hollow runs diffusion with the cavity exchange, and both
   single-scattering passes stay off as contained in it).  Where diffusion is invalid, the pass that
@@ -75,6 +83,7 @@ import numpy as np
 from .fresnel import boundary_A, diffuse_reflectance_internal
 from .lights import Environment, Light, spot_falloff
 from .materials import Material, reduced_albedo
+from .single_scattering.closed_form import half_space_split
 
 ALBEDO_MIN = 0.5
 THICK_MIN = 1.0
@@ -94,6 +103,9 @@ class PassDecision:
     reasons: list  # one human-readable reason per channel
     bound: tuple = (0.0, 0.0, 0.0)  # single scattering: B_ss relative to diffusion, per channel
     forced: bool = False
+    # "multiple" only: the channels in which the diffusion solve splits off closed-form single scattering
+    # (the first-scatter split; DiffusionSolver.solve(single=...)).
+    split: tuple = (False, False, False)
     # (n_surface, 3) weights in [0, 1] at the finest level's surface nodes: where in the object the
     # pass counts (diffusion where it is valid, single scattering where it replaces diffusion).
     # None: everywhere.  Only channels that run matter.
@@ -344,7 +356,9 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
     plan = _plan(name, geo, np.asarray(lv.area, dtype=np.float64), material, bulk, surface, lights, environment,
                  bake.mm_per_unit, bool(has_single_scattering), overrides,
                  ms_cost=lambda channels: 1e-4 * lv.n_nodes * sum(channels) / 3.0,  # ~0.1 us per node-channel sweep x ~50
-                 ss_available=ss_available, split=split,
+                 ss_available=ss_available, split_replacement=split,
+                 split_blocked=("the cavity exchange's solve does not carry the split yet (diffusion alone)"
+                                if getattr(getattr(bake, "composite", None), "exchange", None) is not None else ""),
                  # the packed kernel read once per frame (~2 GB/s on a CPU core) plus the light pass
                  vnm_cost=1.0 + 6e-6 * vnm_n * vnm_n / 2.0)
     if parts and plan.facts:
@@ -425,8 +439,8 @@ def _skipped(name: str, enabled: bool, in_view: bool) -> Plan | None:
 
 
 def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_unit, has_single_scattering,
-          overrides, ms_cost, single_pass: bool = True, ss_available: bool | None = None, split=None,
-          vnm_cost: float = 0.0) -> Plan:
+          overrides, ms_cost, single_pass: bool = True, ss_available: bool | None = None, split_replacement=None,
+          vnm_cost: float = 0.0, split_blocked: str = "") -> Plan:
     """The passes of one object from its geometry facts (``geo``, per-node ``area``), its bulk and surface-node
     coefficients, and the light reaching it: the criteria of the module docstring, per channel and node.
 
@@ -434,7 +448,7 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
     has none, and diffusion, its only pass, runs wherever it returns light.
 
     ``ss_available``: whether a pass can replace diffusion where it is invalid (default: single scattering
-    baked and not turned off); ``split(single) -> (single, voxel_number_map)`` hands that replacement to the
+    baked and not turned off); ``split_replacement(single) -> (single, voxel_number_map)`` hands that replacement to the
     Voxel Number Map where it is the better pass (:func:`plan_object`), costing ``vnm_cost`` ms per frame."""
     if ss_available is None:
         ss_available = has_single_scattering and overrides.get("single") is not False
@@ -552,6 +566,29 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
         advice.append(f"{chans}: single scattering would be more accurate on {_pct(share)} of the surface "
                       f"({what}); {todo}")
 
+    # The first-scatter split where diffusion runs: what each term brings over a half-space, per channel.
+    split_model = half_space_split(eta)
+    albedo_1 = ss / st
+    ss_cf = split_model.single_escape(albedo_1) * E
+    ms_cf = split_model.multiple_escape(albedo_1) * E
+    peak = max(float(np.max(ss_cf + ms_cf)), 1e-300)
+    split_on = overrides.get("split") is not False and single_pass and not split_blocked
+    split = tuple(bool(split_on and ms_ch[c] and ss_cf[c] >= NEGLIGIBLE * peak) for c in range(3))
+    facts.update(ss_closed_form=ss_cf.tolist(), ms_closed_form=ms_cf.tolist())
+
+    def split_reason(c: int) -> str:
+        C = CHANNELS[c]
+        if split[c]:
+            return (f"{C}: contained in the diffusion term, which splits it off in closed form (first-scatter "
+                    f"split): single scattering brings {_pct(ss_cf[c] / peak)} and multiple scattering "
+                    f"{_pct(ms_cf[c] / peak)} of the object's peak (half-space estimate)")
+        if split_blocked:
+            return f"{C}: contained in the diffusion term; not split off: {split_blocked}"
+        if not split_on:
+            return f"{C}: contained in the diffusion term; not split off (turned off)"
+        return (f"{C}: contained in the diffusion term; split off it would bring {_pct(ss_cf[c] / peak)} of the "
+                f"object's peak (< {_pct(NEGLIGIBLE)}): not split")
+
     ss_ch, ss_why, bound, ss_w = [], [], [], np.zeros((n_surface, 3))
     for c in range(3):
         C = CHANNELS[c]
@@ -559,14 +596,13 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
         bound.append(b)
         if not has_single_scattering:
             ss_ch.append(False)
-            ss_why.append(f"{C}: not baked")
+            ss_why.append(split_reason(c) if ms_ch[c] and not ss_replaces[c] and split_on else f"{C}: not baked")
         elif not ss_available:
             ss_ch.append(False)
-            ss_why.append(f"{C}: turned off")
+            ss_why.append(split_reason(c) if ms_ch[c] and split_on else f"{C}: turned off")
         elif ms_ch[c] and not ss_replaces[c]:
             ss_ch.append(False)
-            ss_why.append(f"{C}: contained in the diffusion term (optical thickness "
-                          f"{st[c] * thin:.0f}; a separate pass would count up to {_pct(b)} of it twice)")
+            ss_why.append(split_reason(c))
         elif ss_estimate[c] < NEGLIGIBLE * brightest:
             ss_ch.append(False)
             ss_why.append(f"{C}: negligible ({_pct(ss_estimate[c] / brightest)} of the brightest channel)")
@@ -583,8 +619,9 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
     if not single_pass:
         single = None
 
-    if split is not None:
-        single, vnm = split(single)
+    multiple.split = split
+    if split_replacement is not None:
+        single, vnm = split_replacement(single)
     for p in (multiple, single, vnm):
         if p is None:
             continue
@@ -594,6 +631,8 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
             p.reasons = [f"{CHANNELS[c]}: forced {'on' if force else 'off'} by the user" for c in range(3)]
             p.forced = True
             p.weights = None
+    if overrides.get("single") is True:  # the forced RBF pass covers everything: no closed-form term on top
+        multiple.split = (False, False, False)
     if not (multiple.runs or (single is not None and single.runs) or (vnm is not None and vnm.runs)):
         return Plan(name, False, _nothing_runs(multiple, single, ss_available), multiple, single, facts=facts,
                     advice=advice, voxel_number_map=vnm)
@@ -723,7 +762,11 @@ def describe_plan(plan: Plan) -> str:
         if p is None:
             continue
         on = "".join(ch if run else "-" for ch, run in zip(CHANNELS, p.channels))
-        lines.append(f"  {label} [{on}]{' (forced)' if p.forced else ''}")
+        extra = ""
+        if p.name == "multiple" and any(p.split):
+            extra = " + closed-form single scattering [" + "".join(
+                ch if run else "-" for ch, run in zip(CHANNELS, p.split)) + "]"
+        lines.append(f"  {label} [{on}]{extra}{' (forced)' if p.forced else ''}")
         for r in p.reasons:
             lines.append(f"    {r}")
     for a in plan.advice:

@@ -486,7 +486,9 @@ def scene_key(scene: RefScene, **render_kwargs) -> str:
     desc = {
         "mm_per_unit": scene.mm_per_unit, "material": repr(scene.material), "field": repr(scene.field),
         "lights": [repr(l) for l in scene.lights],
-        "environment": None if scene.environment is None else repr(tuple(scene.environment.radiance)),
+        # floats, not numpy scalars: numpy 2 writes np.float64(0.0) where the cached keys have 0.0
+        "environment": None if scene.environment is None
+        else repr(tuple(float(x) for x in scene.environment.radiance)),
         "environment_sh": None if scene.environment is None or scene.environment.sh is None
         else np.asarray(scene.environment.sh, dtype=np.float64).round(12).tolist(),
         "camera": repr(scene.camera), "resolution": scene.resolution, "spp": scene.spp, "seed": scene.seed,

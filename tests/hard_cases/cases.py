@@ -588,21 +588,27 @@ class Run:
     warnings: list | None = None  # the light pass's warnings (None: q was given, no light pass ran)
 
 
-def run_solver(scn: Scenario, name: str, q=None, tol: float = TOL) -> Run:
-    """Solve ``scn`` with ``name``: "fast" | "paper" | "direct" (CPU) or "gpu" (GPU, fast, scn.precision)."""
+def run_solver(scn: Scenario, name: str, q=None, tol: float = TOL, single: bool = False) -> Run:
+    """Solve ``scn`` with ``name``: "fast" | "paper" | "direct" (CPU) or "gpu" (GPU, fast, scn.precision).
+
+    ``single``: every term on -- the first-scatter split (closed-form single scattering plus the diffusion of
+    what scatters more, ``SolveOptions.single_scattering``)."""
     if name == "gpu":
         import gpu_shaders
 
-        opts = SolveOptions(solver="fast", tol=TOL)
+        opts = SolveOptions(solver="fast", tol=TOL, single_scattering=single)
         solver, backend, message = gpu_shaders.make_solver(scn.bake, scn.material, scn.field_values, opts, prefer="GPU",
                                                            precision=scn.precision, readback="phi")
         assert backend == "GPU", message
         label = "gpu-fast" + ("-fp16" if scn.precision == "fp16" else "")
     else:
         opts = SolveOptions(solver=name, tol=tol,
-                            max_iterations=PAPER_MAX_ITERATIONS if name == "paper" else 50_000)
+                            max_iterations=PAPER_MAX_ITERATIONS if name == "paper" else 50_000,
+                            single_scattering=single)
         solver = DiffusionSolver(scn.bake, scn.material, scn.field_values, opts)
         label = name
+    if single:
+        label += "+single"
     kw = dict(shadows=scn.shadows, occluders=scn.occluders)
     result = solver.solve(scn.lights, scn.environment, q=q, **kw) if q is None else solver.solve(q=q)
     L = np.asarray(solver.vertex_radiance(result))
@@ -739,7 +745,9 @@ def power(run: Run, level: int):
     (``surface_partial_current``), so a GPU output is judged by what it
     emits.  ``imbalance``: relative error of the unclamped discrete balance
     ``in = out + absorbed`` (our scheme; the paper's is not conservative and
-    the engine has no power accounting for it).
+    the engine has no power accounting for it).  With every term on (the first-scatter split) ``in`` is
+    the light that entered and ``out`` adds what the closed-form single scattering sends out; the
+    balance is the diffusion's, on its own source.
     """
     s, r = run.solver, run.result
     lv = run.scenario.bake.levels[level]
@@ -754,6 +762,8 @@ def power(run: Run, level: int):
         p_out = np.maximum(p_out, np.asarray(pb["out"]))
         gap = np.abs(p_in - np.asarray(pu["out"]) - np.asarray(pu["absorbed"]))
         imbalance = float((gap / np.where(p_in > 0, p_in, np.inf)).max())
+        if "incident" in pb:
+            p_in, p_out = np.asarray(pb["incident"]), p_out + np.asarray(pb["single"])
     return p_in, p_out, imbalance
 
 
