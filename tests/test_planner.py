@@ -174,7 +174,8 @@ def test_cli_plan_of_ketchup_under_a_sun_says_why_per_channel_and_what_to_change
 
     out = plan("--sun", "0,0,-1:1000")
     lines = out.splitlines()
-    ms = lines[lines.index("  multiple scattering [R--]") + 1:][:3]
+    head = next(i for i, line in enumerate(lines) if line.startswith("  multiple scattering [R--]"))
+    ms = lines[head + 1:][:3]
     assert ms[0].startswith("    R: diffusion valid (reduced albedo 0.747, ") and "transport mean free paths" in ms[0]
     for line, (C, albedo) in zip(ms[1:], (("G", "0.07"), ("B", "0.02"))):
         assert line == (f"    {C}: diffusion invalid (reduced albedo {albedo} < 0.5) and it returns < 0.01 % of the "
