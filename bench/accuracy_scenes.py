@@ -240,15 +240,24 @@ def get_reference(scene, quick: bool = False, refresh: bool = False, progress=No
 
 
 def prune_references(quick: bool = False) -> list:
-    """Delete cached references that no current scene uses (e.g. after a change of spp)."""
+    """Delete cached references of this report's scenes that no current key uses (e.g. after a change of spp).
+
+    Only files named after one of these scenes are candidates: other benches keep their references in the same
+    directory (``bench/fluid_reference.py``'s ellipsoid), and a prune here must not delete them.
+    """
     from bench.reference.mitsuba_ref import scene_key
 
-    keep = {f"{s.name}-{scene_key(s)}.npz" for s in reference_scenes(quick)}
+    scenes = list(reference_scenes(quick))
+    keep = {f"{s.name}-{scene_key(s)}.npz" for s in scenes}
     if not quick:  # the local-light references (bench/light_scenes.py) share the directory
         from bench import light_scenes
 
-        keep |= {f"{s.name}-{scene_key(s, batches=light_scenes.BATCHES)}.npz" for s in light_scenes.reference_scenes()}
-    gone = [p for p in reference_dir(quick).glob("*.npz") if p.name not in keep]
+        lights = list(light_scenes.reference_scenes())
+        scenes += lights
+        keep |= {f"{s.name}-{scene_key(s, batches=light_scenes.BATCHES)}.npz" for s in lights}
+    names = {s.name for s in scenes}
+    gone = [p for p in reference_dir(quick).glob("*.npz")
+            if p.name not in keep and p.name.rsplit("-", 1)[0] in names]
     for p in gone:
         p.unlink()
     return [p.name for p in gone]
