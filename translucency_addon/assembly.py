@@ -80,14 +80,15 @@ class LevelSystem:
             out[:, c] -= csr[c] @ x[:, c]
         return out
 
-    def sweep_operator(self):
-        """The level laid out for fast CPU Chebyshev sweeps (:class:`.sweeps.SweepOperator`), cached."""
-        op = self.__dict__.get("_sweep_op")
-        if op is None:
+    def sweep_operator(self, dtype=np.float64):
+        """The level laid out for fast CPU Chebyshev sweeps (:class:`.sweeps.SweepOperator`), cached per dtype."""
+        ops = self.__dict__.setdefault("_sweep_ops", {})
+        key = np.dtype(dtype).str
+        if key not in ops:
             from .sweeps import SweepOperator
 
-            op = self.__dict__["_sweep_op"] = SweepOperator(self)
-        return op
+            ops[key] = SweepOperator(self, dtype=dtype)
+        return ops[key]
 
     def subset(self, cols: tuple) -> "LevelSystem":
         """The same system restricted to some colour channels (the planner skips the others)."""

@@ -114,20 +114,20 @@ class BouncedSweepOperator(SweepOperator):
     in-place sparse products per channel (``t = P d0_s``, ``r1_s += diag(S_c) Bg t``), no gather.
     """
 
-    def __init__(self, base, factors):
-        super().__init__(base, copies=2)
+    def __init__(self, base, factors, dtype=np.float64):
+        super().__init__(base, copies=2, dtype=dtype)
         Bg, P = factors
         self.c0 = base.diag.shape[1]
         self.ni = base.level.n_inner
         surf_old = self.perm[self.ni:] - self.ni  # surface index (old) at each sweep position
-        self.P = P[:, surf_old].tocsr()
+        self.P = P[:, surf_old].tocsr().astype(self.dtype)
         self.P.sort_indices()
         self.SB = []
         for c in range(self.c0):
-            m = (sp.diags(base.b_scale[surf_old, c]) @ Bg[surf_old]).tocsr()
+            m = (sp.diags(base.b_scale[surf_old, c]) @ Bg[surf_old]).tocsr().astype(self.dtype)
             m.sort_indices()
             self.SB.append(m)
-        self.t = np.zeros(P.shape[0])
+        self.t = np.zeros(P.shape[0], dtype=self.dtype)
 
     def sub_a(self, r, d):
         from .sweeps import _csr_matvec
@@ -152,7 +152,7 @@ class BouncedSystem:
         lo, hi = spectral_bounds(base)
         self.lam_min, self.lam_max = np.tile(lo, 2), np.tile(hi, 2)  # the spectrum of (1) is that of A
         self.diag = np.tile(base.diag, (1, 2))
-        self._op = None
+        self._ops = {}
 
     @property
     def n(self) -> int:
@@ -162,10 +162,11 @@ class BouncedSystem:
     def G(self) -> sp.csr_matrix:
         return (self.factors[0] @ self.factors[1]).tocsr()
 
-    def sweep_operator(self):
-        if self._op is None:
-            self._op = BouncedSweepOperator(self.base, self.factors)
-        return self._op
+    def sweep_operator(self, dtype=np.float64):
+        key = np.dtype(dtype).str
+        if key not in self._ops:
+            self._ops[key] = BouncedSweepOperator(self.base, self.factors, dtype=dtype)
+        return self._ops[key]
 
     def coupling(self, x0: np.ndarray) -> np.ndarray:
         """K x0 (N, C): S G x0_s on the surface rows, zero inside."""

@@ -23,6 +23,7 @@ import numpy as np
 from . import kernels
 from .assembly import LevelSystem, sparse_matrix
 from .spectral import deflation, spectral_bounds
+from .sweeps import FP32_TOL
 
 
 @dataclass
@@ -68,6 +69,26 @@ def solve_jacobi(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.ndarra
     return x, LevelSolve(it, res, hist, time.perf_counter() - t0)
 
 
+def first_check(res: np.ndarray, tol: float, sigma: np.ndarray, check_every: int) -> int:
+    """The step before which a Chebyshev cycle needs no residual check.
+
+    On the interval the residual polynomial is at most ``1 / T_k(sigma)`` with
+    ``sigma = theta / delta`` (Saad sec. 12.3), so reaching ``tol`` from a
+    relative residual ``res`` takes at least ``acosh(res/tol) / acosh(sigma)``
+    steps where every mode lies at the bottom of the interval; half of that,
+    rounded down to a check, is skipped without a look.  A check is a
+    reduction and, on the GPU, a read-back that stalls the queue
+    (gpu_shaders/solver.py), so this saves dispatches; the CPU uses the same
+    rule so both stop after the same step.
+    """
+    r = np.asarray(res, dtype=np.float64)
+    need = r > tol
+    if not need.any():
+        return 0
+    k = np.arccosh(np.maximum(r[need] / tol, 1.0)) / np.arccosh(np.maximum(np.asarray(sigma)[need], 1.0 + 1e-15))
+    return int(check_every * np.floor(0.5 * float(np.max(k)) / check_every))
+
+
 def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.ndarray, LevelSolve]:
     """Chebyshev semi-iteration with the Jacobi preconditioner (Saad Alg. 12.1), per channel.
 
@@ -95,7 +116,8 @@ def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.nda
     lam_min, lam_max = spectral_bounds(system)
     defl = deflation(system)
     deflated = np.zeros(len(lam_max), dtype=bool) if defl is None else defl.mask.copy()
-    op = system.sweep_operator()  # channel-major, RCM order, fused r -= A d (sweeps.py)
+    # channel-major, RCM order, fused r -= A d; fp32 where the tolerance allows (sweeps.py)
+    op = system.sweep_operator(np.float32 if tol >= FP32_TOL else np.float64)
 
     def interval():
         lo = np.where(deflated, defl.lam_min, lam_min) if defl is not None else lam_min
@@ -103,30 +125,34 @@ def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.nda
         delta = 0.5 * (lam_max - lo)
         return theta, delta, theta / delta
 
-    def correct(X, R):  # the deflation's Galerkin correction works node-major; only at cycle ends
-        x, r = defl.correct(op.from_cm(X), op.from_cm(R))
-        return op.to_cm(x), op.to_cm(r)
+    def correct(x, R):  # the deflation's Galerkin correction works node-major; only at cycle ends
+        x, r = defl.correct(x, op.from_cm(R))
+        return x, op.to_cm(r)
 
     def norms(v):
-        return np.sqrt(np.einsum("cn,cn->c", v, v))
+        return np.sqrt(np.einsum("cn,cn->c", v, v, dtype=np.float64))
+
+    def true_residual(x):  # in fp64, node-major: what the solve reports, whatever the sweep precision
+        return op.to_cm(b - system.apply(x))
 
     theta, delta, sigma = interval()
-    B = op.to_cm(b)
-    X = op.to_cm(x0)
-    R = B.copy()
-    op.sub_a(R, X)
+    x = np.array(x0, dtype=np.float64)
+    R = true_residual(x)
     if defl is not None:
-        X, R = correct(X, R)
-    bn = norms(B)
+        x, R = correct(x, R)
+    bn = norms(op.to_cm(b))
     bn = np.where(bn > 0, bn, 1.0)
     res = norms(R) / bn
     hist = [float(res.max())]
     it = 0
     D = np.empty_like(R)
     T = np.empty_like(R)
+    restarts = 0
     while res.max() > tol and it < max_iter:
         start = res.copy()
+        X = np.zeros_like(R)  # the correction this cycle adds to x (the sweep precision)
         rho = 1.0 / sigma
+        skip = it + first_check(res, tol, sigma, check_every)
         np.multiply(R, op.inv_diag, out=D)
         D /= theta[:, None]
         best, since = res.copy(), np.zeros(len(res), dtype=int)
@@ -144,7 +170,7 @@ def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.nda
             D += T
             rho = rho_next
             it += 1
-            if it % check_every == 0:
+            if it % check_every == 0 and it >= skip:
                 res = norms(R) / bn
                 hist.append(float(res.max()))
                 if res.max() <= tol:
@@ -156,20 +182,25 @@ def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.nda
                     stalled = deflated & (since >= 6) & (res > tol)
                     if stalled.any():
                         break
-        # The recursively updated r drifts slightly from b - A x; report the true one.
-        R = B.copy()
-        op.sub_a(R, X)
+        # The recursively updated r drifts slightly from b - A x (more so in fp32); report the true one,
+        # and go on from it while it misses the tolerance (iterative refinement).
+        x += op.from_cm(X)
+        R = true_residual(x)
         res = norms(R) / bn
         if defl is None:
-            break
-        X, R = correct(X, R)
+            restarts += 1
+            hist.append(float(res.max()))
+            if res.max() <= tol or restarts > 20:
+                break
+            continue
+        x, R = correct(x, R)
         res = norms(R) / bn
         hist.append(float(res.max()))
         give_up = stalled & (res > 0.5 * start)
         if give_up.any():
             deflated &= ~give_up
             theta, delta, sigma = interval()
-    return op.from_cm(X), LevelSolve(it, res, hist, time.perf_counter() - t0)
+    return x, LevelSolve(it, res, hist, time.perf_counter() - t0)
 
 
 def solve_direct(system, b, *_args, **_kw) -> tuple[np.ndarray, LevelSolve]:
