@@ -334,6 +334,11 @@ def main(argv=None):
         p = Path(a.out)
         old = p.read_text() if p.exists() else ""
         head = old.split("\n## A frame with Self-Occlusion")[0].split("\n## How cost grows")[0].rstrip("\n")
+        if not a.sizes and "\n## How cost grows" in old:  # keep the scaling table of an earlier run
+            parts.append("## How cost grows" + old.split("\n## How cost grows", 1)[1].rstrip("\n"))
+        if not a.qualities and "\n## A frame with Self-Occlusion" in old:
+            kept = "## A frame with Self-Occlusion" + old.split("\n## A frame with Self-Occlusion", 1)[1]
+            parts.insert(0, kept.split("\n## How cost grows")[0].rstrip("\n"))
         p.write_text(head + "\n\n" + "\n\n".join(parts) + "\n")
 
 

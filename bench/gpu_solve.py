@@ -346,7 +346,7 @@ def markdown(rows, renderer: str, args) -> str:
             t32 = r["fp32_solve_s"] if not k else r["fp32_warm_s"]
             t16 = r["fp16_solve_s"] if not k else r["fp16_warm_s"]
             out.append(f"| {r['graph']} | {label} | {d:,} | {d / max(steps, 1):.2f} | {r[f'fp32_{k}updates']:,} | "
-                       f"{1e3 * t32:,.1f} | {gbs:,.1f} | {100 * gbs * 1e9 / H200_BANDWIDTH:.3f} % | {1e3 * t16:,.1f} | "
+                       f"{1e3 * t32:,.1f} | {gbs:.3g} | {100 * gbs * 1e9 / H200_BANDWIDTH:.2g} % | {1e3 * t16:,.1f} | "
                        f"{1e3 * cpu_t:,.1f} |")
     out.append("\n## Accuracy\n")
     out.append("| graph | L_o GPU fp32 vs CPU (max abs / max) | L_o GPU fp16 vs CPU | fp16 vs fp32: L_o max | "
