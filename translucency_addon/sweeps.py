@@ -77,12 +77,23 @@ class SweepOperator:
         self.inv[self.perm] = np.arange(len(self.perm))
         n, C = system.n, system.diag.shape[1]
         self.n, self.C = n, C * copies
-        system.apply(np.zeros((n, C)))  # builds the per-channel CSR blocks
-        blocks = []
-        for c in range(C):
-            a = (system.__dict__["_off_csr"][c] - sp.diags(system.diag[:, c])).tocsr()
-            blocks.append(a[self.perm][:, self.perm])
-        neg = sp.block_diag(blocks * copies, format="csr").astype(self.dtype)
+        # -A = off - diag, built in the new order in one COO -> CSR conversion (no CSR fancy indexing)
+        nbr = np.asarray(system.nbr, dtype=np.int64)
+        K = nbr.shape[1]
+        rows = np.repeat(self.inv, K)
+        cols = nbr.ravel()
+        m = cols >= 0
+        rows, cols = rows[m], self.inv[cols[m]]
+        diag_pos = self.inv
+        r_all, c_all, v_all = [], [], []
+        for k in range(copies):
+            for c in range(C):
+                off = (k * C + c) * n
+                r_all += [rows + off, diag_pos + off]
+                c_all += [cols + off, diag_pos + off]
+                v_all += [system.off[:, :, c].ravel()[m], -system.diag[:, c]]
+        neg = sp.csr_matrix((np.concatenate(v_all).astype(self.dtype),
+                             (np.concatenate(r_all), np.concatenate(c_all))), shape=(n * self.C, n * self.C))
         neg.sum_duplicates()
         neg.sort_indices()
         self.neg_a = neg
