@@ -434,7 +434,7 @@ def run(quick=False, refresh=False, sections=SECTIONS, log=print, bake_cache=Non
     t0 = time.perf_counter()
     b.load_references()
     b.t_refs = time.perf_counter() - t0
-    for gone in scenes.prune_references(quick):
+    for gone in ([] if b.only else scenes.prune_references(quick)):  # a narrow run (--scenes) prunes nothing
         log(f"removed stale reference {gone}")
     order = [("presets", b.presets), ("K", b.sweep_K), ("levels", b.sweep_levels), ("tol", b.sweep_tol),
              ("solver", b.sweep_solver), ("precision", b.sweep_precision), ("ss", b.sweep_ss),
