@@ -86,6 +86,8 @@ class Bench:
     # -- references --------------------------------------------------------------------
     def load_references(self):
         for sc in scenes.reference_scenes(self.quick):
+            if getattr(self, "only", None) and sc.name not in self.only:
+                continue
             t0 = time.perf_counter()
             ref = scenes.get_reference(sc, self.quick, self.refresh)
             dt = time.perf_counter() - t0
@@ -430,14 +432,15 @@ def engine_state() -> str:
     return f"commit {head}" + (f" with uncommitted changes in {', '.join(dirty)}" if dirty else "")
 
 
-def run(quick=False, refresh=False, sections=SECTIONS, log=print, bake_cache=None) -> Bench:
+def run(quick=False, refresh=False, sections=SECTIONS, log=print, bake_cache=None, only=None) -> Bench:
     b = Bench(quick, refresh, log, bake_cache)
+    b.only = set(only) if only else None
     b.engine = engine_state()
     log(f"engine: {b.engine}")
     t0 = time.perf_counter()
     b.load_references()
     b.t_refs = time.perf_counter() - t0
-    for gone in scenes.prune_references(quick):
+    for gone in ([] if b.only else scenes.prune_references(quick)):  # a narrow run (--scenes) prunes nothing
         log(f"removed stale reference {gone}")
     order = [("presets", b.presets), ("K", b.sweep_K), ("levels", b.sweep_levels), ("tol", b.sweep_tol),
              ("solver", b.sweep_solver), ("precision", b.sweep_precision), ("ss", b.sweep_ss),
@@ -509,23 +512,27 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help="markdown report (default docs/accuracy.md; quick: bench/out)")
     ap.add_argument("--no-costs", action="store_true", help="do not write translucency_addon/data/quality_costs.json")
     ap.add_argument("--bake-cache", default=None, help="directory for cached bakes (default bench/out/accuracy_bakes)")
+    ap.add_argument("--scenes", nargs="+", default=None,
+                    help="only these scenes (a narrow check of some rows; with --out the images and the results "
+                         "JSON go next to the report, and docs/ is left alone)")
     a = ap.parse_args(argv)
     import matplotlib
 
     matplotlib.use("Agg")
     from bench import accuracy_text as report  # writes the plots and the text
 
-    b = run(a.quick, a.refresh_references, tuple(a.sections), bake_cache=a.bake_cache)
+    b = run(a.quick, a.refresh_references, tuple(a.sections), bake_cache=a.bake_cache, only=a.scenes)
     if a.quick:
         out = Path(a.out or ROOT / "bench" / "out" / "accuracy_quick.md")
         img_dir = out.parent / "images"
     else:
         out = Path(a.out or DOCS / "accuracy.md")
-        img_dir = IMAGES
+        img_dir = IMAGES if a.out is None else out.parent / "images"
     costs = None
     if not a.quick and not a.no_costs:
         costs = write_costs(b)
-    results = out.parent / "accuracy_quick_results.json" if a.quick else RESULTS_JSON
+    results = out.parent / "accuracy_quick_results.json" if a.quick else (
+        RESULTS_JSON if a.out is None else out.with_suffix(".json"))
     results.parent.mkdir(parents=True, exist_ok=True)
     results.write_text(json.dumps({"records": b.records, "kappa_jump": getattr(b, "kappa_rows", []),
                                    "seconds": b.seconds, "notes": b.notes}, indent=1, default=float) + "\n")

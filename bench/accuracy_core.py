@@ -75,18 +75,14 @@ from translucency_addon.sky_visibility import DEFAULT_DIRECTIONS as SKY_DIRECTIO
 
 
 def solve(solver, **kw):
-    """A solve as the add-on runs it: ``(result, result of the first pass)``.
+    """A solve as the add-on runs it: ``(result, result)`` (the pair keeps the callers' shape).
 
-    With sky visibility in the bake the add-on solves twice (the second pass
-    adds the interreflection bounce of the first, warm-started from it); the
-    first pass is the plain solve from zero whose iterations the knob tables
-    report (comparable with the paper's scheme), the second gives the image.
+    ``DiffusionSolver.solve_interreflected``: with sky visibility in the bake, the first pass and
+    the pass with its interreflection bounce are one block solve (``interreflection.py``; the GPU
+    backend still runs two passes), so the iterations reported are those of that one solve.
     """
-    first = solver.solve(**kw)
-    if solver.sky is None:
-        return first, first
-    kw["warm_start"] = first
-    return solver.solve(bounce=solver.vertex_radiance(first), **kw), first
+    res, _ = solver.solve_interreflected(**kw)
+    return res, res
 
 @dataclass
 class Render:

@@ -78,12 +78,13 @@ def render(b, link: dict, costs, head: str) -> str:
     add("")
     add("Our side: the engine API exactly as the add-on calls it (`bake_mesh` with sky visibility, "
         f"{SKY_DIRECTIONS} rays per surface node (the add-on's Self-Occlusion default), `DiffusionSolver` or "
-        "`gpu_shaders.make_solver`, each frame solved twice: a first pass, then the pass with its "
-        "interreflection bounce, warm-started; `vertex_radiance(result, view_dirs)` with per-vertex directions "
+        "`gpu_shaders.make_solver`, `solve_interreflected`: on the CPU the first pass and the pass with its "
+        "interreflection bounce are one block solve (`interreflection.py`), on the GPU two passes, warm-started; "
+        "`vertex_radiance(result, view_dirs)` with per-vertex directions "
         "toward the camera, plus `single_scattering.render_vertices` where switched on), the per-vertex radiance "
         "rasterised from the reference's camera by `bench/reference/raster.py`. Bake times include the sky "
-        "visibility; frame times include both passes; *iterations* are those of the first pass (from zero, "
-        "comparable with the paper's scheme).")
+        "visibility; frame times include the bounce; *iterations* are those of the finest level's solve "
+        "(the block solve where the bounce is folded in; each of its sweeps updates both passes).")
     ur = rows(b, "user")
     if ur:
         r = ur[0]

@@ -180,15 +180,32 @@ def cpu_step_times(system, steps: int):
     return per_call(cheb, lambda: None, steps), per_call(jac, lambda: None, steps)
 
 
+BYTES_PER_NODE_UPDATE = 48  # ../shared/NOTES.md: explicit 4-neighbour graph, fp32, one Chebyshev step
+H200_BANDWIDTH = 4.8e12  # bytes/s (NOTES.md): the roofline is ~100 G node updates/s
+
+
 def timed_solve(solver, q, warm=None, repeat: int = 2):
-    """Best of ``repeat`` solves (the first one also compiles kernels / warms caches)."""
+    """Best of ``repeat`` solves (the first one also compiles kernels / warms caches).
+
+    Also counts the GPU dispatches of the last solve (``gpu_shaders.runtime.STATS``) on ``solver.dispatches``.
+    """
+    from gpu_shaders import runtime
+
     best, res = None, None
     for _ in range(repeat):
+        n0 = runtime.STATS["dispatches"]
         t0 = time.perf_counter()
         res = solver.solve(q=q, warm_start=warm)
         dt = time.perf_counter() - t0
+        solver.dispatches = runtime.STATS["dispatches"] - n0
         best = dt if best is None else min(best, dt)
     return best, res
+
+
+def node_updates(bake, res) -> int:
+    """Node updates of a solve: steps x nodes, summed over the levels it solved."""
+    n = [lv.n_nodes for lv in bake.levels][-len(res.level_solves):]
+    return int(sum(ls.iterations * k for ls, k in zip(res.level_solves, n)))
 
 
 # ------------------------------------------------------------------ one graph
@@ -245,10 +262,16 @@ def bench_graph(name: str, args) -> dict:
         for s, sc in zip(solver.systems, cpu.systems):  # same bounds as the CPU run (deterministic anyway)
             s.lam_min, s.lam_max = sc.lam_min, sc.lam_max
         t, r = timed_solve(solver, q, repeat=2)
+        disp = solver.dispatches
+        upd = node_updates(bk, r)
         t0 = time.perf_counter()
         L = solver.vertex_radiance(r)
         t_rad = time.perf_counter() - t0
         tw, rw = timed_solve(solver, q2, warm=r, repeat=1)
+        row.update({f"{prec}_dispatches": disp, f"{prec}_warm_dispatches": solver.dispatches,
+                    f"{prec}_updates": upd, f"{prec}_gbs": upd * BYTES_PER_NODE_UPDATE / t / 1e9,
+                    f"{prec}_warm_updates": node_updates(bk, rw),
+                    f"{prec}_warm_gbs": node_updates(bk, rw) * BYTES_PER_NODE_UPDATE / tw / 1e9})
         results[prec] = (r, L)
         row.update({f"{prec}_solve_s": t, f"{prec}_iters": r.iterations,
                     f"{prec}_level_iters": "/".join(str(ls.iterations) for ls in r.level_solves), f"{prec}_warm_s": tw,
@@ -307,6 +330,24 @@ def markdown(rows, renderer: str, args) -> str:
             f"{r['cpu_solve_s']:.2f} | {r['fp32_solve_s']:.2f} | {r['fp16_solve_s']:.2f} | "
             f"{r['cpu_warm_iters']} / {r['fp32_warm_iters']} | {r['cpu_warm_s']:.2f} | {r['fp32_warm_s']:.2f} | "
             f"{r['fp16_warm_s']:.2f} | {r['fp32_radiance_ms']:.1f} |")
+    out.append("\n## Dispatches and bandwidth per converged solve\n")
+    out.append(f"Achieved bandwidth = node updates (steps x nodes over the levels solved) x "
+               f"{BYTES_PER_NODE_UPDATE} B (../shared/NOTES.md's figure for one fp32 step of a 4-neighbour graph) / "
+               f"solve time; roofline = an H200's {H200_BANDWIDTH / 1e12:.1f} TB/s (~100 G node updates/s).  "
+               "The CPU column is the numpy solve of the same run.\n")
+    out.append("| graph | solve | GPU dispatches | dispatches per step | node updates | GPU fp32 ms | achieved GB/s | "
+               "of the H200 roofline | GPU fp16 ms | CPU ms |")
+    out.append("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        for label, k, cpu_t, steps in (("all levels", "", r["cpu_solve_s"], r["fp32_iters"]),
+                                       ("warm (finest)", "warm_", r["cpu_warm_s"], r["fp32_warm_iters"])):
+            d = r[f"fp32_{k}dispatches"]
+            gbs = r[f"fp32_{k}gbs"]
+            t32 = r["fp32_solve_s"] if not k else r["fp32_warm_s"]
+            t16 = r["fp16_solve_s"] if not k else r["fp16_warm_s"]
+            out.append(f"| {r['graph']} | {label} | {d:,} | {d / max(steps, 1):.2f} | {r[f'fp32_{k}updates']:,} | "
+                       f"{1e3 * t32:,.1f} | {gbs:.3g} | {100 * gbs * 1e9 / H200_BANDWIDTH:.2g} % | {1e3 * t16:,.1f} | "
+                       f"{1e3 * cpu_t:,.1f} |")
     out.append("\n## Accuracy\n")
     out.append("| graph | L_o GPU fp32 vs CPU (max abs / max) | L_o GPU fp16 vs CPU | fp16 vs fp32: L_o max | "
                "L_o mean rel. (lit vertices) | surface phi max |")

@@ -122,7 +122,11 @@ def main(argv=None):
         print(f"target: {r['quality']} >= 10x fewer sweeps than the paper: {ratio:.0f}x {'met' if ratio >= 10 else 'MISSED'}")
     if a.out:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.out).write_text(f"# Solve benchmark (bunny, marble, one sun; tol {a.tol:g})\n\n" + t + "\n")
+        p = Path(a.out)
+        rest = ""  # the sections bench/frame.py appends (a frame with Self-Occlusion, how cost grows) stay
+        if p.exists() and "\n## " in p.read_text():
+            rest = "\n## " + p.read_text().split("\n## ", 1)[1]
+        p.write_text(f"# Solve benchmark (bunny, marble, one sun; tol {a.tol:g})\n\n" + t + "\n" + rest)
 
 
 if __name__ == "__main__":

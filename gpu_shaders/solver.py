@@ -303,6 +303,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         restarts = 0
         while res.max() > tol and it < max_iter:
             rho = 1.0 / sigma
+            skip = it + iterative.first_check(res, tol, sigma, check_every)  # fewer reductions/read-backs
             g.cheb_init(theta)
             a, b = 0, 1
             while it < max_iter:
@@ -311,7 +312,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
                 a, b = b, a
                 rho = rho_next
                 it += 1
-                if it % check_every == 0:
+                if it % check_every == 0 and it >= skip:
                     rec = np.sqrt(g.norm2(g.r)) / bn
                     hist.append(float(rec.max()))
                     if rec.max() <= tol or not np.all(np.isfinite(rec)):

@@ -361,7 +361,8 @@ def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous):
     """One multiple-scattering solve, with the interreflection bounce when the bake has sky visibility.
 
     The bounce comes from a first solve of the same frame (``DiffusionSolver.
-    solve_interreflected``; the second solve is warm-started from the first),
+    solve_interreflected``: on the CPU both passes are one block solve, ``interreflection.py``,
+    warm-started from the previous frame's pair; on the GPU the second solve is warm-started from the first),
     never from an earlier frame, so a frame's result depends only on that
     frame's inputs (renders of single frames and of animations agree).  A bake with cavities solves
     through ``cavity.solve_with_cavities`` (the wall exchange, GMRES around the same solver; frame to

@@ -179,3 +179,50 @@ def test_the_operator_bakes_sky_visibility_and_solves_with_the_bounce(blender, a
     gap = np.abs(with_bounce - first_pass).max()
     assert gap > 0.02 * with_bounce.max(), gap  # the bounce matters on a torus (its hole sees itself)
     assert np.abs(written - with_bounce).max() < 0.1 * gap, (np.abs(written - with_bounce).max(), gap)
+
+
+def test_one_block_solve_equals_the_two_passes_and_a_direct_solve(torus_bake):
+    """interreflection.py: the bounce folded into one Chebyshev solve gives the two passes' answer
+    (the plain solve, then the solve with ``bounce=`` its vertex radiance: the old path, which does
+    not use interreflection.py) and the sparse LU of the 2N block system."""
+    from scipy.sparse.linalg import splu
+
+    from translucency_addon.interreflection import BouncedSystem, bounce_operator
+    from translucency_addon.lights import Light
+
+    s = DiffusionSolver(torus_bake, material_from_preset("skin1"), options=SolveOptions(tol=1e-10))
+    sun = [Light("sun", irradiance=1000.0, direction=(0.3, -0.2, -1.0))]
+    res, L = s.solve_interreflected(sun, UNIFORM)
+    assert res.first_pass is not None and len(res.level_solves) == len(torus_bake.levels)  # one finest solve
+    first = s.solve(sun, UNIFORM)
+    two = s.solve(sun, UNIFORM, warm_start=first, bounce=s.vertex_radiance(first))
+    L2 = s.vertex_radiance(two)
+    assert np.abs(L - L2).max() < 1e-6 * L2.max(), np.abs(L - L2).max() / L2.max()
+    assert np.abs(L2 - s.vertex_radiance(first)).max() > 0.01 * L2.max()  # the bounce is there to get right
+    fine = len(torus_bake.levels) - 1
+    q = s.incident(sun, UNIFORM, levels=[fine])[fine]
+    block = BouncedSystem(s.systems[-1], bounce_operator(s))
+    B = block.rhs(q)
+    x = np.random.default_rng(0).standard_normal((block.n, 6))
+    op = block.sweep_operator()
+    r = np.zeros((6, block.n))
+    op.sub_a(r, op.to_cm(x))
+    np.testing.assert_allclose(-op.from_cm(r), block.apply(x), rtol=1e-12, atol=1e-12 * np.abs(block.apply(x)).max())
+    for c in range(3):
+        direct = splu(block.matrix(c).tocsc()).solve(np.concatenate([B[:, c], B[:, 3 + c]]))
+        phi1 = direct[block.n:]
+        assert np.abs(phi1 - res.phi[-1][:, c]).max() < 1e-8 * np.abs(phi1).max()
+        assert np.abs(direct[:block.n] - res.first_pass[:, c]).max() < 1e-8 * np.abs(phi1).max()
+
+
+def test_a_frame_does_not_depend_on_the_frame_before(torus_bake):
+    """Warm-started from another frame's pair, a frame converges to its own answer."""
+    from translucency_addon.lights import Light
+
+    s = DiffusionSolver(torus_bake, material_from_preset("marble"), options=SolveOptions(tol=1e-8))
+    before, _ = s.solve_interreflected([Light("sun", irradiance=1000.0, direction=(0.0, 0.0, -1.0))], UNIFORM)
+    now = [Light("sun", irradiance=1000.0, direction=(0.6, 0.0, -0.8))]
+    _, cold = s.solve_interreflected(now, UNIFORM)
+    warm_res, warm = s.solve_interreflected(now, UNIFORM, warm_start=before)
+    assert len(warm_res.level_solves) == 1  # the finest level only, from the previous pair
+    assert np.abs(warm - cold).max() < 1e-6 * cold.max()

@@ -80,6 +80,16 @@ class LevelSystem:
             out[:, c] -= csr[c] @ x[:, c]
         return out
 
+    def sweep_operator(self, dtype=np.float64):
+        """The level laid out for fast CPU Chebyshev sweeps (:class:`.sweeps.SweepOperator`), cached per dtype."""
+        ops = self.__dict__.setdefault("_sweep_ops", {})
+        key = np.dtype(dtype).str
+        if key not in ops:
+            from .sweeps import SweepOperator
+
+            ops[key] = SweepOperator(self, dtype=dtype)
+        return ops[key]
+
     def subset(self, cols: tuple) -> "LevelSystem":
         """The same system restricted to some colour channels (the planner skips the others)."""
         cols = tuple(int(c) for c in cols)
@@ -94,6 +104,8 @@ class LevelSystem:
                               mm_per_unit=self.mm_per_unit,
                               boundary_diag=None if self.boundary_diag is None else self.boundary_diag[:, idx])
             sub.__dict__["_off_csr"] = [self.__dict__["_off_csr"][c] for c in idx]
+            if "_rcm" in self.__dict__:
+                sub.__dict__["_rcm"] = self.__dict__["_rcm"]
             if self.lam_max is not None:
                 sub.lam_max, sub.lam_min = self.lam_max[idx], self.lam_min[idx]
             cache[cols] = sub

@@ -162,6 +162,7 @@ class SolveResult:
     # channels in which the closed-form single scattering is added to the output.
     q_incident: list | None = None
     single: tuple = (False, False, False)
+    first_pass: np.ndarray | None = None  # finest phi without the bounce (interreflection.solve_bounced)
 
     @property
     def iterations(self) -> int:
@@ -425,11 +426,23 @@ class DiffusionSolver:
                              bounce=None, **kw) -> tuple:
         """Solve, then solve again ``bounces`` times with the object's own radiance as ``bounce``.
 
-        Each pass is warm-started from the previous one.  ``bounce`` (a
+        One bounce (the add-on's default) is one Chebyshev solve of both passes as a block system
+        (:mod:`.interreflection`: the same answer, warm-started frame to frame as a pair) wherever
+        :func:`.interreflection.one_solve_applies`; otherwise, and for other ``bounces``, each pass
+        is a solve warm-started from the previous one.  ``bounce`` (a
         previous frame's vertex radiance) replaces the first plain pass.
         Without sky visibility in the bake this is a single :meth:`solve`.
         Returns ``(SolveResult, vertex radiance along the normals)``.
         """
+        # The block solve does not carry a source split of its own (a ``single=`` channel split of the
+        # solve, or ``options.single_scattering``, where a solver has one): those keep the two passes.
+        split = any(kw.get("single") or ()) or bool(getattr(self.options, "single_scattering", False))
+        if self.sky is not None and int(bounces) == 1 and bounce is None and not split:
+            from .interreflection import one_solve_applies, solve_bounced
+
+            why = one_solve_applies(self)
+            if not why:
+                return solve_bounced(self, lights, environment, warm_start=warm_start, **kw)
         res = self.solve(lights, environment, warm_start=warm_start, bounce=bounce, **kw)
         L = self.vertex_radiance(res)
         if self.sky is None:

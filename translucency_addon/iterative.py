@@ -23,6 +23,7 @@ import numpy as np
 from . import kernels
 from .assembly import LevelSystem, sparse_matrix
 from .spectral import deflation, spectral_bounds
+from .sweeps import FP32_TOL
 
 
 @dataclass
@@ -68,6 +69,26 @@ def solve_jacobi(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.ndarra
     return x, LevelSolve(it, res, hist, time.perf_counter() - t0)
 
 
+def first_check(res: np.ndarray, tol: float, sigma: np.ndarray, check_every: int) -> int:
+    """The step before which a Chebyshev cycle needs no residual check.
+
+    On the interval the residual polynomial is at most ``1 / T_k(sigma)`` with
+    ``sigma = theta / delta`` (Saad sec. 12.3), so reaching ``tol`` from a
+    relative residual ``res`` takes at least ``acosh(res/tol) / acosh(sigma)``
+    steps where every mode lies at the bottom of the interval; half of that,
+    rounded down to a check, is skipped without a look.  A check is a
+    reduction and, on the GPU, a read-back that stalls the queue
+    (gpu_shaders/solver.py), so this saves dispatches; the CPU uses the same
+    rule so both stop after the same step.
+    """
+    r = np.asarray(res, dtype=np.float64)
+    need = r > tol
+    if not need.any():
+        return 0
+    k = np.arccosh(np.maximum(r[need] / tol, 1.0)) / np.arccosh(np.maximum(np.asarray(sigma)[need], 1.0 + 1e-15))
+    return int(check_every * np.floor(0.5 * float(np.max(k)) / check_every))
+
+
 def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.ndarray, LevelSolve]:
     """Chebyshev semi-iteration with the Jacobi preconditioner (Saad Alg. 12.1), per channel.
 
@@ -87,11 +108,16 @@ def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.nda
     dense one, rather than one per piece), and the channel goes on over its
     whole spectrum.
     Elsewhere it is the plain iteration, step for step what the GPU kernels do.
+    The sweeps run on :class:`.sweeps.SweepOperator` (channel-major, RCM order,
+    one fused sparse product per step); the iterates equal the node-major
+    ``kernels.chebyshev_update`` loop's to rounding.
     """
     t0 = time.perf_counter()
     lam_min, lam_max = spectral_bounds(system)
     defl = deflation(system)
     deflated = np.zeros(len(lam_max), dtype=bool) if defl is None else defl.mask.copy()
+    # channel-major, RCM order, fused r -= A d; fp32 where the tolerance allows (sweeps.py)
+    op = system.sweep_operator(np.float32 if tol >= FP32_TOL else np.float64)
 
     def interval():
         lo = np.where(deflated, defl.lam_min, lam_min) if defl is not None else lam_min
@@ -99,31 +125,53 @@ def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.nda
         delta = 0.5 * (lam_max - lo)
         return theta, delta, theta / delta
 
+    def correct(x, R):  # the deflation's Galerkin correction works node-major; only at cycle ends
+        x, r = defl.correct(x, op.from_cm(R))
+        return x, op.to_cm(r)
+
+    def norms(v):
+        return np.sqrt(np.einsum("cn,cn->c", v, v, dtype=np.float64))
+
+    def true_residual(x):  # in fp64, node-major: what the solve reports, whatever the sweep precision
+        return op.to_cm(b - system.apply(x))
+
     theta, delta, sigma = interval()
-    x = x0.copy()
-    r = b - system.apply(x)
+    x = np.array(x0, dtype=np.float64)
+    R = true_residual(x)
     if defl is not None:
-        x, r = defl.correct(x, r)
-    bn = np.sqrt(kernels.squared_norms(b))
+        x, R = correct(x, R)
+    bn = norms(op.to_cm(b))
     bn = np.where(bn > 0, bn, 1.0)
-    res = np.sqrt(kernels.squared_norms(r)) / bn
+    res = norms(R) / bn
     hist = [float(res.max())]
     it = 0
+    D = np.empty_like(R)
+    T = np.empty_like(R)
+    restarts = 0
     while res.max() > tol and it < max_iter:
         start = res.copy()
+        X = np.zeros_like(R)  # the correction this cycle adds to x (the sweep precision)
         rho = 1.0 / sigma
-        d = r / system.diag / theta
+        skip = it + first_check(res, tol, sigma, check_every)
+        np.multiply(R, op.inv_diag, out=D)
+        D /= theta[:, None]
         best, since = res.copy(), np.zeros(len(res), dtype=int)
         stalled = np.zeros(len(res), dtype=bool)
         while it < max_iter:
             rho_next = 1.0 / (2.0 * sigma - rho)
             coef_d = rho_next * rho
             coef_r = 2.0 * rho_next / delta
-            x, r, d = kernels.chebyshev_update(x, r, d, system.apply(d), system.diag, coef_d, coef_r)
+            # = kernels.chebyshev_update: x += d, r -= A d, d = coef_d d + coef_r D^-1 r
+            op.sub_a(R, D)
+            X += D
+            np.multiply(R, op.inv_diag, out=T)
+            T *= coef_r[:, None]
+            D *= coef_d[:, None]
+            D += T
             rho = rho_next
             it += 1
-            if it % check_every == 0:
-                res = np.sqrt(kernels.squared_norms(r)) / bn
+            if it % check_every == 0 and it >= skip:
+                res = norms(R) / bn
                 hist.append(float(res.max()))
                 if res.max() <= tol:
                     break
@@ -134,13 +182,19 @@ def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.nda
                     stalled = deflated & (since >= 6) & (res > tol)
                     if stalled.any():
                         break
-        # The recursively updated r drifts slightly from b - A x; report the true one.
-        res = relative_residual(system, b, x)
+        # The recursively updated r drifts slightly from b - A x (more so in fp32); report the true one,
+        # and go on from it while it misses the tolerance (iterative refinement).
+        x += op.from_cm(X)
+        R = true_residual(x)
+        res = norms(R) / bn
         if defl is None:
-            break
-        r = b - system.apply(x)
-        x, r = defl.correct(x, r)
-        res = np.sqrt(kernels.squared_norms(r)) / bn
+            restarts += 1
+            hist.append(float(res.max()))
+            if res.max() <= tol or restarts > 20:
+                break
+            continue
+        x, R = correct(x, R)
+        res = norms(R) / bn
         hist.append(float(res.max()))
         give_up = stalled & (res > 0.5 * start)
         if give_up.any():

@@ -1,0 +1,293 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+r"""Self-Occlusion's interreflection bounce in one Chebyshev solve (extends eq. 3 and sec. 4.3).
+
+The add-on's bounce (:mod:`.sky_visibility`) is, per frame, a first solve
+``A phi0 = S q`` (S = ``b_scale`` on the surface rows), then a second solve
+with the light the object sends to itself added to q::
+
+    A phi1 = S (q + q_b),   q_b = G (phi0_s - 2 q),   G = gamma B P / (2 (1 + F_dr))
+
+where ``(phi0_s - 2 q)/(2 (1 + F_dr))`` is J+ (``diffusion.py``), P the
+vertex map (finest surface nodes -> mesh vertices), ``gamma = F_t(1)/(pi
+eta^2)`` the radiance along the normal (``radiance.outgoing_radiance``) and
+B the bounce sum of :meth:`.sky_visibility.LevelSky.bounce`.  q_b is linear
+in phi0, so both solves are one block lower-triangular system::
+
+    [ A    0 ] [phi0]   [ S q            ]
+    [ -K   A ] [phi1] = [ S q - 2 S G q  ],     K phi0 = S G phi0_s            (1)
+
+which :func:`.iterative.solve_chebyshev` solves as one iteration over 2C
+"channels" (:class:`BouncedSystem`): each sweep is one fused product with
+the block-diagonal ``-A`` plus the sparse coupling ``S G`` on the surface
+nodes.  A frame warm-starts both blocks from the previous frame's pair, so
+its initial residual is what the frame changed, not the bounce itself; the
+answer depends on the frame's inputs only (the warm start moves the iterate,
+not the fixed point).
+
+**Same answer.**  At convergence (1) is exactly the two solves, except that
+the two-pass code formed the bounce from the *clamped* J+
+(``DiffusionSolver.surface_partial_current``: max(J+, 0) and the
+power-preserving scale); (1) uses the linear J+.  They differ only where
+J+ < 0 somewhere the object sees itself (graphs finer than a transport mean
+free path; ``radiance.outgoing_radiance``); tests/test_sky_visibility.py
+holds the two within 1e-6 of the peak on the torus and checks (1) against a
+direct sparse LU of the 2N system.
+
+**Stability of the Chebyshev iteration on (1).**  With the block Jacobi
+preconditioner ``diag(D, D)`` the iteration operator is
+
+    M2 = [[N, 0], [-C, N]],   N = D^-1 A,   C = D^-1 K,
+
+block lower-triangular with both diagonal blocks equal to N, so
+``det(M2 - l) = det(N - l)^2``: the spectrum of M2 *is* that of N, real and
+inside ``[lambda_min, lambda_max]`` of :mod:`.spectral` (Gershgorin above,
+a guaranteed bound; Lanczos below, an estimate that affects speed only).
+M2 is not diagonalisable in general, so the error polynomial needs one more
+line: for any polynomial p, ``p(M2) = [[p(N), 0], [-E, p(N)]]`` where, in the
+D-orthonormal eigenbasis of N (N = V L V^-1), ``(V^-1 E V)_ab =
+(V^-1 C V)_ab p[l_a, l_b]`` with the divided difference
+``|p[l_a, l_b]| <= max |p'|`` on the interval.  For the Chebyshev residual
+polynomial ``p_k(l) = T_k((theta - l)/delta) / T_k(theta/delta)`` Markov's
+inequality ``|T_k'| <= k^2`` on [-1, 1] gives
+
+    ||p_k(M2)|| <= eps_k (1 + k^2 ||V^-1 C V|| / delta),   eps_k = 1 / T_k(theta/delta),
+
+so the block iteration converges whenever the plain one does, at the same
+asymptotic rate, losing at most ``log(k^2 ||C~|| / delta) / log(1/rate)``
+steps to the coupling.  No new bound is estimated; the plain level's are
+reused.  A leak-dominated level (the constant-mode deflation of
+:func:`.spectral.deflation` active) is not handed to this path: the caller
+keeps the two solves there, and says why in the result's note.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+from . import kernels
+from .fresnel import fresnel_transmittance
+from .iterative import LevelSolve, solve_chebyshev
+from .spectral import deflation, spectral_bounds
+from .sweeps import SweepOperator
+
+
+def bounce_operator(solver):
+    """G of (1) as two factors ``(Bg, P)``, ``G = Bg @ P``, cached per eta.
+
+    ``P`` (n_vertices x n_s): the vertex map (finest surface nodes -> mesh vertices); ``Bg`` (n_s x
+    n_vertices): the bounce sum of :meth:`.sky_visibility.LevelSky.bounce` times
+    ``gamma / (2 (1 + F_dr))``.  The mesh has fewer vertices than the finest level has surface nodes,
+    so the two factors hold several times fewer entries than their product (Final bunny: ~0.6M
+    against ~2M).
+    """
+    key = ("G", float(solver.eta))
+    cache = solver.__dict__.setdefault("_bounce_G", {})
+    if key not in cache:
+        bake = solver.bake
+        fine = len(bake.levels) - 1
+        lv, sky = bake.levels[fine], solver.sky
+        ls = sky.levels[fine]
+        w = ls.weight(solver.eta, lv.normal, sky.directions)
+        nv = len(bake.mesh_vertices)
+        gamma = float(fresnel_transmittance(np.array([1.0]), solver.eta)[0]) / (np.pi * solver.eta**2)
+        Bg = sp.csr_matrix(((w[:, None] * ls.hit_bary).ravel() * (gamma / (2.0 * (1.0 + solver.fdr))),
+                            (np.repeat(ls.node, 3), ls.hit_vertices.ravel())), shape=(ls.n_surface, nv))
+        idx, wv = bake.vertex_map
+        idx = np.asarray(idx)
+        P = sp.csr_matrix((np.asarray(wv, dtype=np.float64).ravel(), (np.repeat(np.arange(nv), idx.shape[1]),
+                                                                     idx.ravel())), shape=(nv, lv.n_surface))
+        for m in (Bg, P):
+            m.sum_duplicates()
+            m.sort_indices()
+        cache.clear()
+        cache[key] = (Bg, P)
+    return cache[key]
+
+
+class BouncedSweepOperator(SweepOperator):
+    """(1) laid out for :func:`.iterative.solve_chebyshev`: channels [0, C) are phi0, [C, 2C) phi1.
+
+    The surface nodes are the tail ``[n_inner:]`` of the sweep order, so ``r1 += K d0`` is two
+    in-place sparse products per channel (``t = P d0_s``, ``r1_s += diag(S_c) Bg t``), no gather.
+    """
+
+    def __init__(self, base, factors, dtype=np.float64):
+        super().__init__(base, copies=2, dtype=dtype)
+        Bg, P = factors
+        self.c0 = base.diag.shape[1]
+        self.ni = base.level.n_inner
+        surf_old = self.perm[self.ni:] - self.ni  # surface index (old) at each sweep position
+        self.P = P[:, surf_old].tocsr().astype(self.dtype)
+        self.P.sort_indices()
+        self.SB = []
+        for c in range(self.c0):
+            m = (sp.diags(base.b_scale[surf_old, c]) @ Bg[surf_old]).tocsr().astype(self.dtype)
+            m.sort_indices()
+            self.SB.append(m)
+        self.t = np.zeros(P.shape[0], dtype=self.dtype)
+
+    def sub_a(self, r, d):
+        from .sweeps import _csr_matvec
+
+        super().sub_a(r, d)  # r -= diag(A, A) d
+        c0, ni, P, t = self.c0, self.ni, self.P, self.t
+        for c in range(c0):  # r1 += K d0
+            t[:] = 0.0
+            _csr_matvec(P.shape[0], P.shape[1], P.indptr, P.indices, P.data, d[c, ni:], t)
+            m = self.SB[c]
+            _csr_matvec(m.shape[0], m.shape[1], m.indptr, m.indices, m.data, t, r[c0 + c, ni:])
+
+
+class BouncedSystem:
+    """The 2N block system (1) of one level as :func:`.iterative.solve_chebyshev` sees it."""
+
+    scheme = "bounced"  # not "fv": no deflation of its own (the caller checks the base level's)
+
+    def __init__(self, base, factors):
+        self.base, self.factors = base, factors
+        self.level = base.level
+        lo, hi = spectral_bounds(base)
+        self.lam_min, self.lam_max = np.tile(lo, 2), np.tile(hi, 2)  # the spectrum of (1) is that of A
+        self.diag = np.tile(base.diag, (1, 2))
+        self._ops = {}
+
+    @property
+    def n(self) -> int:
+        return self.base.n
+
+    @property
+    def G(self) -> sp.csr_matrix:
+        return (self.factors[0] @ self.factors[1]).tocsr()
+
+    def sweep_operator(self, dtype=np.float64):
+        key = np.dtype(dtype).str
+        if key not in self._ops:
+            self._ops[key] = BouncedSweepOperator(self.base, self.factors, dtype=dtype)
+        return self._ops[key]
+
+    def coupling(self, x0: np.ndarray) -> np.ndarray:
+        """K x0 (N, C): S G x0_s on the surface rows, zero inside."""
+        ni = self.level.n_inner
+        out = np.zeros_like(x0)
+        Bg, P = self.factors
+        out[ni:] = self.base.b_scale * (Bg @ (P @ x0[ni:]))
+        return out
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        c = self.base.diag.shape[1]
+        return np.hstack([self.base.apply(x[:, :c]), self.base.apply(x[:, c:]) - self.coupling(x[:, :c])])
+
+    def rhs(self, q: np.ndarray) -> np.ndarray:
+        """The right-hand side of (1) for the level's direct light q (n_s, C), (N, 2C)."""
+        b0 = self.base.rhs(q)
+        return np.hstack([b0, b0 - 2.0 * self.coupling(np.vstack([np.zeros((self.level.n_inner, q.shape[1])), q]))])
+
+    def matrix(self, channel: int) -> sp.csr_matrix:
+        """(1) for one channel as a 2N x 2N scipy matrix (the direct solve the tests check against)."""
+        from .assembly import sparse_matrix
+
+        A = sparse_matrix(self.base, channel)
+        ni, n = self.level.n_inner, self.n
+        S = sp.diags(self.base.b_scale[:, channel])
+        K = sp.bmat([[sp.csr_matrix((ni, ni)), None], [None, S @ self.G]], format="csr")
+        assert K.shape == (n, n)
+        return sp.bmat([[A, None], [-K, A]], format="csr")
+
+
+def bounced_system(solver, cols) -> BouncedSystem:
+    """(1) of the finest level for the channels ``cols``, cached on the solver (per material and eta)."""
+    base = solver.systems[-1].subset(cols)
+    cache = solver.__dict__.setdefault("_bounced", {})
+    key = (id(base), tuple(cols), float(solver.eta))
+    if key not in cache:
+        cache.clear()
+        cache[key] = BouncedSystem(base, bounce_operator(solver))
+    return cache[key]
+
+
+def one_solve_applies(solver) -> str:
+    """'' when :func:`solve_bounced` can run for this solver, else why not (for the result's note)."""
+    from .diffusion import DiffusionSolver
+
+    if solver.sky is None:
+        return "no sky visibility in the bake"
+    if type(solver).solve_systems is not DiffusionSolver.solve_systems:
+        return "a backend of its own solves the levels (the GPU): two passes"
+    if solver.options.solver != "fast":
+        return f"the {solver.options.solver} solver runs the two passes"
+    if deflation(solver.systems[-1]) is not None:
+        return "the finest level is leak-dominated (deflated constants): two passes"
+    return ""
+
+
+def solve_bounced(solver, lights=(), environment=None, *, warm_start=None, shadows=True, occluders=None,
+                  channels=None):
+    """Light pass, coarse levels, then (1) on the finest level: ``(SolveResult, vertex radiance)``.
+
+    ``warm_start``: a previous result; its finest ``phi`` (and ``first_pass``, the phi0 of (1),
+    when it has one) start the block system.  The result's ``q`` on the finest level is the direct
+    light plus the bounce, its ``phi`` is phi1 and ``first_pass`` phi0.
+    """
+    from .diffusion import SolveResult
+
+    t0 = time.perf_counter()
+    opts = solver.options
+    levels = solver.bake.levels
+    n_lv, fine = len(levels), len(levels) - 1
+    usable = solver.can_warm_start(warm_start)
+    active = [fine] if (opts.levels == "finest" or usable) else list(range(n_lv))
+    q = solver.incident(lights, environment, shadows=shadows, occluders=occluders, levels=active)
+    warnings = list(solver.warnings)
+    t1 = time.perf_counter()
+    mask = (True, True, True) if channels is None else tuple(bool(c) for c in channels)
+    cols = tuple(c for c in range(3) if mask[c])
+    if not cols:
+        res = solver.solve(q=q, channels=mask)
+        return res, solver.vertex_radiance(res)
+    solver._channels = cols
+    phi, solves = solver.solve_systems(q, active[:-1]) if len(active) > 1 else ([None] * n_lv, [])
+    system = bounced_system(solver, cols)
+    base = system.base
+    qd = q[fine][:, cols]
+    B = system.rhs(qd)
+    C = len(cols)
+    if usable:
+        x1 = np.array(warm_start.phi[-1][:, cols], dtype=np.float64)
+        prev0 = getattr(warm_start, "first_pass", None)
+        x0 = x1.copy() if prev0 is None else np.array(prev0[:, cols], dtype=np.float64)
+    elif len(active) > 1:
+        idx, w = solver.bake.shepard[fine - 1]
+        x0 = kernels.shepard_upsample(idx, w, phi[fine - 1][:, cols])
+        x1 = x0.copy()
+    else:
+        x0 = np.zeros((base.n, C))
+        x1 = x0.copy()
+    X = np.hstack([x0, x1])
+    X[:, ~np.any(B != 0, axis=0)] = 0.0  # no light in a channel: the answer is exactly 0 (solve_systems)
+    x, info = solve_chebyshev(system, B, X, opts.tol, opts.max_iterations, opts.check_every)
+    phi0, phi1 = x[:, :C], x[:, C:]
+    ni = base.level.n_inner
+    Bg, P = system.factors
+    q_tot = qd + Bg @ (P @ (phi0[ni:] - 2.0 * qd))
+    info = LevelSolve(info.iterations, np.maximum(info.residual[:C], info.residual[C:]), info.history,
+                      info.seconds, note="")
+    phi1, info = solver.checked_level(fine, base, q_tot, base.rhs(q_tot), phi1, info)
+    full0, full1, qf = np.zeros((base.n, 3)), np.zeros((base.n, 3)), np.zeros((len(qd), 3))
+    full0[:, cols], full1[:, cols], qf[:, cols] = phi0, phi1, q_tot
+    res3 = np.zeros(3)
+    res3[list(cols)] = info.residual
+    info.residual = res3
+    phi[fine] = full1
+    q = list(q)
+    q[fine] = qf
+    solves.append(info)
+    if info.note:
+        warnings.append(info.note)
+    t2 = time.perf_counter()
+    result = SolveResult(phi=phi, q=q, level_solves=solves, scheme=base.scheme,
+                         seconds={"lights": t1 - t0, "solve": t2 - t1, "total": t2 - t0}, warnings=warnings,
+                         first_pass=full0)
+    return result, solver.vertex_radiance(result)

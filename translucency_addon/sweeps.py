@@ -1,0 +1,119 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Cheap CPU sweeps for the Chebyshev iteration: the layout one level's system is swept in.
+
+A Chebyshev step (:func:`.iterative.solve_chebyshev`) is ``x += d``,
+``r -= A d``, ``d = c_d d + c_r D^-1 r``: one sparse product and a few
+vector updates, all bound by memory traffic.  The (N, 3) node-major layout
+of :class:`.assembly.LevelSystem` costs three strided CSR products per step
+plus a temporary for every term.  Here the level is laid out once so that a
+step touches each array as few times as possible:
+
+* **channel-major** vectors ``(C, N)``, and ``-A`` (diagonal included) as one
+  block-diagonal CSR over the channels: ``r -= A d`` is a single call of
+  scipy's compiled CSR kernel, which *accumulates* into ``r`` in place
+  (``scipy.sparse._sparsetools.csr_matvec``: the kernel behind ``csr @ x``;
+  the public product would allocate ``A d`` and subtract it: two more passes);
+* **reverse Cuthill-McKee order** (``scipy.sparse.csgraph``): the tetrahedral
+  graph's nodes come in fTetWild's order, where a link spans on average
+  ~13,000 rows of the Final bunny; RCM brings that to ~2,000, so the gathered
+  ``d[j]`` mostly hit cache (the product alone 1.9x faster, measured on the
+  Final bunny, 388k nodes);
+* the remaining updates in place (``out=``), no temporaries beyond one buffer;
+* **fp32** where the tolerance allows (:data:`FP32_TOL`): the sweeps stream
+  half the bytes; the solution is then checked, and the iteration restarted
+  if needed, against the fp64 residual ``b - A x`` (mixed-precision iterative
+  refinement), so the tolerance a solve reports is always the fp64 one.  At 1e-5 fp32 was
+  not enough: on tests/hard_cases' sliver graph (cell diagonals over many decades) its
+  rounding moved single vertices by 1.7e-4 of the peak, above the GPU comparison's 1.3e-4.
+
+The arithmetic is the same as the node-major loop's (a test holds them equal
+to rounding); only the order of the sums changes.  Hand-written because no
+library offers a fused Chebyshev step; every kernel in it is scipy's/numpy's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+try:  # the compiled kernel of ``csr @ x``, which accumulates y += A x in place
+    from scipy.sparse._sparsetools import csr_matvec as _csr_matvec
+except ImportError:  # pragma: no cover - a scipy that moved it: the public product (one more pass)
+    _csr_matvec = None
+
+
+def rcm_order(system) -> np.ndarray:
+    """Reverse Cuthill-McKee order of a level's graph (new position -> old node), cached on the system.
+
+    Inner nodes first, then surface nodes, so the surface is the slice ``[n_inner:]`` in this order too.
+    """
+    perm = system.__dict__.get("_rcm")
+    if perm is None:
+        from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+        n = system.n
+        nbr = np.asarray(system.nbr, dtype=np.int64)
+        rows = np.repeat(np.arange(n), nbr.shape[1])
+        cols = nbr.ravel()
+        m = cols >= 0
+        g = sp.csr_matrix((np.ones(int(m.sum())), (rows[m], cols[m])), shape=(n, n))
+        perm = np.asarray(reverse_cuthill_mckee((g + g.T).tocsr(), symmetric_mode=True), dtype=np.int64)
+        # Surface nodes last (each group in RCM order): the boundary couplings (the interreflection
+        # bounce) then act on one contiguous slice.
+        ni = system.level.n_inner
+        perm = np.concatenate([perm[perm < ni], perm[perm >= ni]])
+        system.__dict__["_rcm"] = perm
+    return perm
+
+
+FP32_TOL = 5e-5  # at or above this relative residual the sweeps run in fp32 (the add-on default 1e-4); below, fp64
+
+
+class SweepOperator:
+    """``-A`` of one level (C channels) as one channel-major block-diagonal CSR in RCM order."""
+
+    def __init__(self, system, copies: int = 1, dtype=np.float64):
+        self.dtype = np.dtype(dtype)
+        self.perm = rcm_order(system)
+        self.inv = np.empty_like(self.perm)
+        self.inv[self.perm] = np.arange(len(self.perm))
+        n, C = system.n, system.diag.shape[1]
+        self.n, self.C = n, C * copies
+        # -A = off - diag, built in the new order in one COO -> CSR conversion (no CSR fancy indexing)
+        nbr = np.asarray(system.nbr, dtype=np.int64)
+        K = nbr.shape[1]
+        rows = np.repeat(self.inv, K)
+        cols = nbr.ravel()
+        m = cols >= 0
+        rows, cols = rows[m], self.inv[cols[m]]
+        diag_pos = self.inv
+        r_all, c_all, v_all = [], [], []
+        for k in range(copies):
+            for c in range(C):
+                off = (k * C + c) * n
+                r_all += [rows + off, diag_pos + off]
+                c_all += [cols + off, diag_pos + off]
+                v_all += [system.off[:, :, c].ravel()[m], -system.diag[:, c]]
+        neg = sp.csr_matrix((np.concatenate(v_all).astype(self.dtype),
+                             (np.concatenate(r_all), np.concatenate(c_all))), shape=(n * self.C, n * self.C))
+        neg.sum_duplicates()
+        neg.sort_indices()
+        self.neg_a = neg
+        self.inv_diag = np.ascontiguousarray(np.tile(1.0 / system.diag[self.perm].T, (copies, 1)), dtype=self.dtype)
+
+    def to_cm(self, v: np.ndarray, dtype=None) -> np.ndarray:
+        """(N, C) node-major -> (C, N) channel-major, RCM order (a copy), in the sweep precision."""
+        return np.ascontiguousarray(np.asarray(v)[self.perm].T, dtype=dtype or self.dtype)
+
+    def from_cm(self, v: np.ndarray) -> np.ndarray:
+        out = np.empty((self.n, v.shape[0]))
+        out[self.perm] = v.T
+        return out
+
+    def sub_a(self, r: np.ndarray, d: np.ndarray) -> None:
+        """``r -= A d`` in place; r, d (C, N) C-contiguous, in the sweep precision."""
+        m = self.neg_a
+        if _csr_matvec is not None:
+            _csr_matvec(m.shape[0], m.shape[1], m.indptr, m.indices, m.data, d.reshape(-1), r.reshape(-1))
+        else:  # pragma: no cover
+            r += (m @ d.reshape(-1)).reshape(r.shape)
