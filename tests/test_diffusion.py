@@ -336,3 +336,14 @@ def test_subnormal_light_colours_are_flushed_to_zero():
     sun = Light("sun", color=(1.0, 2.2e-311, 1e-39), irradiance=2.0)
     np.testing.assert_array_equal(sun.rgb, [2.0, 0.0, 0.0])
     assert Light("point", color=(1e-30, 1.0, 1.0), intensity=1.0).rgb[0] == 1e-30  # small but normal: kept
+
+
+def test_first_residual_check_with_a_zero_tolerance():
+    """tol = 0 (a fixed sweep count, as the accuracy bench's tolerance table runs it) skips no check and
+    does not divide by zero; a finite tolerance skips half the steps the Chebyshev bound needs."""
+    from translucency_addon.iterative import first_check
+
+    assert first_check(np.array([1.0, 0.5, 0.2]), 0.0, np.array([1.01, 1.01, 1.01]), 8) == 0
+    k = first_check(np.array([1.0]), 1e-4, np.array([1.01]), 8)
+    need = np.arccosh(1e4) / np.arccosh(1.01)
+    assert k % 8 == 0 and 0.5 * need - 8 < k <= 0.5 * need

@@ -83,10 +83,13 @@ def first_check(res: np.ndarray, tol: float, sigma: np.ndarray, check_every: int
     """
     r = np.asarray(res, dtype=np.float64)
     need = r > tol
-    if not need.any():
+    if tol <= 0.0 or not need.any():  # tol 0: a fixed number of sweeps (max_iter), checked as before
         return 0
     k = np.arccosh(np.maximum(r[need] / tol, 1.0)) / np.arccosh(np.maximum(np.asarray(sigma)[need], 1.0 + 1e-15))
-    return int(check_every * np.floor(0.5 * float(np.max(k)) / check_every))
+    k = float(np.max(k))
+    if not np.isfinite(k):
+        return 0
+    return int(check_every * np.floor(0.5 * k / check_every))
 
 
 def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.ndarray, LevelSolve]:
