@@ -37,7 +37,10 @@ def test_solve_writes_a_finite_point_color_attribute(blender, addon, cache_dir, 
         assert len(evaluated.attributes["translucency_radiance"].data) == len(evaluated.vertices)
         solved = status.solve_status(obj)  # the runtime state's, never saved
         assert solved.backend in {"CPU", "GPU"} and solved.seconds > 0 and 0 < solved.residual < 1e-3
-        assert state.get_state(obj).backend == solved.backend and solved.iterations > 0
+        # iterations may be 0: after the bake's own solve, the same frame warm-starts from its converged
+        # pair (Self-Occlusion's one block solve) and is done at once
+        st = state.get_state(obj)
+        assert st.backend == solved.backend and solved.iterations == st.iterations
         assert obj.translucency.status.bake_status == "Baked"  # a solve leaves the saved status alone
     last = status.last_solve()
     assert last["name"] == "S1" and last["backend"] in {"CPU", "GPU"} and last["seconds"] > 0

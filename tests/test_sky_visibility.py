@@ -230,3 +230,33 @@ def test_a_frame_does_not_depend_on_the_frame_before(torus_bake):
     warm_res, warm = s.solve_interreflected(now, UNIFORM, warm_start=before)
     assert len(warm_res.level_solves) == 1  # the finest level only, from the previous pair
     assert np.abs(warm - cold).max() < 1e-6 * cold.max()
+
+
+def test_one_block_solve_carries_the_first_scatter_split(torus_bake):
+    """(1') of interreflection.py: with the split on (the planner's default for marble), the one block
+    solve gives the two passes of the split solve, which differ from the solve without the split."""
+    from scipy.sparse.linalg import splu
+
+    from translucency_addon.interreflection import bounced_system, one_solve_applies
+    from translucency_addon.lights import Light
+
+    s = DiffusionSolver(torus_bake, material_from_preset("skin1"), options=SolveOptions(tol=1e-10))
+    assert one_solve_applies(s) == ""
+    sun = [Light("sun", irradiance=1000.0, direction=(0.3, -0.2, -1.0))]
+    split = (True, False, True)  # a channel without the split too
+    res, L = s.solve_interreflected(sun, UNIFORM, single=split)
+    assert res.first_pass is not None and res.single == split  # the block path ran, with the split
+    first = s.solve(sun, UNIFORM, single=split)
+    two = s.solve(sun, UNIFORM, warm_start=first, bounce=s.vertex_radiance(first), single=split)
+    L2 = s.vertex_radiance(two)
+    assert np.abs(L - L2).max() < 1e-6 * L2.max(), np.abs(L - L2).max() / L2.max()
+    _, L_plain = s.solve_interreflected(sun, UNIFORM)
+    assert np.abs(L_plain - L2).max() > 0.01 * L2.max()  # the split changes the answer: it is tested
+    assert np.abs(L_plain[:, 1] - L2[:, 1]).max() < 1e-6 * L2.max()  # ... only where it is on
+    fine = len(torus_bake.levels) - 1
+    q = s.incident(sun, UNIFORM, levels=[fine])[fine]
+    block = bounced_system(s, (0, 1, 2), split)
+    B = block.rhs(q)
+    for c in range(3):
+        direct = splu(block.matrix(c).tocsc()).solve(np.concatenate([B[:, c], B[:, 3 + c]]))
+        assert np.abs(direct[block.n:] - res.phi[-1][:, c]).max() < 1e-8 * np.abs(direct[block.n:]).max()

@@ -434,10 +434,9 @@ class DiffusionSolver:
         Without sky visibility in the bake this is a single :meth:`solve`.
         Returns ``(SolveResult, vertex radiance along the normals)``.
         """
-        # The block solve does not carry a source split of its own (a ``single=`` channel split of the
-        # solve, or ``options.single_scattering``, where a solver has one): those keep the two passes.
-        split = any(kw.get("single") or ()) or bool(getattr(self.options, "single_scattering", False))
-        if self.sky is not None and int(bounces) == 1 and bounce is None and not split:
+        # The first-scatter split (``single=``, ``options.single_scattering``) is part of the block
+        # system ((1') of :mod:`.interreflection`).
+        if self.sky is not None and int(bounces) == 1 and bounce is None:
             from .interreflection import one_solve_applies, solve_bounced
 
             why = one_solve_applies(self)

@@ -33,6 +33,20 @@ free path; ``radiance.outgoing_radiance``); tests/test_sky_visibility.py
 holds the two within 1e-6 of the peak on the torus and checks (1) against a
 direct sparse LU of the 2N system.
 
+**With the first-scatter split** (:meth:`.diffusion.DiffusionSolver.split_source`, the planner's
+channels): the diffusion's source is ``m q`` (m = m(alpha) per surface node and channel, 1 where
+the split is off) and the vertex radiance adds the closed-form single scattering ``sigma_v (P q)``,
+sigma_v = clip(P alpha) F_t h / (4 pi eta^2) along the normal
+(:meth:`.single_scattering.closed_form.HalfSpaceSplit.single_radiance`), which is linear in q.  The
+bounce is then ``q_b = G (phi0_s - 2 m q) + H q`` with ``H = B' diag(sigma_v) P`` (B' the bounce sum
+without G's ``gamma / (2 (1 + F_dr))``), and the second pass solves for ``m (q + q_b)``::
+
+    [ A      0 ] [phi0]   [ S m q                         ]
+    [ -S m G A ] [phi1] = [ S m (q - 2 G m q + H q)        ]                         (1')
+
+the same block lower-triangular form, with ``S m`` in place of ``S``: the spectrum argument below
+holds unchanged.  At convergence (1') is the two passes of the split solve.
+
 **Stability of the Chebyshev iteration on (1).**  With the block Jacobi
 preconditioner ``diag(D, D)`` the iteration operator is
 
@@ -114,9 +128,10 @@ class BouncedSweepOperator(SweepOperator):
     in-place sparse products per channel (``t = P d0_s``, ``r1_s += diag(S_c) Bg t``), no gather.
     """
 
-    def __init__(self, base, factors, dtype=np.float64):
+    def __init__(self, base, factors, dtype=np.float64, m=None):
         super().__init__(base, copies=2, dtype=dtype)
         Bg, P = factors
+        scale = base.b_scale if m is None else base.b_scale * m  # S, or S m with the split (1')
         self.c0 = base.diag.shape[1]
         self.ni = base.level.n_inner
         surf_old = self.perm[self.ni:] - self.ni  # surface index (old) at each sweep position
@@ -124,9 +139,9 @@ class BouncedSweepOperator(SweepOperator):
         self.P.sort_indices()
         self.SB = []
         for c in range(self.c0):
-            m = (sp.diags(base.b_scale[surf_old, c]) @ Bg[surf_old]).tocsr().astype(self.dtype)
-            m.sort_indices()
-            self.SB.append(m)
+            sb = (sp.diags(scale[surf_old, c]) @ Bg[surf_old]).tocsr().astype(self.dtype)
+            sb.sort_indices()
+            self.SB.append(sb)
         self.t = np.zeros(P.shape[0], dtype=self.dtype)
 
     def sub_a(self, r, d):
@@ -146,8 +161,12 @@ class BouncedSystem:
 
     scheme = "bounced"  # not "fv": no deflation of its own (the caller checks the base level's)
 
-    def __init__(self, base, factors):
+    def __init__(self, base, factors, m=None, sigma=None):
+        """``m`` (n_s, C): the split's source factors (None: no split); ``sigma`` (n_vertices, C): the
+        closed-form single scattering per unit q at the vertices along the normal (H of (1'))."""
         self.base, self.factors = base, factors
+        self.m, self.sigma = m, sigma
+        self._h_scale = 1.0
         self.level = base.level
         lo, hi = spectral_bounds(base)
         self.lam_min, self.lam_max = np.tile(lo, 2), np.tile(hi, 2)  # the spectrum of (1) is that of A
@@ -165,15 +184,32 @@ class BouncedSystem:
     def sweep_operator(self, dtype=np.float64):
         key = np.dtype(dtype).str
         if key not in self._ops:
-            self._ops[key] = BouncedSweepOperator(self.base, self.factors, dtype=dtype)
+            self._ops[key] = BouncedSweepOperator(self.base, self.factors, dtype=dtype, m=self.m)
         return self._ops[key]
 
+    def source(self, q: np.ndarray) -> np.ndarray:
+        """The diffusion's source for entering light q (n_s, C): m q with the split, else q."""
+        return q if self.m is None else self.m * q
+
+    def bounce(self, phi0_s: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """q_b (n_s, C): the light the object sends itself, ``G (phi0_s - 2 m q) + H q``."""
+        Bg, P = self.factors
+        qb = Bg @ (P @ (phi0_s - 2.0 * self.source(q)))
+        if self.sigma is not None:
+            qb = qb + Bg @ (self.sigma * (P @ q)) * self.h_scale
+        return qb
+
+    @property
+    def h_scale(self) -> float:
+        """``2 (1 + F_dr) / gamma``: B' = Bg times this (Bg carries G's factor, the single term has none)."""
+        return self._h_scale
+
     def coupling(self, x0: np.ndarray) -> np.ndarray:
-        """K x0 (N, C): S G x0_s on the surface rows, zero inside."""
+        """K x0 (N, C): S m G x0_s on the surface rows, zero inside."""
         ni = self.level.n_inner
         out = np.zeros_like(x0)
         Bg, P = self.factors
-        out[ni:] = self.base.b_scale * (Bg @ (P @ x0[ni:]))
+        out[ni:] = self.base.b_scale * self.source(Bg @ (P @ x0[ni:]))
         return out
 
     def apply(self, x: np.ndarray) -> np.ndarray:
@@ -182,8 +218,9 @@ class BouncedSystem:
 
     def rhs(self, q: np.ndarray) -> np.ndarray:
         """The right-hand side of (1) for the level's direct light q (n_s, C), (N, 2C)."""
-        b0 = self.base.rhs(q)
-        return np.hstack([b0, b0 - 2.0 * self.coupling(np.vstack([np.zeros((self.level.n_inner, q.shape[1])), q]))])
+        b0 = self.base.rhs(self.source(q))
+        qb_const = self.bounce(np.zeros_like(q), q)  # G (0 - 2 m q) + H q: the bounce without phi0
+        return np.hstack([b0, self.base.rhs(self.source(q + qb_const))])
 
     def matrix(self, channel: int) -> sp.csr_matrix:
         """(1) for one channel as a 2N x 2N scipy matrix (the direct solve the tests check against)."""
@@ -191,20 +228,36 @@ class BouncedSystem:
 
         A = sparse_matrix(self.base, channel)
         ni, n = self.level.n_inner, self.n
-        S = sp.diags(self.base.b_scale[:, channel])
+        S = sp.diags(self.base.b_scale[:, channel] * (1.0 if self.m is None else self.m[:, channel]))
         K = sp.bmat([[sp.csr_matrix((ni, ni)), None], [None, S @ self.G]], format="csr")
         assert K.shape == (n, n)
         return sp.bmat([[A, None], [-K, A]], format="csr")
 
 
-def bounced_system(solver, cols) -> BouncedSystem:
-    """(1) of the finest level for the channels ``cols``, cached on the solver (per material and eta)."""
+def bounced_system(solver, cols, single=(False, False, False)) -> BouncedSystem:
+    """(1) of the finest level for the channels ``cols`` -- (1') where ``single`` (the split's channels)
+    has any -- cached on the solver (per material, eta and split)."""
+    from .single_scattering.closed_form import half_space_split
+
     base = solver.systems[-1].subset(cols)
     cache = solver.__dict__.setdefault("_bounced", {})
-    key = (id(base), tuple(cols), float(solver.eta))
+    on = np.array([bool(single[c]) for c in cols])
+    key = (id(base), tuple(cols), float(solver.eta), tuple(on))
     if key not in cache:
         cache.clear()
-        cache[key] = BouncedSystem(base, bounce_operator(solver))
+        m = sigma = None
+        if on.any():
+            split = half_space_split(solver.eta)
+            alpha = solver.surface_albedo[-1][:, cols]
+            m = np.where(on, split.source_factor(alpha), 1.0)
+            idx, w = solver.bake.vertex_map
+            a_v = np.einsum("vk,vkc->vc", np.asarray(w, dtype=np.float64), alpha[np.asarray(idx)])
+            # single_radiance is linear in q: its value for q = 1 along the normal is sigma_v
+            sigma = split.single_radiance(np.ones_like(a_v), a_v, np.ones(len(a_v))) * on
+        system = BouncedSystem(base, bounce_operator(solver), m=m, sigma=sigma)
+        gamma = float(fresnel_transmittance(np.array([1.0]), solver.eta)[0]) / (np.pi * solver.eta**2)
+        system._h_scale = 2.0 * (1.0 + solver.fdr) / gamma
+        cache[key] = system
     return cache[key]
 
 
@@ -224,7 +277,7 @@ def one_solve_applies(solver) -> str:
 
 
 def solve_bounced(solver, lights=(), environment=None, *, warm_start=None, shadows=True, occluders=None,
-                  channels=None):
+                  channels=None, single=None):
     """Light pass, coarse levels, then (1) on the finest level: ``(SolveResult, vertex radiance)``.
 
     ``warm_start``: a previous result; its finest ``phi`` (and ``first_pass``, the phi0 of (1),
@@ -245,11 +298,12 @@ def solve_bounced(solver, lights=(), environment=None, *, warm_start=None, shado
     mask = (True, True, True) if channels is None else tuple(bool(c) for c in channels)
     cols = tuple(c for c in range(3) if mask[c])
     if not cols:
-        res = solver.solve(q=q, channels=mask)
+        res = solver.solve(q=q, channels=mask, single=single)
         return res, solver.vertex_radiance(res)
     solver._channels = cols
-    phi, solves = solver.solve_systems(q, active[:-1]) if len(active) > 1 else ([None] * n_lv, [])
-    system = bounced_system(solver, cols)
+    q_src, q_incident, single = solver.split_source(q, single)  # (1'): the coarse levels solve for m q
+    phi, solves = solver.solve_systems(q_src, active[:-1]) if len(active) > 1 else ([None] * n_lv, [])
+    system = bounced_system(solver, cols, single)
     base = system.base
     qd = q[fine][:, cols]
     B = system.rhs(qd)
@@ -271,23 +325,28 @@ def solve_bounced(solver, lights=(), environment=None, *, warm_start=None, shado
     phi0, phi1 = x[:, :C], x[:, C:]
     ni = base.level.n_inner
     Bg, P = system.factors
-    q_tot = qd + Bg @ (P @ (phi0[ni:] - 2.0 * qd))
+    q_tot = qd + system.bounce(phi0[ni:], qd)  # the light that entered, the bounce included
+    q_dif = system.source(q_tot)  # the diffusion's source (m q_tot with the split)
     info = LevelSolve(info.iterations, np.maximum(info.residual[:C], info.residual[C:]), info.history,
                       info.seconds, note="")
-    phi1, info = solver.checked_level(fine, base, q_tot, base.rhs(q_tot), phi1, info)
-    full0, full1, qf = np.zeros((base.n, 3)), np.zeros((base.n, 3)), np.zeros((len(qd), 3))
-    full0[:, cols], full1[:, cols], qf[:, cols] = phi0, phi1, q_tot
+    phi1, info = solver.checked_level(fine, base, q_dif, base.rhs(q_dif), phi1, info)
+    full0, full1, qf, qi = (np.zeros((base.n, 3)), np.zeros((base.n, 3)), np.zeros((len(qd), 3)),
+                            np.zeros((len(qd), 3)))
+    full0[:, cols], full1[:, cols], qf[:, cols], qi[:, cols] = phi0, phi1, q_dif, q_tot
     res3 = np.zeros(3)
     res3[list(cols)] = info.residual
     info.residual = res3
     phi[fine] = full1
-    q = list(q)
+    q = list(q_src)
     q[fine] = qf
+    if q_incident is not None:
+        q_incident = list(q_incident)
+        q_incident[fine] = qi
     solves.append(info)
     if info.note:
         warnings.append(info.note)
     t2 = time.perf_counter()
     result = SolveResult(phi=phi, q=q, level_solves=solves, scheme=base.scheme,
                          seconds={"lights": t1 - t0, "solve": t2 - t1, "total": t2 - t0}, warnings=warnings,
-                         first_pass=full0)
+                         first_pass=full0, q_incident=q_incident, single=single)
     return result, solver.vertex_radiance(result)
