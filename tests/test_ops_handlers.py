@@ -223,7 +223,9 @@ def test_a_gpu_failure_in_a_render_moves_renders_to_the_cpu(gpu_context, blender
     (f1, gpu1), (f10, cpu10), (f1_again, cpu1) = written.frames
     assert (f1, f10, f1_again) == (1, 10, 1)
     assert np.all(np.isfinite(cpu10)) and cpu10[:, 0].sum() != pytest.approx(gpu1[:, 0].sum(), rel=0.05)
-    np.testing.assert_allclose(cpu1, gpu1, rtol=1e-3, atol=1e-6)  # the CPU twin's frame 1 is the GPU's
+    # the CPU twin's frame 1 is the GPU's, to the solver's tolerance (1e-4) of the peak: the CPU folds the
+    # bounce into one block solve, the GPU runs the two passes (interreflection.py)
+    np.testing.assert_allclose(cpu1, gpu1, rtol=1e-3, atol=1e-4 * float(np.abs(gpu1).max()))
     st = state.get_state(obj)
     assert st.backend == "GPU" and type(st.solver) is not type(st.render_solver)  # the viewport keeps the GPU
     assert st.gpu_failed_in_render.startswith("the GPU solve failed (SystemError: simulated")

@@ -117,8 +117,8 @@ def _snapshot(folder):
 
 def _run(blend, first, last, out, policy="", wait=True):
     out.mkdir(parents=True, exist_ok=True)
-    script = out.parent / "worker.py"
-    script.write_text(_WORKER)
+    script = out / "_worker.py"  # one per worker: a shared script rewritten while another worker reads it
+    script.write_text(_WORKER)  # can be read empty (such a worker ran nothing and exited 0)
     proc = subprocess.Popen([sys.executable, str(script), str(ROOT), str(blend), str(first), str(last), str(out),
                              policy], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             cwd=out)
