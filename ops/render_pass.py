@@ -25,8 +25,8 @@ may rename or move them).  The pass holds the radiance itself, in
 W/(m^2 sr) (scene linear, no exposure applied), and is zero wherever a surface
 has no such attribute.  EEVEE and Cycles both evaluate it.
 
-:func:`read_exr` reads a (multilayer) OpenEXR file without Blender, for the
-tests and the demo: ``read_exr(path)["ViewLayer.Translucency.R"]``.
+Reading the pass back without Blender (tests, demo) is ``tools/exr.py``'s
+``read_exr(path)["ViewLayer.Translucency.R"]``, outside the shipped extension.
 """
 
 from __future__ import annotations
