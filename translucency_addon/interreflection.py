@@ -88,6 +88,12 @@ from .spectral import deflation, spectral_bounds
 from .sweeps import SweepOperator
 
 
+def current_to_radiance(solver) -> float:
+    """``gamma / (2 (1 + F_dr))``: G's factor from ``phi_s - 2 q`` to the radiance along the normal."""
+    gamma = float(fresnel_transmittance(np.array([1.0]), solver.eta)[0]) / (np.pi * solver.eta**2)
+    return gamma / (2.0 * (1.0 + solver.fdr))
+
+
 def bounce_operator(solver):
     """G of (1) as two factors ``(Bg, P)``, ``G = Bg @ P``, cached per eta.
 
@@ -106,8 +112,7 @@ def bounce_operator(solver):
         ls = sky.levels[fine]
         w = ls.weight(solver.eta, lv.normal, sky.directions)
         nv = len(bake.mesh_vertices)
-        gamma = float(fresnel_transmittance(np.array([1.0]), solver.eta)[0]) / (np.pi * solver.eta**2)
-        Bg = sp.csr_matrix(((w[:, None] * ls.hit_bary).ravel() * (gamma / (2.0 * (1.0 + solver.fdr))),
+        Bg = sp.csr_matrix(((w[:, None] * ls.hit_bary).ravel() * current_to_radiance(solver),
                             (np.repeat(ls.node, 3), ls.hit_vertices.ravel())), shape=(ls.n_surface, nv))
         idx, wv = bake.vertex_map
         idx = np.asarray(idx)
@@ -163,10 +168,10 @@ class BouncedSystem:
 
     def __init__(self, base, factors, m=None, sigma=None):
         """``m`` (n_s, C): the split's source factors (None: no split); ``sigma`` (n_vertices, C): the
-        closed-form single scattering per unit q at the vertices along the normal (H of (1'))."""
+        closed-form single scattering per unit q at the vertices along the normal, divided by
+        :func:`current_to_radiance` so that ``Bg`` applies B' to it (H of (1'): ``H q = Bg (sigma P q)``)."""
         self.base, self.factors = base, factors
         self.m, self.sigma = m, sigma
-        self._h_scale = 1.0
         self.level = base.level
         lo, hi = spectral_bounds(base)
         self.lam_min, self.lam_max = np.tile(lo, 2), np.tile(hi, 2)  # the spectrum of (1) is that of A
@@ -196,13 +201,8 @@ class BouncedSystem:
         Bg, P = self.factors
         qb = Bg @ (P @ (phi0_s - 2.0 * self.source(q)))
         if self.sigma is not None:
-            qb = qb + Bg @ (self.sigma * (P @ q)) * self.h_scale
+            qb = qb + Bg @ (self.sigma * (P @ q))
         return qb
-
-    @property
-    def h_scale(self) -> float:
-        """``2 (1 + F_dr) / gamma``: B' = Bg times this (Bg carries G's factor, the single term has none)."""
-        return self._h_scale
 
     def coupling(self, x0: np.ndarray) -> np.ndarray:
         """K x0 (N, C): S m G x0_s on the surface rows, zero inside."""
@@ -253,11 +253,8 @@ def bounced_system(solver, cols, single=(False, False, False)) -> BouncedSystem:
             idx, w = solver.bake.vertex_map
             a_v = np.einsum("vk,vkc->vc", np.asarray(w, dtype=np.float64), alpha[np.asarray(idx)])
             # single_radiance is linear in q: its value for q = 1 along the normal is sigma_v
-            sigma = split.single_radiance(np.ones_like(a_v), a_v, np.ones(len(a_v))) * on
-        system = BouncedSystem(base, bounce_operator(solver), m=m, sigma=sigma)
-        gamma = float(fresnel_transmittance(np.array([1.0]), solver.eta)[0]) / (np.pi * solver.eta**2)
-        system._h_scale = 2.0 * (1.0 + solver.fdr) / gamma
-        cache[key] = system
+            sigma = split.single_radiance(np.ones_like(a_v), a_v, np.ones(len(a_v))) * on / current_to_radiance(solver)
+        cache[key] = BouncedSystem(base, bounce_operator(solver), m=m, sigma=sigma)
     return cache[key]
 
 
