@@ -63,6 +63,17 @@ def cpu_run(scn: hc.Scenario, name: str = "fast") -> hc.Run:
     return _RUNS[key]
 
 
+def conditioning_error(scn: hc.Scenario) -> float:
+    """How far an iterate stopped at ``TOL`` may lie from the exact discrete solution, measured.
+
+    The CPU's ``fast`` run against the direct solve of the same case (``compare``'s scale).  Two
+    iterates that both stop at the same relative residual (the GPU's and the CPU's) may then differ by
+    up to twice it: ~1e-6 on most cases, up to 1.5e-3 on the slivers, whose bakes differ from run to
+    run (fTetWild without optimisation is not deterministic)."""
+    err, _ = hc.compare(cpu_run(scn, "fast"), cpu_run(scn, "direct"), np.inf)
+    return err
+
+
 def _report(metrics: dict, extra: str = "") -> str:
     sweeps = "/".join(str(s) for s in metrics["sweeps"])
     return (f"{metrics['case']:<34} {metrics['solver']:<12} sweeps {sweeps:<16} residual {metrics['residual']:.1e} "
@@ -86,14 +97,18 @@ def test_our_scheme_on_the_cpu(case):
         direct = cpu_run(scn, "direct")
         _, p = hc.check(direct)
         problems += [f"{scn.label} direct: {x}" for x in p]
-        # The iterative answer converges to the direct one: at tol / 10 the largest per-vertex
-        # difference is below AGREE.  (At tol itself the slivers' graph, whose diagonal spans many
-        # decades, leaves 0.8-1.4e-3 at single vertices over fTetWild runs: a Euclidean relative
-        # residual of 1e-5 does not bound the error at the smallest cells.)
-        tight = hc.run_solver(scn, "fast", q=fast.result.q, tol=hc.TOL / 10)
+        # The iterative answer converges to the direct one: at tol / 1000 the largest per-vertex
+        # difference is below AGREE.  A Euclidean relative residual bounds the error only up to the
+        # conditioning, and the slivers' graph (fTetWild without optimisation is not deterministic:
+        # every bake differs; its diagonal spans 9 decades, weakly coupled pockets of cells make slow
+        # modes the residual hardly sees) leaves, over 8 bakes, 1e-4 .. 1.5e-3 at tol, 1.5e-5 .. 5.9e-4
+        # at tol / 10 (1.3e-3 on one CI bake), 1.4e-6 .. 1.4e-5 at tol / 1000: the error falls with
+        # the tolerance, 10x per decade, which is what this checks.  Every other case is 10-100x
+        # inside AGREE at tol already.
+        tight = hc.run_solver(scn, "fast", q=fast.result.q, tol=hc.TOL / 1000)
         err, p = hc.compare(tight, direct, hc.AGREE)
         problems += [f"{scn.label}: {x}" for x in p]
-        print(_report(metrics, f"|L(tol/10) - L_direct| / max L = {err:.1e}"))
+        print(_report(metrics, f"|L(tol/1000) - L_direct| / max L = {err:.1e}"))
     assert problems == []
 
 
@@ -131,7 +146,8 @@ def test_gpu_path(case):
         try:
             metrics, p = hc.check(run)
             problems += [f"{scn.label} {run.solver_name}: {x}" for x in p]
-            tol = max(hc.FP16_TOL if scn.precision == "fp16" else hc.GPU_TOL, hc.residual_floor(run, -1))
+            tol = max(hc.FP16_TOL if scn.precision == "fp16" else hc.GPU_TOL, hc.residual_floor(run, -1),
+                      2.0 * conditioning_error(scn))
             err, p = hc.compare(run, cpu_run(scn, "fast"), tol)
             problems += [f"{scn.label}: {x}" for x in p]
             if scn.expect_warning and not any(re.search(scn.expect_warning, w) for w in run.solver.warnings):
