@@ -83,7 +83,7 @@ import scipy.sparse as sp
 
 from . import kernels
 from .fresnel import fresnel_transmittance
-from .iterative import LevelSolve, smoothed_start, solve_chebyshev
+from .iterative import LevelSolve, solve_chebyshev
 from .spectral import deflation, spectral_bounds
 from .sweeps import SweepOperator
 
@@ -279,9 +279,7 @@ def solve_bounced(solver, lights=(), environment=None, *, warm_start=None, shado
 
     ``warm_start``: a previous result; its finest ``phi`` (and ``first_pass``, the phi0 of (1),
     when it has one) start the block system.  The result's ``q`` on the finest level is the direct
-    light plus the bounce, its ``phi`` is phi1 and ``first_pass`` phi0.  The start (warm, upsampled or
-    zero) is first smoothed on the top of the spectrum (:func:`.iterative.smoothed_start`); its sweeps
-    count in the finest level's ``iterations``.
+    light plus the bounce, its ``phi`` is phi1 and ``first_pass`` phi0.
     """
     from .diffusion import SolveResult
 
@@ -320,12 +318,7 @@ def solve_bounced(solver, lights=(), environment=None, *, warm_start=None, shado
         x1 = x0.copy()
     X = np.hstack([x0, x1])
     X[:, ~np.any(B != 0, axis=0)] = 0.0  # no light in a channel: the answer is exactly 0 (solve_systems)
-    X, pre = smoothed_start(system, B, X, opts.tol, opts.max_iterations, opts.check_every)
-    x, info = solve_chebyshev(system, B, X, opts.tol, opts.max_iterations - (pre.iterations if pre else 0),
-                              opts.check_every)
-    if pre is not None:  # the smoothing's sweeps are the solve's: counted and timed with it
-        info = LevelSolve(pre.iterations + info.iterations, info.residual, pre.history + info.history,
-                          pre.seconds + info.seconds, note=info.note)
+    x, info = solve_chebyshev(system, B, X, opts.tol, opts.max_iterations, opts.check_every)
     phi0, phi1 = x[:, :C], x[:, C:]
     ni = base.level.n_inner
     Bg, P = system.factors

@@ -206,61 +206,6 @@ def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.nda
     return x, LevelSolve(it, res, hist, time.perf_counter() - t0)
 
 
-SMOOTH_FRACTION = 0.02  # the smoothing polynomial's interval: [SMOOTH_FRACTION lambda_max, lambda_max]
-SMOOTH_GAIN = 1e3  # what it takes off the residual there (T_m(theta/delta) >= this)
-
-
-class _UpperSpectrum:
-    """A system seen through the top of its spectrum: ``lam_min = SMOOTH_FRACTION lam_max``, no deflation."""
-
-    scheme = "smoothing"  # not "fv": spectral.deflation leaves it alone
-
-    def __init__(self, system, lam_max):
-        self.system, self.lam_max = system, lam_max
-        self.lam_min = SMOOTH_FRACTION * lam_max
-        self.diag, self.level = system.diag, system.level
-
-    @property
-    def n(self) -> int:
-        return self.system.n
-
-    def apply(self, x):
-        return self.system.apply(x)
-
-    def sweep_operator(self, dtype=np.float64):
-        return self.system.sweep_operator(dtype)
-
-
-def smoothed_start(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.ndarray, LevelSolve | None]:
-    """A start for :func:`solve_chebyshev`: ``x0`` after Chebyshev steps on the top of the spectrum only.
-
-    Chebyshev on ``[lambda_min, lambda_max]`` bounds every mode of the residual by the same
-    ``1 / T_k(theta/delta)``, so an initial residual made of rough modes (a Shepard-upsampled coarse
-    solution, or a previous frame's solution under new light: both are off mostly at and next to the
-    surface rows) costs as many sweeps as smooth ones.  The same iteration on
-    ``[SMOOTH_FRACTION lambda_max, lambda_max]`` takes those modes down ``SMOOTH_GAIN``-fold in
-    ``acosh(SMOOTH_GAIN) / acosh(theta/delta)`` steps (32 at a fraction of 0.02) and leaves the smooth
-    ones as they are (the residual polynomial is <= 1 below its interval); the full iteration then starts
-    from what the smooth modes left.  Measured on the bunny's finest level at tol 1e-4 (docs/bench_solve.md):
-    a first Final frame 256 -> 128 + 32 sweeps, a warm one (the sky turned 5 degrees) 184 -> 136 in all.
-    The smoothing is this module's solver run on a view of the system (:class:`_UpperSpectrum`), a fixed
-    number of steps; it changes the start only, not the system or the stopping test.  Returns ``(x0,
-    None)`` where it does not apply: a zero tolerance (a fixed sweep count is asked for) or an interval
-    already narrower than the smoothing's.
-    """
-    lam_min, lam_max = spectral_bounds(system)
-    lam_max = np.asarray(lam_max, dtype=np.float64)
-    if tol <= 0.0 or not np.any(np.asarray(lam_min) < SMOOTH_FRACTION * lam_max):
-        return x0, None
-    lo = SMOOTH_FRACTION * lam_max
-    sigma = float(np.min((lam_max + lo) / (lam_max - lo)))
-    steps = int(check_every * np.ceil(np.arccosh(SMOOTH_GAIN) / np.arccosh(sigma) / check_every))
-    steps = min(steps, max_iter // 4)
-    if steps <= 0:
-        return x0, None
-    return solve_chebyshev(_UpperSpectrum(system, lam_max), b, x0, tol, steps, check_every)
-
-
 def solve_direct(system, b, *_args, **_kw) -> tuple[np.ndarray, LevelSolve]:
     """Sparse LU (scipy) per channel: the reference the iterative solvers are tested against."""
     from scipy.sparse.linalg import splu
