@@ -2,7 +2,8 @@
 """Where a frame's time goes, against a baseline checkout in the same run, and how cost grows (issue 18).
 
     .venv/bin/python bench/frame.py [--baseline /work/main] [--qualities preview final]
-                                    [--sizes 10000 30000 100000 300000 1000000] [--out docs/bench_solve.md]
+                                    [--sizes 10000 30000 100000 300000 1000000] [--profile final]
+                                    [--out docs/bench_solve.md]
 
 *Frame* (the accuracy bench's headline scene ``bunny_marble_sky``: the 40 mm
 marble bunny under the sky, Self-Occlusion on, tol 1e-4, bakes from
@@ -21,6 +22,10 @@ marble, uniform light on the surface) from 10k to 1M nodes: sweeps from zero
 to the tolerance, ms per sweep (this tree's sweeps and the node-major loop
 they replace, same process), a warm frame (light changed by 5 %), setup (spectral bounds,
 sweep layout) and memory.  Times are wall-clock on a shared machine: compare ratios.
+
+*Profile* (``--profile QUALITY``): a first and a warm frame of the same scene under cProfile (CPU
+clock), each tree in its own process; the parts (light pass, Lanczos, deflation check, sweep layout,
+sparse products, the iteration's vector updates) as cumulative times.
 """
 
 from __future__ import annotations
