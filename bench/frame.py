@@ -2,7 +2,8 @@
 """Where a frame's time goes, against a baseline checkout in the same run, and how cost grows (issue 18).
 
     .venv/bin/python bench/frame.py [--baseline /work/main] [--qualities preview final]
-                                    [--sizes 10000 30000 100000 300000 1000000] [--out docs/bench_solve.md]
+                                    [--sizes 10000 30000 100000 300000 1000000] [--profile final]
+                                    [--out docs/bench_solve.md]
 
 *Frame* (the accuracy bench's headline scene ``bunny_marble_sky``: the 40 mm
 marble bunny under the sky, Self-Occlusion on, tol 1e-4, bakes from
@@ -21,6 +22,10 @@ marble, uniform light on the surface) from 10k to 1M nodes: sweeps from zero
 to the tolerance, ms per sweep (this tree's sweeps and the node-major loop
 they replace, same process), a warm frame (light changed by 5 %), setup (spectral bounds,
 sweep layout) and memory.  Times are wall-clock on a shared machine: compare ratios.
+
+*Profile* (``--profile QUALITY``): a first and a warm frame of the same scene under cProfile (CPU
+clock), each tree in its own process; the parts (light pass, Lanczos, deflation check, sweep layout,
+sparse products, the iteration's vector updates) as cumulative times.
 """
 
 from __future__ import annotations
@@ -107,6 +112,95 @@ def worker(root: str, quality: str, out: str) -> None:
     rec["block"] = getattr(r, "first_pass", None) is not None
     np.save(out + ".npy", L)
     Path(out).write_text(json.dumps(rec))
+
+
+PROFILE_PARTS = (  # (row, how to read it from the profile); cumulative times overlap: see profile_section
+    ("light pass (shadow rays, sky)", ("ct", "diffusion.py", "incident")),
+    ("coarse levels (their set-up and sweeps)", ("ct", "diffusion.py", "solve_systems")),
+    ("spectral bounds: Lanczos for lambda_min, every level", ("ct", "spectral.py", "lanczos_lower")),
+    ("deflation check (its own Lanczos)", ("defl",)),
+    ("sweep layout (RCM order, fused CSR), every level", ("ct", None, "sweep_operator")),
+    ("sweeps: sparse products (scipy csr_matvec)", ("tt", None, "csr_matvec")),
+    ("sweeps: vector updates (solve_chebyshev's own time)", ("tt", "iterative.py", "solve_chebyshev")),
+    ("vertex radiance", ("ct", "diffusion.py", "vertex_radiance")),
+)
+
+
+def profile_worker(root: str, quality: str, out: str) -> None:
+    """cProfile (CPU time) of a first and a warm frame as :func:`worker` runs them; the parts of PROFILE_PARTS."""
+    import cProfile
+    import pstats
+
+    sys.path.insert(0, root)
+    from bench import accuracy_scenes as scenes
+    from bench.accuracy_core import Evaluator, environment_turned, view_dirs
+    from translucency_addon import diffusion
+
+    sc = next(s for s in scenes.reference_scenes() if s.name == "bunny_marble_sky")
+    bk, _ = Evaluator(bake_cache=BAKES, log=lambda *a: None).bake(sc, quality=quality)
+    s = diffusion.DiffusionSolver(bk, sc.material, None, diffusion.SolveOptions(solver="fast", tol=1e-4))
+    vd = view_dirs(sc)
+    rec = {}
+    r = None
+    for name, env in (("first", sc.environment), ("warm", environment_turned(sc, 5.0))):
+        pr = cProfile.Profile(time.process_time)
+        pr.enable()
+        r, _ = s.solve_interreflected((), env, warm_start=r)
+        s.vertex_radiance(r, vd)
+        pr.disable()
+        st = pstats.Stats(pr).stats
+        parts = {"frame": 1e3 * max(v[3] for v in st.values())}
+
+        def pick(kind, fname, func):
+            tot = 0.0
+            for (f, _, fn), (_, _, tt, ct, callers) in st.items():
+                if (fn == func or fn.endswith(f".{func}>")) and (fname is None or f.endswith(fname)):
+                    tot += tt if kind == "tt" else ct
+            return 1e3 * tot
+
+        for row, how in PROFILE_PARTS:
+            if how[0] == "defl":
+                d = [(k, v) for k, v in st.items() if k[0].endswith("spectral.py") and k[2] == "deflation"]
+                sb = [v for k, v in st.items() if k[0].endswith("spectral.py") and k[2] == "spectral_bounds"]
+                inner = sum(c[3] for v in sb for ck, c in v[4].items() if ck[2] == "deflation")
+                parts[row] = 1e3 * (sum(v[3] for _, v in d) - inner)
+            else:
+                parts[row] = pick(*how)
+        parts["finest-level sweeps"] = int(r.level_solves[-1].iterations)
+        rec[name] = parts
+    Path(out).write_text(json.dumps(rec))
+
+
+def profile_section(baseline: Path | None, quality: str) -> str:
+    """The breakdown of a first and a warm frame (cProfile), both trees, one after the other."""
+    recs = {}
+    for tag, root in (("base", baseline), ("ours", ROOT)):
+        if root is None:
+            continue
+        out = ROOT / "bench" / "out" / f"profile_{tag}_{quality}.json"
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--profile-worker", str(root), quality, str(out)]
+        subprocess.run(cmd, check=True, cwd=str(root))
+        recs[tag] = json.loads(out.read_text())
+    base = recs.get("base")
+    lines = [f"## Where a {quality} frame's time goes (cProfile)", "",
+             f"`bench/frame.py --profile {quality}`: one process per tree (*baseline* = `{baseline}`), a first "
+             "frame on a fresh solver (every set-up included) and a warm one (the sky turned 5 degrees, "
+             "warm-started), each under cProfile with CPU time as its clock (the profiler itself adds ~10 %).  "
+             "Rows are a function's time *including what it calls*, so they overlap: the coarse levels include "
+             "their own Lanczos, layout and sweeps; the sweep rows are the products and the iteration's own "
+             "vector work over all levels.", "",
+             "| part | first: baseline ms | first: ours ms | warm: baseline ms | warm: ours ms |",
+             "|---|---|---|---|---|"]
+    rows = ["frame"] + [r for r, _ in PROFILE_PARTS] + ["finest-level sweeps"]
+    for row in rows:
+        cells = []
+        for kind in ("first", "warm"):
+            for rec in (base, recs["ours"]):
+                v = None if rec is None else rec[kind].get(row)
+                cells.append("-" if v is None else (f"{v:,}" if isinstance(v, int) else f"{v:,.0f}"))
+        label = "**whole frame**" if row == "frame" else row
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def run_tree(root: Path, quality: str, tag: str) -> dict:
@@ -314,34 +408,49 @@ def main(argv=None):
     if argv is None and len(sys.argv) > 1 and sys.argv[1] == "--worker":
         worker(*sys.argv[2:5])
         return
+    if argv is None and len(sys.argv) > 1 and sys.argv[1] == "--profile-worker":
+        profile_worker(*sys.argv[2:5])
+        return
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--baseline", type=Path, default=None, help="a checkout of the code to compare with")
     ap.add_argument("--qualities", nargs="*", default=["preview", "final"])
     ap.add_argument("--sizes", nargs="*", type=float, default=[1e4, 3e4, 1e5, 3e5, 1e6])
     ap.add_argument("--tol", type=float, default=1e-4)
+    ap.add_argument("--profile", nargs="*", default=[], help="qualities to profile (cProfile breakdown)")
     ap.add_argument("--out", default=None, help="append the sections to this markdown file "
                                                  "(replacing an earlier run's sections)")
     a = ap.parse_args(argv)
-    parts = []
+    new = {}  # section header -> text, in the file's order: frame, profiles, scaling
     if a.qualities:
         text, _ = frame_section(a.baseline, a.qualities)
         print(text)
-        parts.append(text)
+        new["## A frame with Self-Occlusion"] = text
+    for q in a.profile:
+        text = profile_section(a.baseline, q)
+        print(text)
+        new[f"## Where a {q} frame's time goes"] = text
     if a.sizes:
         text = scaling_section(a.sizes, a.tol)
         print(text)
-        parts.append(text)
-    if a.out:
+        new["## How cost grows"] = text
+    if a.out:  # replace this run's sections, keep the others of an earlier run
         p = Path(a.out)
         old = p.read_text() if p.exists() else ""
-        head = old.split("\n## A frame with Self-Occlusion")[0].split("\n## How cost grows")[0].rstrip("\n")
-        if not a.sizes and "\n## How cost grows" in old:  # keep the scaling table of an earlier run
-            parts.append("## How cost grows" + old.split("\n## How cost grows", 1)[1].rstrip("\n"))
-        if not a.qualities and "\n## A frame with Self-Occlusion" in old:
-            kept = "## A frame with Self-Occlusion" + old.split("\n## A frame with Self-Occlusion", 1)[1]
-            parts.insert(0, kept.split("\n## How cost grows")[0].rstrip("\n"))
-        p.write_text(head + "\n\n" + "\n\n".join(parts) + "\n")
-
+        heads = ("## A frame with Self-Occlusion", "## Where a ", "## How cost grows")
+        chunks = ("\n" + old).split("\n## ")
+        head = chunks[0].strip("\n")
+        kept = {}
+        for c in chunks[1:]:
+            c = "## " + c.rstrip("\n")
+            if c.startswith(heads):
+                key = c.split(" (")[0] if c.startswith("## Where a ") else next(h for h in heads if c.startswith(h))
+                kept[key] = c
+            else:
+                head += "\n\n" + c
+        for k, v in new.items():
+            kept[k.split(" (")[0]] = v
+        order = lambda k: [i for i, h in enumerate(heads) if k.startswith(h)][0]  # noqa: E731
+        p.write_text(head + "\n\n" + "\n\n".join(kept[k] for k in sorted(kept, key=order)) + "\n")
 
 if __name__ == "__main__":
     main()

@@ -104,8 +104,9 @@ class LevelSystem:
                               mm_per_unit=self.mm_per_unit,
                               boundary_diag=None if self.boundary_diag is None else self.boundary_diag[:, idx])
             sub.__dict__["_off_csr"] = [self.__dict__["_off_csr"][c] for c in idx]
-            if "_rcm" in self.__dict__:
-                sub.__dict__["_rcm"] = self.__dict__["_rcm"]
+            for k in ("_rcm", "_sweep_pattern"):  # the graph's, shared by every channel subset
+                if k in self.__dict__:
+                    sub.__dict__[k] = self.__dict__[k]
             if self.lam_max is not None:
                 sub.lam_max, sub.lam_min = self.lam_max[idx], self.lam_min[idx]
             cache[cols] = sub

@@ -10,6 +10,8 @@ GLSL kernel uses the same constants, and a test checks orthonormality.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 # Orthonormality normalisation constants, index = l*l + l + m.
@@ -114,12 +116,15 @@ def evaluate(coeffs: np.ndarray, dirs: np.ndarray) -> np.ndarray:
 _A = np.array([np.pi] + [2.0 * np.pi / 3.0] * 3 + [np.pi / 4.0] * 5)
 
 
+@lru_cache(maxsize=64)
 def transmission_kernel(eta: float, order: int = 2) -> np.ndarray:
     """Zonal kernel of q (eq. 3) for SH radiance: A_l = 2 pi int_0^1 mu F_t(mu) P_l(mu) dmu.
 
     By the Funk-Hecke theorem, for a radiance L(w) = sum L_lm Y_lm(w) the
     transmitted diffuse flux of eq. 3 is exactly q(n) = sum_lm A_l L_lm Y_lm(n).
     With F_t = 1 this gives Ramamoorthi & Hanrahan's pi, 2 pi/3, pi/4.
+    Cached per (eta, order), read-only: the 128-point Gauss-Legendre rule alone (an eigenvalue problem
+    in numpy) cost ~15 ms of every frame's light pass.
     """
     from .fresnel import fresnel_transmittance
 
@@ -127,7 +132,9 @@ def transmission_kernel(eta: float, order: int = 2) -> np.ndarray:
     mu = 0.5 * (x + 1.0)
     wt = 0.5 * w * mu * fresnel_transmittance(mu, eta)
     A = np.array([2.0 * np.pi * np.sum(wt * np.polynomial.legendre.Legendre.basis(l)(mu)) for l in range(order + 1)])
-    return np.repeat(A, [2 * l + 1 for l in range(order + 1)])
+    out = np.repeat(A, [2 * l + 1 for l in range(order + 1)])
+    out.flags.writeable = False
+    return out
 
 
 def transmitted_flux_from_sh(sh: np.ndarray, normals: np.ndarray, eta: float) -> np.ndarray:
@@ -135,4 +142,4 @@ def transmitted_flux_from_sh(sh: np.ndarray, normals: np.ndarray, eta: float) ->
     sh = np.asarray(sh)
     order = int(round(np.sqrt(sh.shape[0]))) - 1
     Y = sh_basis(normals, order)
-    return np.maximum(Y @ (transmission_kernel(eta, order)[:, None] * sh), 0.0)
+    return np.maximum(Y @ (transmission_kernel(float(eta), int(order))[:, None] * sh), 0.0)

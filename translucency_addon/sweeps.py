@@ -69,6 +69,36 @@ def rcm_order(system) -> np.ndarray:
 FP32_TOL = 5e-5  # at or above this relative residual the sweeps run in fp32 (the add-on default 1e-4); below, fp64
 
 
+def sweep_pattern(system):
+    """The sparsity pattern of ``-A`` for one channel in RCM order, cached on the system.
+
+    ``(indptr, indices, src)``: CSR rows in sweep order (each row's columns ascending) and, for every
+    entry, its place in ``[off[:, :, c].ravel(), diag[:, c]]`` -- so a channel's values are one
+    gather, and the block-diagonal operator over channels and copies is these arrays repeated with
+    offsets: no COO -> CSR conversion (sort and duplicate sum over 2-4 x 10^7 entries) per operator.
+    Duplicate links (two slots naming the same neighbour) stay separate entries, which the product
+    sums as the COO conversion did.
+    """
+    pat = system.__dict__.get("_sweep_pattern")
+    if pat is None:
+        perm = rcm_order(system)
+        inv = np.empty_like(perm)
+        inv[perm] = np.arange(len(perm))
+        n = system.n
+        nbr = np.asarray(system.nbr, dtype=np.int64)
+        K = nbr.shape[1]
+        m = (nbr >= 0).ravel()
+        rows = np.concatenate([np.repeat(inv, K)[m], inv])
+        cols = np.concatenate([inv[nbr.ravel()[m]], inv])
+        src = np.concatenate([np.nonzero(m)[0], n * K + np.arange(n)])
+        order = np.argsort(rows * n + cols, kind="stable")
+        indptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
+        pat = (indptr, cols[order], src[order])
+        system.__dict__["_sweep_pattern"] = pat
+    return pat
+
+
 class SweepOperator:
     """``-A`` of one level (C channels) as one channel-major block-diagonal CSR in RCM order."""
 
@@ -79,26 +109,22 @@ class SweepOperator:
         self.inv[self.perm] = np.arange(len(self.perm))
         n, C = system.n, system.diag.shape[1]
         self.n, self.C = n, C * copies
-        # -A = off - diag, built in the new order in one COO -> CSR conversion (no CSR fancy indexing)
-        nbr = np.asarray(system.nbr, dtype=np.int64)
-        K = nbr.shape[1]
-        rows = np.repeat(self.inv, K)
-        cols = nbr.ravel()
-        m = cols >= 0
-        rows, cols = rows[m], self.inv[cols[m]]
-        diag_pos = self.inv
-        r_all, c_all, v_all = [], [], []
-        for k in range(copies):
-            for c in range(C):
-                off = (k * C + c) * n
-                r_all += [rows + off, diag_pos + off]
-                c_all += [cols + off, diag_pos + off]
-                v_all += [system.off[:, :, c].ravel()[m], -system.diag[:, c]]
-        neg = sp.csr_matrix((np.concatenate(v_all).astype(self.dtype),
-                             (np.concatenate(r_all), np.concatenate(c_all))), shape=(n * self.C, n * self.C))
-        neg.sum_duplicates()
-        neg.sort_indices()
-        self.neg_a = neg
+        # -A = off - diag: the one-channel pattern (built once per system) repeated per block, with offsets
+        indptr, indices, src = sweep_pattern(system)
+        nnz = len(indices)
+        blocks = self.C
+        idx_t = np.int32 if max(n * blocks, nnz * blocks) < 2**31 else np.int64
+        vals = [np.concatenate([system.off[:, :, c].ravel(), -system.diag[:, c]])[src].astype(self.dtype)
+                for c in range(C)]
+        data = np.concatenate(vals * copies)
+        ind = np.empty(nnz * blocks, dtype=idx_t)
+        ptr = np.empty(n * blocks + 1, dtype=idx_t)
+        for b in range(blocks):
+            np.add(indices, b * n, out=ind[b * nnz:(b + 1) * nnz], casting="unsafe")
+            np.add(indptr[:-1], b * nnz, out=ptr[b * n:(b + 1) * n], casting="unsafe")
+        ptr[-1] = nnz * blocks
+        self.neg_a = sp.csr_matrix((data, ind, ptr), shape=(n * self.C, n * self.C), copy=False)
+        self.neg_a.has_sorted_indices = True
         self.inv_diag = np.ascontiguousarray(np.tile(1.0 / system.diag[self.perm].T, (copies, 1)), dtype=self.dtype)
 
     def to_cm(self, v: np.ndarray, dtype=None) -> np.ndarray:
