@@ -168,11 +168,11 @@ def main(argv=None):
                 lw, lc, LT = best_of(lambda: light_term(data, lights, None, mat.eta, mm))
                 vw, vc, VT = best_of(lambda: view_term(data, camera_position=camera))
                 iw, ic, _ = best_of(lambda: integrate_view_rays(data, LT, rays.origins, rays.dirs, rays.t_exit, mm,
-                                                                view_term=VT))
+                                                                view_term=VT, camera_position=camera))
                 fr = rays_free[name]
                 fw, fc, _ = best_of(lambda: integrate_view_rays(data, LT, fr.origins, fr.dirs, fr.t_exit, mm,
-                                                                view_term=VT))
-                pairs = all_ray_sample_pairs(data, rays.origins, rays.dirs, rays.t_exit)
+                                                                view_term=VT, camera_position=camera))
+                pairs = all_ray_sample_pairs(data, rays.origins, rays.dirs, rays.t_exit, camera_position=camera)
                 cw, cc, _ = best_of(lambda: (integrate_view_rays(
                     data, light_term(data, lights, None, mat.eta, mm), rays.origins, rays.dirs, rays.t_exit, mm,
                     view_term=VT, pairs=pairs) * exit_factor(rays.cos_o, mat.eta)[:, None]))
