@@ -145,11 +145,12 @@ class ImageBins:
         """Ranges of sorted rays for queries centred at (cu, cv) with half sizes (hw, hh; < 0: none).
 
         ``disc``: the query is the disc of radius hw (= hh); otherwise the box.  The image is cut
-        into rows ``row`` high and each row into columns (1/8 of a row wide, at most 4M cells);
+        into rows ``row`` high (at most 4096) and each row into columns (1/8 of a row wide, at most
+        4M cells);
         rays are sorted by cell.  Returns ``(order, query, lo, hi)``: ``order[lo:hi]`` are the rays
         of the columns that the query's region covers in one row (each ray once per query).
         """
-        row = float(max(row, 1e-12 * self.span))
+        row = float(max(row, self.span / 4096))  # at most 4096 rows
         n_rows = int(np.floor(self.span / row)) + 1
         col = max(row / 8.0, self.span / max(1, (4 << 20) // n_rows))
         n_cols = int(np.floor(self.span / col)) + 1

@@ -22,7 +22,11 @@ with k = 1 / (4 pi) (isotropic phase function).  Three passes:
    direction (the GPU kernel's per-fragment form).
 3. ``integrate_view_rays`` (per ray): sum over the Gaussians the ray passes of
    view psi * light term * the closed-form integral of the truncated Gaussian
-   over the ray segment (erf), found through the uniform sample grid.
+   over the ray segment (erf, :func:`chord_integrals`), found through the
+   uniform sample grid (:func:`ray_sample_pairs`, the GPU kernel's walk) or,
+   for the rays of one camera, in the image plane (:func:`projected_pairs`).
+   The rays end at the far side (``rays_from_points``: the closest hit of the
+   surface's BVH, found through the same image-plane bins for one camera).
 
 Fresnel and refraction conventions (the paper neglects the refraction of
 rays, and so do we: light and view rays are straight lines through the
