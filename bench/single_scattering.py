@@ -11,8 +11,9 @@ longest side).  Printed as markdown tables; ``--out`` writes them to a file.
 2. Frame time against the number of samples (5k, 20k, 50k) and lights (1, 2,
    4, 8 point lights), per-vertex over all front-facing vertices of the full
    mesh and of a decimated vertex set (every 4th vertex).  Split into the
-   per-sample passes (light term, view term), the per-ray pass (grid walk +
-   erf + sums), and the BVH cast of the view rays to the far side (needed only
+   per-sample passes (light term, view term), the per-ray pass (ray-sample
+   pairs found in the image plane + erf + sums), and the far-side exit of the
+   view rays (the BVH's closest hits, found in the image plane; needed only
    when the camera moves; on the GPU it is a depth pass).  "lights-only" is a
    frame in which the camera did not move (ray-sample pairs cached).  Target:
    20k samples <= 300 ms per frame.  Times are the best of 3 runs.
@@ -154,11 +155,17 @@ def main(argv=None):
                                                volume=volume)
         print(f"baked N_s={ns}: {datas[ns].n_samples} samples", flush=True)
     subsets = {"all": None, "every 4th": np.arange(0, len(V), 4)}
-    rays_by, rays_free, t_rays = {}, {}, {}
+    rays_by, rays_free, t_rays, t_bvh = {}, {}, {}, {}
+    tmin = 1e-7 * float(np.linalg.norm(V.max(0) - V.min(0)))
     for name, sub in subsets.items():
         tw, tc, rays_by[name] = best_of(lambda: view_rays(V, F, N, camera_position=camera, vertices=sub, bvh=bvh), 2)
         t_rays[name] = (tw, tc)
-        rays_free[name] = view_rays(V, F, N, camera_position=camera, vertices=sub, far_clip=False)
+        sw, sc, fr = best_of(lambda: view_rays(V, F, N, camera_position=camera, vertices=sub, far_clip=False), 2)
+        rays_free[name] = fr
+        # before: the rays cast through the BVH (same hits: tests/test_single_scattering_projected.py)
+        hw_, hc_, hit = best_of(lambda: bvh.intersect(fr.origins, fr.dirs, tmin=tmin), 2)
+        t_bvh[name] = (sw + hw_, sc + hc_)
+        assert np.array_equal(np.where(hit[1] >= 0, hit[0], 0.0), rays_by[name].t_exit)
     rows = []
     light_counts = (1, 2) if args.quick else (1, 2, 4, 8)
     for ns, data in (datas.items() if "frame" in sections else ()):
@@ -168,27 +175,38 @@ def main(argv=None):
                 lw, lc, LT = best_of(lambda: light_term(data, lights, None, mat.eta, mm))
                 vw, vc, VT = best_of(lambda: view_term(data, camera_position=camera))
                 iw, ic, _ = best_of(lambda: integrate_view_rays(data, LT, rays.origins, rays.dirs, rays.t_exit, mm,
-                                                                view_term=VT))
+                                                                view_term=VT, camera_position=camera))
                 fr = rays_free[name]
                 fw, fc, _ = best_of(lambda: integrate_view_rays(data, LT, fr.origins, fr.dirs, fr.t_exit, mm,
-                                                                view_term=VT))
-                pairs = all_ray_sample_pairs(data, rays.origins, rays.dirs, rays.t_exit)
+                                                                view_term=VT, camera_position=camera))
+                pairs = all_ray_sample_pairs(data, rays.origins, rays.dirs, rays.t_exit, camera_position=camera)
                 cw, cc, _ = best_of(lambda: (integrate_view_rays(
                     data, light_term(data, lights, None, mat.eta, mm), rays.origins, rays.dirs, rays.t_exit, mm,
                     view_term=VT, pairs=pairs) * exit_factor(rays.cos_o, mat.eta)[:, None]))
                 bw, bc = t_rays[name]
+                # before (the per-ray grid walk, the GPU kernel's twin, and the BVH cast), same run
+                gw, gc, _ = best_of(lambda: integrate_view_rays(data, LT, rays.origins, rays.dirs, rays.t_exit, mm,
+                                                                view_term=VT), 2)
+                ow, oc = t_bvh[name]
                 rows.append([data.n_samples, nl, name, len(rays.vertices), len(pairs[0]), ms(lw, lc), ms(vw, vc),
                              ms(iw, ic), ms(bw, bc), ms(lw + vw + iw + bw, lc + vc + ic + bc),
-                             ms(lw + vw + fw, lc + vc + fc), ms(cw, cc)])
+                             ms(lw + vw + fw, lc + vc + fc), ms(cw, cc), ms(gw, gc), ms(ow, oc),
+                             ms(lw + vw + gw + ow, lc + vc + gc + oc),
+                             f"{(lw + vw + gw + ow) / (lw + vw + iw + bw):.1f}"])
                 print(rows[-1], flush=True)
     sec = ("\n## Frame time, ms: best wall time of 3 (CPU time of the process in brackets), perspective camera, "
            "point lights\n\n"
-           "light term, view term: per-sample passes; per-ray: grid walk + erf + sums (`integrate_view_rays`) for "
-           "rays clipped at the far side; BVH: casting those rays to the far side (only when the camera moves; on "
-           "the GPU a depth pass); frame = all of them; frame, no far clip = the paper's renderer (rays to infinity, "
-           "no BVH); lights-only = camera unchanged (ray-sample pairs cached)\n\n") + table(
-        ["samples", "lights", "vertices", "rays", "pairs", "light term", "view term", "per-ray", "BVH t_exit",
-         "frame", "frame, no far clip", "lights-only"], rows)
+           "light term, view term: per-sample passes; per-ray: ray-sample pairs found in the image plane + erf + "
+           "sums (`integrate_view_rays` with the camera, `projected.py`) for rays clipped at the far side; far-side "
+           "exit: those rays' closest hits on the surface (the BVH's, found in the image plane; only when the camera "
+           "moves; on the GPU a depth pass); frame = all of them; frame, no far clip = the paper's renderer (rays "
+           "to infinity, no exit search); lights-only = camera unchanged (ray-sample pairs cached); before: the same "
+           "frame the way it was computed until issue 18 (per-ray 3D grid walk over the sample grid, the GPU "
+           "kernel's walk and still its twin; view rays cast through the triangle BVH), timed in the same run, best "
+           "of 2; speed-up = before: frame / frame\n\n") + table(
+        ["samples", "lights", "vertices", "rays", "pairs", "light term", "view term", "per-ray", "far-side exit",
+         "frame", "frame, no far clip", "lights-only", "before: per-ray (grid walk)", "before: rays (BVH)",
+         "before: frame", "speed-up"], rows)
     if "frame" in sections:
         print(sec)
         out.append(sec)

@@ -209,20 +209,8 @@ class TriangleBVH:
 
     def _leaf_test(self, o, d, leaf, rays, tmin, best_t, best_tri, best_u, best_v):
         """Moller-Trumbore against the LEAF triangles of each (ray, leaf) pair."""
-        v0 = self.v0[leaf]  # (k, LEAF, 3)
-        e1 = self.e1[leaf]
-        e2 = self.e2[leaf]
-        dd = d[:, None, :]
-        p = np.cross(dd, e2)
-        det = np.einsum("kij,kij->ki", e1, p)
-        ok = self.valid[leaf] & (np.abs(det) > 1e-300)
-        inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        s = o[:, None, :] - v0
-        u = np.einsum("kij,kij->ki", s, p) * inv_det
-        qv = np.cross(s, e1)
-        v = np.einsum("kij,kij->ki", dd.repeat(LEAF, axis=1), qv) * inv_det
-        t = np.einsum("kij,kij->ki", e2, qv) * inv_det
-        ok &= (u >= 0) & (v >= 0) & (u + v <= 1) & (t > tmin) & (t < best_t[rays][:, None])
+        t, u, v, ok = ray_triangle(o[:, None, :], d[:, None, :], self.v0[leaf], self.e1[leaf], self.e2[leaf])
+        ok &= self.valid[leaf] & (t > tmin) & (t < best_t[rays][:, None])
         t = np.where(ok, t, np.inf)
         j = np.argmin(t, axis=1)
         tj = t[np.arange(len(t)), j]
@@ -303,6 +291,31 @@ class TriangleBVH:
                 sp[rays] = s + 2
             active = active[sp[active] > 0]
         return best_pt, best_tri, np.sqrt(best_d2)
+
+
+def _cross(a, b):
+    """a x b over the last axis, written out (np.cross copies its inputs; same arithmetic)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def ray_triangle(o, d, v0, e1, e2):
+    """Moller-Trumbore, broadcast over leading axes: ``(t, u, v, ok)`` for rays ``o + t d`` against
+    triangles ``v0 + u e1 + v e2`` (all (..., 3)); ``ok`` says the line meets the triangle (t of
+    either sign).  The BVH's leaf test and ``single_scattering.projected`` both call it."""
+    d = np.broadcast_to(d, np.broadcast_shapes(d.shape, e2.shape))
+    p = _cross(d, e2)
+    det = np.einsum("...j,...j->...", e1, p)
+    ok = np.abs(det) > 1e-300
+    inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = o - v0
+    u = np.einsum("...j,...j->...", s, p) * inv_det
+    qv = _cross(s, e1)
+    v = np.einsum("...j,...j->...", d, qv) * inv_det
+    t = np.einsum("...j,...j->...", e2, qv) * inv_det
+    ok &= (u >= 0) & (v >= 0) & (u + v <= 1)
+    return t, u, v, ok
 
 
 def closest_point_on_triangles(p, a, b, c):

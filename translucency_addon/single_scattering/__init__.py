@@ -10,7 +10,9 @@ depth was baked from; ``attach`` stores it in the bake under a combined key;
 ``staleness`` says what changed since (``cached``).  Run time (eq. 3):
 ``light_term`` per sample, ``view_term`` per sample (optional),
 ``integrate_view_rays`` per ray through a uniform sample grid (the numpy twin
-of ``gpu_shaders/single_scattering.glsl``); ``render_vertices`` wraps them for
+of ``gpu_shaders/single_scattering.glsl``), or, for the rays of one camera, with
+the pairs found in the image plane (``projected``: same pairs, same sums, and the
+far-side exits of the BVH without its per-ray walk); ``render_vertices`` wraps them for
 mesh vertices; ``FrameEvaluator`` caches view rays per view and runs the ray
 pass through the numpy ``CPUIntegrator`` or the GPU dispatcher.
 ``reference_radiance`` / ``reference_vertices`` are the brute-force check

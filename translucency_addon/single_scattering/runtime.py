@@ -22,7 +22,11 @@ with k = 1 / (4 pi) (isotropic phase function).  Three passes:
    direction (the GPU kernel's per-fragment form).
 3. ``integrate_view_rays`` (per ray): sum over the Gaussians the ray passes of
    view psi * light term * the closed-form integral of the truncated Gaussian
-   over the ray segment (erf), found through the uniform sample grid.
+   over the ray segment (erf, :func:`chord_integrals`), found through the
+   uniform sample grid (:func:`ray_sample_pairs`, the GPU kernel's walk) or,
+   for the rays of one camera, in the image plane (:func:`projected_pairs`).
+   The rays end at the far side (``rays_from_points``: the closest hit of the
+   surface's BVH, found through the same image-plane bins for one camera).
 
 Fresnel and refraction conventions (the paper neglects the refraction of
 rays, and so do we: light and view rays are straight lines through the
@@ -58,6 +62,7 @@ from scipy.special import erf
 from .. import sh as shmod
 from ..fresnel import diffuse_reflectance_external, fresnel_transmittance, check_eta
 from ..lights import light_irradiance
+from .projected import ImageBins, exit_distances, expand
 
 
 def entry_transmittance(eta: float) -> float:
@@ -235,38 +240,112 @@ def ray_sample_pairs(data, origins, dirs, t_exit):
     own &= bd < np.repeat(vb.astype(np.float32) + od, cnt)
     s = cache["items"].take(idx[own])
     r = np.repeat(vr, cnt)[own]
-    # exact geometry in float64 for the owned pairs
-    bo = data.centers.take(s, axis=0) - o.take(r, axis=0)
-    m = np.einsum("ij,ij->i", bo, d.take(r, axis=0))
-    dp2 = np.maximum(np.einsum("ij,ij->i", bo, bo) - m * m, 0.0)
-    R2 = cache["support2"].take(s)
-    hc = np.sqrt(np.maximum(R2 - dp2, 0.0))  # half chord of the truncation ball
-    ta = np.maximum(0.0, m - hc)
-    tb = np.minimum(t1.take(r), m + hc)
-    ok = (dp2 < R2) & (tb > ta)
-    r, s, m, dp2, ta, tb = r[ok], s[ok], m[ok], dp2[ok], ta[ok], tb[ok]
-    a = cache["alpha"].take(s)
-    sa = np.sqrt(a)
-    g = cache["weight"].take(s) * (0.5 * np.sqrt(np.pi) / sa) * np.exp(-a * dp2) * (erf(sa * (tb - m)) - erf(sa * (ta - m)))
+    return chord_integrals(data, ray_arrays(data, o, d, t1), r, s)
+
+
+def ray_arrays(data, o, d, t1) -> dict:
+    """Per-ray inputs of :func:`chord_integrals`: coordinates about the centre of the samples, as
+    separate contiguous arrays, with o . d and |o|^2."""
+    c = _cache(data)
+    o = np.asarray(o, dtype=np.float64) - c["origin"]
+    ox, oy, oz = (np.ascontiguousarray(o[:, k]) for k in range(3))
+    dx, dy, dz = (np.ascontiguousarray(d[:, k], dtype=np.float64) for k in range(3))
+    return {"ox": ox, "oy": oy, "oz": oz, "dx": dx, "dy": dy, "dz": dz, "od": ox * dx + oy * dy + oz * dz,
+            "o2": ox * ox + oy * oy + oz * oz, "t1": np.asarray(t1, dtype=np.float64)}
+
+
+def chord_integrals(data, rays: dict, r, s):
+    """g for candidate (ray, sample) pairs (each pair once): ``(ray, sample, g)`` for the pairs whose
+    truncated Gaussian meets the ray segment [0, t_exit], the others dropped; ``rays`` from
+    :func:`ray_arrays`.  The one implementation of the integral for both ways of finding the
+    candidates (the grid walk, :func:`ray_sample_pairs`; the image-plane bins, :func:`projected_pairs`):
+
+        g = w_i * integral_ta^tb exp(-a_i |o + t d - b_i|^2) dt
+          = w_i sqrt(pi) / (2 sqrt(a_i)) exp(-a_i dp^2) [erf(sqrt(a_i) (tb - m)) - erf(sqrt(a_i) (ta - m))]
+
+    in object units, with m = (b - o) . d the ray parameter closest to b_i, dp^2 = |b - o|^2 - m^2
+    = |b|^2 - 2 b . o + |o|^2 - m^2 its squared distance (float64, coordinates about the centre of
+    the samples) and [ta, tb] the chord of the truncation ball clipped to [0, t_exit].
+    """
+    c = _cache(data)
+    bx, by, bz = c["bx"].take(s), c["by"].take(s), c["bz"].take(s)
+    m = bx * rays["dx"].take(r)
+    m += by * rays["dy"].take(r)
+    m += bz * rays["dz"].take(r)
+    m -= rays["od"].take(r)
+    bo = bx * rays["ox"].take(r)
+    bo += by * rays["oy"].take(r)
+    bo += bz * rays["oz"].take(r)
+    hc2 = c["support2"].take(s)  # R^2 - dp^2
+    hc2 -= c["b2"].take(s)
+    hc2 += 2.0 * bo
+    hc2 -= rays["o2"].take(r)
+    hc2 += m * m
+    hc = np.sqrt(np.maximum(hc2, 0.0))  # half chord of the truncation ball
+    u0 = np.maximum(-m, -hc)  # ta - m
+    u1 = np.minimum(rays["t1"].take(r) - m, hc)  # tb - m
+    k = np.flatnonzero((hc2 > 0) & (u1 > u0))
+    r, s, u0, u1 = r.take(k), s.take(k), u0.take(k), u1.take(k)
+    dp2 = c["support2"].take(s) - hc2.take(k)
+    sa = c["sqrt_alpha"].take(s)
+    g = np.exp(-c["alpha"].take(s) * dp2)
+    g *= c["coef"].take(s)
+    g *= erf(sa * u1) - erf(sa * u0)
     return r, s, g
 
 
 def _cache(data):
-    """Per-data derived arrays for the ray loop (int64 cell items, cell-ordered float32 centres, ...)."""
+    """Per-data arrays for the pair loops: int64 cell items, cell-ordered float32 centres, sample
+    constants, centres about their mean as separate contiguous coordinates."""
     c = getattr(data, "_ray_cache", None)
     key = (id(data.centers), id(data.grid.cell_items), id(data.weight), id(data.sigma))
     if c is None or c["key"] != key:
         items = data.grid.cell_items.astype(np.int64)
         pos = data.centers[items].astype(np.float32)
+        origin = data.centers.mean(axis=0) if len(data.centers) else np.zeros(3)
+        b = data.centers - origin
+        alpha = np.asarray(data.alpha, dtype=np.float64)
         c = {"key": key, "items": items, "px": np.ascontiguousarray(pos[:, 0]), "py": np.ascontiguousarray(pos[:, 1]),
-             "pz": np.ascontiguousarray(pos[:, 2]), "support2": data.support**2, "alpha": data.alpha,
-             "weight": np.asarray(data.weight, dtype=np.float64)}
+             "pz": np.ascontiguousarray(pos[:, 2]), "support2": data.support**2, "alpha": alpha,
+             "sqrt_alpha": np.sqrt(alpha),
+             "coef": np.asarray(data.weight, dtype=np.float64) * 0.5 * np.sqrt(np.pi) / np.sqrt(alpha),
+             "origin": origin, "bx": np.ascontiguousarray(b[:, 0]), "by": np.ascontiguousarray(b[:, 1]),
+             "bz": np.ascontiguousarray(b[:, 2]), "b2": (b * b).sum(axis=1)}
         data._ray_cache = c
     return c
 
 
+def projected_pairs(data, origins, dirs, t_exit, *, camera_position=None, view_dir=None, max_pairs: int = 1 << 16):
+    """:func:`ray_sample_pairs` for rays that run away from one camera (``camera_position``, or
+    along ``-view_dir``), found through image-plane bins (``projected``) instead of the grid walk:
+    the same pairs and values, not sorted by ray.  None when the bins do not apply (a ray origin
+    at or behind the eye plane): walk the grid then."""
+    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    t1 = np.asarray(t_exit, dtype=np.float64).reshape(-1)
+    bins = ImageBins.build(o, camera_position=camera_position, view_dir=view_dir)
+    if bins is None:
+        return None
+    cu, cv, rho = bins.project_balls(data.centers, data.support)
+    live = rho >= 0
+    R, S, G = [], [], []
+    if live.any():
+        row = 0.5 * float(np.median(rho[live]))
+        ra = ray_arrays(data, o, d, t1)
+        for ray, smp in expand(*bins.segments(cu, cv, rho, rho, row, disc=True), max_pairs):
+            r, s, g = chord_integrals(data, ra, ray, smp)
+            R.append(r)
+            S.append(s)
+            G.append(g)
+    if not R:
+        e = np.zeros(0, dtype=np.int64)
+        return e, e, np.zeros(0)
+    return np.concatenate(R), np.concatenate(S), np.concatenate(G)
+
+
 def integrate_view_rays(data, light_term, origins, dirs, t_exit, mm_per_unit: float | None = None, *,
-                        view_term=None, chunk: int = 2048, pairs=None) -> np.ndarray:
+                        view_term=None, chunk: int = 2048, pairs=None, camera_position=None,
+                        view_dir=None) -> np.ndarray:
     """In-medium single-scattering radiance arriving at each ray origin, (n_rays, 3).
 
     ``origins`` are surface points (mesh vertices), ``dirs`` unit directions
@@ -274,8 +353,11 @@ def integrate_view_rays(data, light_term, origins, dirs, t_exit, mm_per_unit: fl
     to the far side (object units).  ``light_term`` comes from
     :func:`light_term`; ``view_term`` (N, 3) from :func:`view_term`, or None to
     evaluate psi_i at each ray's own direction.  ``pairs``: the output of
-    :func:`ray_sample_pairs` for these rays (all of them at once), to skip the
-    geometry when only the lights changed.
+    :func:`ray_sample_pairs` / :func:`all_ray_sample_pairs` for these rays (all of
+    them at once), to skip the geometry when only the lights changed.
+    ``camera_position`` / ``view_dir``: the camera the rays run away from (as given to
+    :func:`view_rays`); the pairs are then found in the image plane (:func:`projected_pairs`)
+    rather than by the grid walk that the GPU kernel does (same pairs, same sum).
 
     Result = mm_per_unit * sum_i psi_i(-dir) * light_term_i * integral gamma_i.
     """
@@ -284,41 +366,49 @@ def integrate_view_rays(data, light_term, origins, dirs, t_exit, mm_per_unit: fl
     d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
     t1 = np.asarray(t_exit, dtype=np.float64).reshape(-1)
     n = len(o)
-    out = np.zeros((n, 3))
+    out = np.zeros((3, n))
     LT = np.asarray(light_term, dtype=np.float64)
-    A = LT * np.asarray(view_term, dtype=np.float64) if view_term is not None else None
-    order = int(round(np.sqrt(data.sh.shape[1]))) - 1
+    A = np.ascontiguousarray((LT * np.asarray(view_term, dtype=np.float64)).T) if view_term is not None else None
+    Y = sh32 = None
+    if A is None:  # psi toward the viewer (= -dir) per ray, from the SH
+        order = int(round(np.sqrt(data.sh.shape[1]))) - 1
+        Y = shmod.sh_basis(-d, order).astype(np.float32)
+        sh32 = np.asarray(data.sh, dtype=np.float32)
 
-    def accumulate(r, s, g, r0, m):
-        if r.size == 0:
-            return
+    def accumulate(r, s, g):
         if A is not None:
-            val = A.take(s, axis=0) * g[:, None]
-        else:
-            Y = shmod.sh_basis(-d[r0 : r0 + m], order).astype(np.float32)  # psi toward the viewer = -dir
-            psi = np.clip(np.einsum("pk,pkc->pc", Y[r], np.asarray(data.sh, dtype=np.float32)[s]), 0.0, 1.0)
-            val = LT[s] * psi * g[:, None]
-        for ch in range(3):
-            out[r0 : r0 + m, ch] += np.bincount(r, weights=val[:, ch], minlength=m)
+            for ch in range(3):
+                out[ch] += np.bincount(r, weights=A[ch].take(s) * g, minlength=n)
+            return
+        for p0 in range(0, len(r), 1 << 15):  # bounds the per-pair SH memory
+            rr, ss, gg = r[p0 : p0 + (1 << 15)], s[p0 : p0 + (1 << 15)], g[p0 : p0 + (1 << 15)]
+            psi = np.clip(np.einsum("pk,pkc->pc", Y[rr], sh32[ss]), 0.0, 1.0)
+            val = LT[ss] * psi * gg[:, None]
+            for ch in range(3):
+                out[ch] += np.bincount(rr, weights=val[:, ch], minlength=n)
 
+    if pairs is None and (camera_position is not None or view_dir is not None):
+        pairs = projected_pairs(data, o, d, t1, camera_position=camera_position, view_dir=view_dir)
     if pairs is not None:
-        r, s, g = pairs
-        for c0 in range(0, n, chunk):  # chunked only to bound the per-ray SH memory
-            lo, hi = np.searchsorted(r, [c0, c0 + chunk])
-            accumulate(r[lo:hi] - c0, s[lo:hi], g[lo:hi], c0, min(chunk, n - c0))
-        return out * mm
+        accumulate(*pairs)
+        return out.T * mm
     for c0 in range(0, n, chunk):
         m = min(chunk, n - c0)
         r, s, g = ray_sample_pairs(data, o[c0 : c0 + m], d[c0 : c0 + m], t1[c0 : c0 + m])
-        accumulate(r, s, g, c0, m)
-    return out * mm
+        accumulate(r + c0, s, g)
+    return out.T * mm
 
 
-def all_ray_sample_pairs(data, origins, dirs, t_exit, chunk: int = 2048):
-    """:func:`ray_sample_pairs` over many rays in chunks, concatenated (sorted by ray)."""
+def all_ray_sample_pairs(data, origins, dirs, t_exit, chunk: int = 2048, *, camera_position=None, view_dir=None):
+    """:func:`ray_sample_pairs` over many rays in chunks, concatenated (sorted by ray); with
+    ``camera_position`` / ``view_dir`` the pairs of :func:`projected_pairs` (not sorted by ray)."""
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
     t1 = np.asarray(t_exit, dtype=np.float64).reshape(-1)
+    if camera_position is not None or view_dir is not None:
+        pairs = projected_pairs(data, o, d, t1, camera_position=camera_position, view_dir=view_dir)
+        if pairs is not None:
+            return pairs
     R, S, G = [], [], []
     for c0 in range(0, len(o), chunk):
         r, s, g = ray_sample_pairs(data, o[c0 : c0 + chunk], d[c0 : c0 + chunk], t1[c0 : c0 + chunk])
@@ -401,9 +491,14 @@ def rays_from_points(P, normals, *, camera_position=None, view_dir=None, view_di
         t_exit = np.full(len(o), np.inf)
     elif len(o):
         lo, hi = P_all.min(axis=0), P_all.max(axis=0)
-        diag = float(np.linalg.norm(hi - lo))
-        t, tri, _, _ = bvh.intersect(o, d, tmin=1e-7 * max(diag, 1e-30))
-        t_exit = np.where(tri >= 0, t, 0.0)
+        tmin = 1e-7 * max(float(np.linalg.norm(hi - lo)), 1e-30)
+        bins = None if view_dirs is not None else ImageBins.build(o, camera_position=cam, view_dir=vd)
+        if bins is not None:  # the BVH's closest hits, found through image-plane bins (``projected``)
+            t = exit_distances(bins, bvh.V, bvh.F, o, d, tmin)
+            t_exit = np.where(np.isfinite(t), t, 0.0)
+        else:
+            t, tri, _, _ = bvh.intersect(o, d, tmin=tmin)
+            t_exit = np.where(tri >= 0, t, 0.0)
     else:
         t_exit = np.zeros(0)
     return ViewRays(n_vertices=len(P_all), vertices=idx[vis], origins=o, dirs=d, t_exit=t_exit, cos_o=cos_o[vis],
@@ -445,13 +540,15 @@ class CPUIntegrator:
         if self.cache_pairs:
             key = id(self.data)
             if rays.pairs is None or rays.pairs_key != key:
-                pairs = all_ray_sample_pairs(self.data, rays.origins, rays.dirs, rays.t_exit, self.chunk)
+                pairs = all_ray_sample_pairs(self.data, rays.origins, rays.dirs, rays.t_exit, self.chunk,
+                                             camera_position=rays.camera_position, view_dir=rays.view_dir)
                 if len(pairs[0]) <= self.max_cached_pairs:
                     rays.pairs, rays.pairs_key = pairs, key
             else:
                 pairs = rays.pairs
         Lin = integrate_view_rays(self.data, light_term, rays.origins, rays.dirs, rays.t_exit, mm,
-                                  view_term=view_term, chunk=self.chunk, pairs=pairs)
+                                  view_term=view_term, chunk=self.chunk, pairs=pairs,
+                                  camera_position=rays.camera_position, view_dir=rays.view_dir)
         return Lin * exit_factor(rays.cos_o, eta)[:, None]
 
     def free(self) -> None:
@@ -494,10 +591,11 @@ def render_vertices(data, V, F, normals, lights, environment, material, mm_per_u
     if cache_pairs:
         key = id(data)
         if rays.pairs is None or rays.pairs_key != key:
-            rays.pairs = all_ray_sample_pairs(data, rays.origins, rays.dirs, rays.t_exit, chunk)
+            rays.pairs = all_ray_sample_pairs(data, rays.origins, rays.dirs, rays.t_exit, chunk,
+                                              camera_position=rays.camera_position, view_dir=rays.view_dir)
             rays.pairs_key = key
         pairs = rays.pairs
     Lin = integrate_view_rays(data, LT, rays.origins, rays.dirs, rays.t_exit, mm, view_term=VT, chunk=chunk,
-                              pairs=pairs)
+                              pairs=pairs, camera_position=rays.camera_position, view_dir=rays.view_dir)
     out[rays.vertices] = Lin * exit_factor(rays.cos_o, eta)[:, None]
     return out
