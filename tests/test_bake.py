@@ -279,7 +279,12 @@ def test_cli_bake_prints_statistics(tmp_path):
 
 def test_relaxed_inner_nodes_stay_inside_the_volume():
     """The optional even-spacing relaxation (the paper's reaction-diffusion step) keeps every
-    inner node inside its own tetrahedron, hence inside the object, and evens the spacing."""
+    inner node inside its own tetrahedron, hence inside the tet mesh, and evens the spacing.
+
+    The tet mesh is fTetWild's, which may lie outside the object by its envelope (1e-3 of the
+    bounding-box diagonal, ``tetra.tetrahedralize``'s ``epsilon``): a relaxed node can sit between a
+    facet of the object and the tet mesh's boundary (seen once in ~10 runs: radius 0.9976 of the unit
+    icosphere, outside a facet), so the object is checked up to that envelope."""
     from translucency_addon.bake import resample_surface, triangle_size
     from translucency_addon.meshio import vertex_normals
     from translucency_addon.quadgraph import build_level
@@ -293,7 +298,14 @@ def test_relaxed_inner_nodes_stay_inside_the_volume():
     plain = build_level(TV, TT, bvh, normals, relax_iterations=0)
     lv = build_level(TV, TT, bvh, normals, relax_iterations=5)
     assert check_invariants(lv) == []
-    assert inside_mesh(bvh, lv.position[: lv.n_inner]).all()
+    inner = lv.position[: lv.n_inner]
+    topo = tetra.topology(TT, len(TV))
+    t, k = tetra.boundary_faces(TT, topo)
+    faces = np.array([[a for j, a in enumerate(TT[ti]) if j != kk] for ti, kk in zip(t, k)])
+    assert inside_mesh(TriangleBVH(TV, faces), inner).all()
+    outside = ~inside_mesh(bvh, inner)
+    envelope = 1e-3 * np.linalg.norm(V.max(axis=0) - V.min(axis=0))
+    assert np.all(bvh.closest_point(inner[outside])[2] <= envelope)
 
     def spread(level):
         inner = level.neighbors[: level.n_inner]
