@@ -271,7 +271,12 @@ def test_warm_start_from_previous_frame_saves_sweeps():
     lights = [Light("sun", irradiance=1000.0, direction=rot @ d0)]
     cold = s.solve(lights)
     warm = s.solve(lights, warm_start=r0)
-    assert warm.level_solves[-1].iterations < cold.level_solves[-1].iterations
+    # The previous frame starts the finest level closer than the coarse level's upsampled solution,
+    # and the frame skips the coarse level.  (The finest level's own count alone saves one check
+    # interval, 8 sweeps, over 12 bakes: 40-56 against 48-72, equal now and then when both round to
+    # the same check; the frame's total is 40-56 against 80-112.)
+    assert warm.level_solves[-1].history[0] < cold.level_solves[-1].history[0]
+    assert sum(ls.iterations for ls in warm.level_solves) < sum(ls.iterations for ls in cold.level_solves)
     assert warm.residual.max() <= 1e-4
     Lw, Lc = s.vertex_radiance(warm), s.vertex_radiance(cold)
     assert np.abs(Lw - Lc).max() < 2e-3 * Lc.max()  # both are within the tolerance of the same solution
