@@ -39,10 +39,14 @@ Tolerances, and why:
   the residual; 1e-3 relative covers TOL = 1e-5 on every case here.
 * iterative vs direct: max |L - L_direct| / max L_direct <= ``AGREE`` =
   100 x TOL.  A relative residual bounds the error only up to the
-  conditioning: measured 3e-8 .. 6e-6 on most cases, 1.3e-4 on the slivers.
+  conditioning: measured 3e-8 .. 6e-6 on most cases; on the slivers, whose bakes differ
+  from run to run, 6.5e-5 .. 1.8e-3 (12 bakes), so every case's iterative answer is
+  checked against the direct one at TOL / 1000 (test_our_scheme_on_the_cpu).
 * CPU vs GPU (fp32): max |L_gpu - L_cpu| / max L_cpu <= ``GPU_TOL`` = 1e-4,
   the tolerance of tests/test_gpu_solver.py, or the fp32 floor where that
-  is larger (:func:`residual_floor`); the GPU's convergence is judged
+  is larger (:func:`residual_floor`), or twice the CPU's measured distance
+  from the direct solve (two iterates stopped at the same residual differ by
+  up to that: the slivers); the GPU's convergence is judged
   against the same floor.  The GPU radiance does not yet apply the CPU's
   ``clamp_scale`` (:func:`gpu_clamp_factor`).
 * fp16 storage: ``FP16_TOL`` = 3e-3 (coefficients and q rounded to 11
