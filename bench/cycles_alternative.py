@@ -64,6 +64,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from bench.reference.cycles_ref import volume_material  # noqa: E402  (the validated reference's set-up)
+
 HEADING = "## The user's alternative: Cycles, timed (issue 17)\n"
 RESULTS = ROOT / "bench" / "data" / "cycles_alternative.json"
 SCENES = ("sphere_marble_uniform", "bunny_marble_sky")
@@ -130,6 +132,11 @@ def _material(bpy, scene, setup: str, k: float) -> tuple[object, dict]:
     """The object's material for ``setup``; densities per Blender unit (mm per unit / k)."""
     sa, ss = (x[0] for x in scene.material.coefficients(n=1))
     per_unit = scene.mm_per_unit / k
+    if setup == "glass_volume":
+        mat, density = volume_material(bpy, setup, ss, sa, per_unit, surface="glass", eta=scene.material.eta)
+        return mat, {"density_per_unit": [float(d) for d in density]}
+    if setup != "principled_rw":
+        raise ValueError(f"unknown set-up {setup!r}; choose one of {', '.join(SETUPS)}")
     mat = bpy.data.materials.new(setup)
     if getattr(mat, "node_tree", None) is None:
         mat.use_nodes = True
@@ -137,48 +144,22 @@ def _material(bpy, scene, setup: str, k: float) -> tuple[object, dict]:
     nt.nodes.clear()
     out = nt.nodes.new("ShaderNodeOutputMaterial")
     info = {}
-    if setup == "glass_volume":
-        glass = nt.nodes.new("ShaderNodeBsdfGlass")
-        glass.distribution = "GGX"
-        glass.inputs["Roughness"].default_value = 0.0
-        glass.inputs["IOR"].default_value = float(scene.material.eta)
-        glass.inputs["Color"].default_value = (1, 1, 1, 1)
-        scat = nt.nodes.new("ShaderNodeVolumeScatter")
-        if hasattr(scat, "phase"):
-            scat.phase = "HENYEY_GREENSTEIN"
-        scat.inputs["Anisotropy"].default_value = 0.0
-        smax, amax = float(ss.max()), float(sa.max())
-        scat.inputs["Color"].default_value = (*(ss / smax), 1.0)  # sigma_s = colour x density
-        scat.inputs["Density"].default_value = smax * per_unit
-        absn = nt.nodes.new("ShaderNodeVolumeAbsorption")
-        absn.inputs["Color"].default_value = (*(1.0 - sa / amax), 1.0)  # sigma_a = (1 - colour) x density
-        absn.inputs["Density"].default_value = amax * per_unit
-        add = nt.nodes.new("ShaderNodeAddShader")
-        nt.links.new(scat.outputs[0], add.inputs[0])
-        nt.links.new(absn.outputs[0], add.inputs[1])
-        nt.links.new(glass.outputs[0], out.inputs["Surface"])
-        nt.links.new(add.outputs[0], out.inputs["Volume"])
-        mat.cycles.volume_sampling = "DISTANCE"
-        info["density_per_unit"] = [float(smax * per_unit), float(amax * per_unit)]
-    elif setup == "principled_rw":
-        p = nt.nodes.new("ShaderNodeBsdfPrincipled")
-        p.subsurface_method = "RANDOM_WALK"
-        st = sa + ss
-        base = [base_color_for(float(a)) for a in ss / st]
-        p.inputs["Base Color"].default_value = (*[b for b, _ in base], 1.0)
-        p.inputs["Subsurface Weight"].default_value = 1.0
-        p.inputs["Subsurface Radius"].default_value = tuple(float(x) for x in 1.0 / (st * per_unit))
-        p.inputs["Subsurface Scale"].default_value = 1.0
-        p.inputs["Subsurface Anisotropy"].default_value = 0.0
-        p.inputs["IOR"].default_value = float(scene.material.eta)
-        p.inputs["Roughness"].default_value = 0.0
-        p.inputs["Metallic"].default_value = 0.0
-        nt.links.new(p.outputs[0], out.inputs["Surface"])
-        info["base_color"] = [b for b, _ in base]
-        info["base_color_clamped"] = [c for _, c in base]
-        info["radius_units"] = [float(x) for x in 1.0 / (st * per_unit)]
-    else:
-        raise ValueError(f"unknown set-up {setup!r}; choose one of {', '.join(SETUPS)}")
+    p = nt.nodes.new("ShaderNodeBsdfPrincipled")
+    p.subsurface_method = "RANDOM_WALK"
+    st = sa + ss
+    base = [base_color_for(float(a)) for a in ss / st]
+    p.inputs["Base Color"].default_value = (*[b for b, _ in base], 1.0)
+    p.inputs["Subsurface Weight"].default_value = 1.0
+    p.inputs["Subsurface Radius"].default_value = tuple(float(x) for x in 1.0 / (st * per_unit))
+    p.inputs["Subsurface Scale"].default_value = 1.0
+    p.inputs["Subsurface Anisotropy"].default_value = 0.0
+    p.inputs["IOR"].default_value = float(scene.material.eta)
+    p.inputs["Roughness"].default_value = 0.0
+    p.inputs["Metallic"].default_value = 0.0
+    nt.links.new(p.outputs[0], out.inputs["Surface"])
+    info["base_color"] = [b for b, _ in base]
+    info["base_color_clamped"] = [c for _, c in base]
+    info["radius_units"] = [float(x) for x in 1.0 / (st * per_unit)]
     return mat, info
 
 

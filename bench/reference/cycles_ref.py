@@ -53,6 +53,54 @@ def _setup_blender_user_dir():
     os.environ.setdefault("BLENDER_USER_RESOURCES", d)
 
 
+def volume_material(bpy, name: str, sigma_s, sigma_a, per_unit: float, *, surface: str | None = "glass",
+                    eta: float = 1.0):
+    """A Cycles material for a homogeneous medium: Volume Scatter + Volume Absorption inside.
+
+    ``sigma_s``, ``sigma_a``: RGB coefficients [1/mm]; ``per_unit``: mm per Blender unit (the mesh is in
+    object units), so a density is sigma x per_unit.  Cycles' Volume Scatter has sigma_s = Color x
+    Density and Volume Absorption sigma_a = (1 - Color) x Density, so each gets Density = its largest
+    channel and the colour the ratio (a grey medium: scatter colour 1, absorption colour 0; the nodes'
+    default colour 0.8 would scale sigma_s by 0.8).  Henyey-Greenstein with anisotropy 0 (isotropic),
+    distance sampling.  ``surface``: ``"glass"`` (Fresnel mix of reflection and refraction, Mitsuba's
+    ``dielectric``), ``"refraction"`` (no Fresnel reflection) -- both sharp GGX at IOR ``eta`` -- or None
+    (index-matched: no surface shader).  Returns ``(material, (scatter density, absorption density))``.
+    """
+    ss = np.broadcast_to(np.asarray(sigma_s, dtype=np.float64), (3,))
+    sa = np.broadcast_to(np.asarray(sigma_a, dtype=np.float64), (3,))
+    smax, amax = float(ss.max()), float(sa.max())
+    mat = bpy.data.materials.new(name)
+    if getattr(mat, "node_tree", None) is None:
+        mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    scat = nt.nodes.new("ShaderNodeVolumeScatter")
+    if hasattr(scat, "phase"):
+        scat.phase = "HENYEY_GREENSTEIN"
+    scat.inputs["Anisotropy"].default_value = 0.0
+    scat.inputs["Color"].default_value = (*(ss / smax if smax > 0 else np.ones(3)), 1.0)
+    scat.inputs["Density"].default_value = smax * per_unit
+    absn = nt.nodes.new("ShaderNodeVolumeAbsorption")
+    absn.inputs["Color"].default_value = (*(1.0 - sa / amax if amax > 0 else np.zeros(3)), 1.0)
+    absn.inputs["Density"].default_value = amax * per_unit
+    add = nt.nodes.new("ShaderNodeAddShader")
+    nt.links.new(scat.outputs[0], add.inputs[0])
+    nt.links.new(absn.outputs[0], add.inputs[1])
+    nt.links.new(add.outputs[0], out.inputs["Volume"])
+    if surface is not None:
+        if surface not in ("glass", "refraction"):
+            raise ValueError(f"unknown surface {surface!r}; choose glass, refraction or None")
+        surf = nt.nodes.new("ShaderNodeBsdfGlass" if surface == "glass" else "ShaderNodeBsdfRefraction")
+        surf.distribution = "GGX"
+        surf.inputs["Roughness"].default_value = 0.0
+        surf.inputs["IOR"].default_value = float(eta)
+        surf.inputs["Color"].default_value = (1, 1, 1, 1)
+        nt.links.new(surf.outputs[0], out.inputs["Surface"])
+    mat.cycles.volume_sampling = "DISTANCE"
+    return mat, (smax * per_unit, amax * per_unit)
+
+
 def render_cycles(scene, spp: int = 1024, *, bsdf: str = "glass", max_bounces: int = CYCLES_MAX,
                   threads: int = 0, progress=None):
     """Plain Cycles render (translucency + reflection) of a RefScene: ``(image (H, W, 3), seconds)``.
@@ -84,33 +132,8 @@ def render_cycles(scene, spp: int = 1024, *, bsdf: str = "glass", max_bounces: i
                 poly.use_smooth = bool(scene.smooth_normals)
             ob = bpy.data.objects.new("object", me)
             sc.collection.objects.link(ob)
-            mat = bpy.data.materials.new("translucent")
-            mat.use_nodes = True
-            nt = mat.node_tree
-            nt.nodes.clear()
-            outn = nt.nodes.new("ShaderNodeOutputMaterial")
-            if bsdf == "glass":
-                surf = nt.nodes.new("ShaderNodeBsdfGlass")
-            else:
-                surf = nt.nodes.new("ShaderNodeBsdfRefraction")
-            surf.distribution = "GGX"
-            surf.inputs["Roughness"].default_value = 0.0
-            surf.inputs["IOR"].default_value = float(scene.material.eta)
-            surf.inputs["Color"].default_value = (1, 1, 1, 1)
-            scat = nt.nodes.new("ShaderNodeVolumeScatter")
-            if hasattr(scat, "phase"):
-                scat.phase = "HENYEY_GREENSTEIN"
-            scat.inputs["Color"].default_value = (1, 1, 1, 1)
-            scat.inputs["Density"].default_value = float(ss[0, c]) * s  # per Blender unit
-            scat.inputs["Anisotropy"].default_value = 0.0
-            absn = nt.nodes.new("ShaderNodeVolumeAbsorption")
-            absn.inputs["Color"].default_value = (0, 0, 0, 1)  # colour 0 = absorb everything at `density`
-            absn.inputs["Density"].default_value = float(sa[0, c]) * s
-            add = nt.nodes.new("ShaderNodeAddShader")
-            nt.links.new(scat.outputs[0], add.inputs[0])
-            nt.links.new(absn.outputs[0], add.inputs[1])
-            nt.links.new(surf.outputs[0], outn.inputs["Surface"])
-            nt.links.new(add.outputs[0], outn.inputs["Volume"])
+            mat, _ = volume_material(bpy, "translucent", float(ss[0, c]), float(sa[0, c]), s, surface=bsdf,
+                                     eta=scene.material.eta)
             ob.data.materials.append(mat)
             # world
             world = bpy.data.worlds.new("world")
@@ -180,7 +203,6 @@ def render_cycles(scene, spp: int = 1024, *, bsdf: str = "glass", max_bounces: i
             cy.seed = 17 + c
             if hasattr(cy, "use_guiding"):
                 cy.use_guiding = False
-            mat.cycles.volume_sampling = "DISTANCE"
             if threads:
                 sc.render.threads_mode = "FIXED"
                 sc.render.threads = threads
