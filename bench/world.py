@@ -245,6 +245,7 @@ def cycles_volume(res: int, spp: int, tmp: str, progress=print, kind="hdri"):
     """Cycles' volume render of the same sphere (index-matched), (res, res, 3), its standard error, seconds."""
     import bpy
 
+    from bench.reference.cycles_ref import volume_material
     from translucency_addon.materials import material_from_preset
 
     sa, ss = material_from_preset("marble").coefficients(n=1)
@@ -253,23 +254,8 @@ def cycles_volume(res: int, spp: int, tmp: str, progress=print, kind="hdri"):
     t0 = time.perf_counter()
     for c in range(3):
         sc, obj = _scene(kind)
-        mat = bpy.data.materials.new("volume")
-        mat.use_nodes = True
-        nt = mat.node_tree
-        nt.nodes.clear()
-        o = nt.nodes.new("ShaderNodeOutputMaterial")
-        scat = nt.nodes.new("ShaderNodeVolumeScatter")
-        scat.inputs["Density"].default_value = float(ss[0, c]) * MM_PER_UNIT
-        scat.inputs["Anisotropy"].default_value = 0.0
-        ab = nt.nodes.new("ShaderNodeVolumeAbsorption")
-        ab.inputs["Color"].default_value = (0, 0, 0, 1)
-        ab.inputs["Density"].default_value = float(sa[0, c]) * MM_PER_UNIT
-        add = nt.nodes.new("ShaderNodeAddShader")
-        nt.links.new(scat.outputs[0], add.inputs[0])
-        nt.links.new(ab.outputs[0], add.inputs[1])
-        nt.links.new(add.outputs[0], o.inputs["Volume"])
+        mat, _ = volume_material(bpy, "volume", float(ss[0, c]), float(sa[0, c]), MM_PER_UNIT, surface=None)
         obj.data.materials.append(mat)
-        mat.cycles.volume_sampling = 'DISTANCE'
         cy = sc.cycles
         for attr in ("max_bounces", "volume_bounces", "transmission_bounces", "glossy_bounces", "diffuse_bounces",
                      "transparent_max_bounces", "min_light_bounces", "min_transparent_bounces"):
