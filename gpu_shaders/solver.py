@@ -379,8 +379,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         out_scale = 1.0 / (np.pi * self.eta * self.eta * g.q_scale)
         L = self._vmap.radiance(g.r, self.eta, out_scale, cos_o).astype(np.float64)
         idx, w = self.bake.vertex_map
-        L_ss = self.single_radiance_at(result, idx, w, self.bake.mesh_normals, view_dirs)  # closed form, CPU
-        return L if L_ss is None else L + L_ss
+        return self.split_radiance_at(result, L, idx, w, self.bake.mesh_normals, view_dirs)  # closed form, CPU
 
     def power_balance(self, result, level: int = -1, clamp: bool = True) -> dict:
         if result.phi[level] is None:

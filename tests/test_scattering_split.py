@@ -22,10 +22,11 @@ from translucency_addon.single_scattering.closed_form import HalfSpaceSplit, hal
 ETA = 1.3
 
 
-def random_walk(alpha: float, eta: float = ETA, n: int = 200_000, seed: int = 1):
+def random_walk(alpha: float, eta: float = ETA, n: int = 200_000, seed: int = 1, bins: int = 1):
     """(single, multiple): power leaving a half-space after one / after two or more scatterings, per unit of
     the light that entered (diffuse light outside, refracted in).  Isotropic scattering, unit sigma_t,
-    Fresnel reflection at every boundary hit, Russian roulette below 1e-3 of the weight."""
+    Fresnel reflection at every boundary hit, Russian roulette below 1e-3 of the weight.  With ``bins`` > 1
+    each is an array over equal bins of mu_o^2 (the outside cosine squared: equal projected solid angle)."""
     rng = np.random.default_rng(seed)
     mu0 = np.sqrt(rng.random(n))  # cosine-weighted directions outside
     w = fresnel_transmittance(mu0, eta)
@@ -34,8 +35,8 @@ def random_walk(alpha: float, eta: float = ETA, n: int = 200_000, seed: int = 1)
     z = np.zeros(n)
     k = np.zeros(n, dtype=np.int64)
     alive = np.ones(n, dtype=bool)
-    out = np.zeros(2)
-    for _ in range(20_000):
+    out = np.zeros((2, bins))
+    for _ in range(100_000):
         idx = np.flatnonzero(alive)
         if idx.size == 0:
             break
@@ -44,8 +45,11 @@ def random_walk(alpha: float, eta: float = ETA, n: int = 200_000, seed: int = 1)
         h = idx[hit]
         T = inside_transmittance(-mu[h], eta)
         leave = w[h] * T
-        out[0] += leave[k[h] == 1].sum()
-        out[1] += leave[k[h] >= 2].sum()
+        mu_o2 = np.clip(1.0 - eta**2 * (1.0 - mu[h] ** 2), 0.0, 1.0)
+        b = np.minimum((mu_o2 * bins).astype(np.int64), bins - 1)
+        once = k[h] == 1
+        np.add.at(out[0], b[once], leave[once])
+        np.add.at(out[1], b[~once], leave[~once])
         w[h] *= 1.0 - T
         z[h], mu[h] = -zn[hit], -mu[h]  # reflected: the rest of the path mirrored
         s = idx[~hit]
@@ -58,7 +62,8 @@ def random_walk(alpha: float, eta: float = ETA, n: int = 200_000, seed: int = 1)
         w[small[survive]] *= 10.0
         w[small[~survive]] = 0.0
         alive[small[~survive]] = False
-    return out / w0
+    out /= w0
+    return (out[0, 0], out[1, 0]) if bins == 1 else (out[0], out[1])
 
 
 @pytest.mark.parametrize("alpha", [0.68, 0.84, 0.96])  # skin1's B, G, R single-scattering albedo
@@ -75,6 +80,44 @@ def test_closed_form_against_a_random_walk(alpha):
     assert s + M == pytest.approx(total, rel=0.10)  # measured +8.3 %, +7.7 %, +4.8 % (alpha 0.68, 0.84, 0.96)
     if alpha >= 0.8:  # closer than diffusion alone (+11.8 %, +8.9 %); at 0.68 diffusion alone is +6.2 %
         assert abs(s + M - total) < abs(B - total)
+
+
+@pytest.mark.parametrize("eta, alpha", [(1.0, 0.999), (1.0, 0.9), (1.3, 0.999), (1.3, 0.96)])
+def test_directions_of_single_plus_multiple_against_a_random_walk(eta, alpha):
+    """The directions in which the split's light leaves, against the random walk of the same half-space.
+
+    Single scattering leaves mostly at grazing angles (eq. 1); an isotropic multiple-scattering term then
+    makes the sum too dark head-on and too bright at the rim.  Compared: the angular distribution of
+    single + multiple (radiance in 10 bins of mu_o^2, each normalised by its own power, so that the
+    diffusion's power error -- the test above -- does not count), RMS over the bins of the ratio to the
+    walk's, minus 1.  Measured (two seeds): eta = 1, alpha = 0.999 (marble, index-matched): isotropic
+    3.7-4.3 %, eq. 4 0.7-1.1 %; alpha = 0.9: 2.1-2.2 % against 0.4-1.2 %.  At eta = 1.3 Fresnel shapes
+    both alike: alpha = 0.999 3.3-3.4 % against 2.9 %, alpha = 0.96 2.1-2.3 % against 2.6-2.8 % (the
+    walk's noise in the grazing bin is about 1 %)."""
+    from translucency_addon.radiance import outgoing_radiance
+
+    bins = 10
+    split = HalfSpaceSplit(eta)
+    single, multiple = random_walk(alpha, eta, n=100_000, bins=bins)
+    mu_o = np.sqrt((np.arange(bins) + 0.5) / bins)
+    walk = single + multiple  # power per bin of equal projected solid angle: proportional to radiance
+    a = np.full((bins, 3), alpha)
+    ss = split.single_radiance(np.ones((bins, 3)), a, mu_o)[:, 0]
+    M = float(split.multiple_escape(alpha))
+    iso = outgoing_radiance(np.full((bins, 3), M / (1.0 - split.fdr)), mu_o, eta)[:, 0]  # J+ = M/(1 - F_dr)
+    shaped = iso * split.multiple_shape(a, mu_o)[:, 0]
+    assert shaped.sum() == pytest.approx(iso.sum(), rel=0.01)  # eq. 4 moves light between directions only
+
+    def rms(model):
+        return float(np.sqrt(np.mean(((model / model.sum()) / (walk / walk.sum()) - 1.0) ** 2)))
+
+    e_iso, e_shaped = rms(ss + iso), rms(ss + shaped)
+    print(f"eta {eta} alpha {alpha}: angular RMS against the walk, isotropic {100 * e_iso:.1f} %, "
+          f"eq. 4 {100 * e_shaped:.1f} %")
+    if eta == 1.0:
+        assert e_shaped < 0.6 * e_iso
+    else:
+        assert e_shaped <= e_iso + 0.01
 
 
 def test_split_conserves_and_limits():
@@ -127,14 +170,13 @@ def _images(ev, scene):
 def test_every_term_on_is_never_worse_than_diffusion_alone(evaluator, name):
     """All terms on against diffusion alone against the cached Mitsuba reference (bench/data/reference).
 
-    Measured (Draft graphs, debiased relative RMS; fTetWild's graphs differ a little from run to run):
-    skin1 10.4-12.4 % alone, 6.8-6.9 % every term on, 27-29 % with the once-scattered light counted twice;
-    marble 1.46-1.75 % alone, 1.80-1.87 % every term on, about 10 % counted twice.  Marble's every-term
-    image is 1.2 % darker in the mean than the reference where diffusion alone is 0.6 % brighter: over a
-    half-space the split matches a random walk head-on (0.289 against 0.289) where diffusion alone is
-    1.5 % bright, so diffusion alone's small error here is a compensation that the split uncovers
-    (docs/accuracy.md).  "Never worse" is therefore held to the reference's own noise floor (0.72 %
-    for marble), and the gain where single scattering is a large share (skin1) to 2 points."""
+    Measured (Draft graphs, debiased relative RMS; fTetWild's graphs differ a little from run to run, so
+    five runs): skin1 11.0-16.3 % alone, 6.3-9.3 % every term on, 28-32 % with the once-scattered light
+    counted twice; marble 1.42-1.86 % alone, 1.42-1.65 % every term on (never above alone in the same
+    run), about 10 % counted twice.  Before multiple scattering left with its own angular shape (eq. 4 of
+    closed_form.py) marble was 1.65 -> 1.81 % (every term on worse by 0.16-0.3 points): the isotropic
+    remainder made the sum too dark head-on.  "Never worse" is held to 0.1 point, the gain where single
+    scattering is a large share (skin1) to 2 points."""
     from bench import accuracy_scenes as scenes
     from bench.reference.metrics import relative_rms
 
@@ -147,7 +189,7 @@ def test_every_term_on_is_never_worse_than_diffusion_alone(evaluator, name):
         err[k] = float(np.sqrt(max(b.rel_rms**2 - b.noise_floor**2, 0.0)))
         floor = b.noise_floor
     print(name, {k: round(100 * v, 2) for k, v in err.items()}, "floor", round(100 * floor, 2))
-    assert err["every term"] <= err["diffusion"] + floor  # never worse, to within the reference's noise
+    assert err["every term"] <= err["diffusion"] + 0.001  # never worse (0.1 point: fTetWild's run-to-run)
     if name == "sphere_skin1_sky":  # where single scattering is a large share, the split is a large gain
         assert err["every term"] < err["diffusion"] - 0.02
     assert err["double"] > err["every term"] + floor  # the metric sees a double count

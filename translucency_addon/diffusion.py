@@ -388,7 +388,7 @@ class DiffusionSolver:
         In the channels of ``single`` (default: all when ``options.single_scattering``) the light that
         entered, q, is split over the local half-space (:mod:`.single_scattering.closed_form`): the part
         ``s(alpha) q`` that leaves after one scattering is the closed-form single-scattering term the output
-        adds (:meth:`single_radiance_at`), and the diffusion solves for ``m(alpha) q`` (``m <= 1 - s``), the
+        adds (:meth:`split_radiance_at`), and the diffusion solves for ``m(alpha) q`` (``m <= 1 - s``), the
         source whose half-space return is the multiple scattering M(alpha); alpha is each surface node's.
         So both terms add up, each path once, node by node in a heterogeneous medium.
         """
@@ -408,19 +408,26 @@ class DiffusionSolver:
             out.append(np.asarray(qi) * np.where(on, m, 1.0))
         return out, list(q), single
 
-    def single_radiance_at(self, result: SolveResult, idx, w, normals, view_dirs=None) -> np.ndarray | None:
-        """The closed-form single scattering (eq. 2 of :mod:`.single_scattering.closed_form`) at points
-        mapped onto the finest surface nodes, or None when the result has no split."""
+    def split_radiance_at(self, result: SolveResult, L, idx, w, normals, view_dirs=None) -> np.ndarray:
+        """The output of the first-scatter split at points mapped onto the finest surface nodes.
+
+        ``L`` is the diffusion's isotropic output there (:func:`.radiance.outgoing_radiance`, CPU or the
+        GPU's ``radiance.glsl``).  In the split's channels it leaves with the angular shape of multiple
+        scattering (eq. 4 of :mod:`.single_scattering.closed_form`, same power) and the closed-form single
+        scattering (eq. 2) is added; without a split ``L`` is returned as it is.
+        """
         if result.q_incident is None or not any(result.single) or result.q_incident[-1] is None:
-            return None
+            return L
         w = np.asarray(w, dtype=np.float64)
         idx = np.asarray(idx)
         q_v = np.einsum("vk,vkc->vc", w, np.asarray(result.q_incident[-1])[idx])
         a_v = np.einsum("vk,vkc->vc", w, self.surface_albedo[-1][idx])
         n = np.asarray(normals, dtype=np.float64)
         cos_o = np.ones(len(n)) if view_dirs is None else np.einsum("vj,vj->v", n, view_dirs)
-        L = half_space_split(self.eta).single_radiance(q_v, a_v, cos_o)
-        return L * np.array(result.single, dtype=np.float64)
+        split = half_space_split(self.eta)
+        on = np.array(result.single, dtype=bool)
+        shape = np.where(on, split.multiple_shape(a_v, cos_o), 1.0)
+        return np.asarray(L) * shape + split.single_radiance(q_v, a_v, cos_o) * on
 
     def solve_interreflected(self, lights=(), environment=None, *, bounces: int = 1, warm_start=None,
                              bounce=None, **kw) -> tuple:
@@ -556,9 +563,7 @@ class DiffusionSolver:
         j_v = np.einsum("vk,vkc->vc", np.asarray(w, dtype=np.float64), jplus[np.asarray(idx)])
         n = np.asarray(normals, dtype=np.float64)
         cos_o = np.ones(len(n)) if view_dirs is None else np.einsum("vj,vj->v", n, view_dirs)
-        L = outgoing_radiance(j_v, cos_o, self.eta)
-        L_ss = self.single_radiance_at(result, idx, w, normals, view_dirs)
-        return L if L_ss is None else L + L_ss
+        return self.split_radiance_at(result, outgoing_radiance(j_v, cos_o, self.eta), idx, w, normals, view_dirs)
 
     def power_balance(self, result: SolveResult, level: int = -1, clamp: bool = True) -> dict:
         """Incoming, absorbed and outgoing power (W, per channel) on one level.

@@ -37,12 +37,14 @@ direct sparse LU of the 2N system.
 channels): the diffusion's source is ``m q`` (m = m(alpha) per surface node and channel, 1 where
 the split is off) and the vertex radiance adds the closed-form single scattering ``sigma_v (P q)``,
 sigma_v = clip(P alpha) F_t h / (4 pi eta^2) along the normal
-(:meth:`.single_scattering.closed_form.HalfSpaceSplit.single_radiance`), which is linear in q.  The
-bounce is then ``q_b = G (phi0_s - 2 m q) + H q`` with ``H = B' diag(sigma_v) P`` (B' the bounce sum
+(:meth:`.single_scattering.closed_form.HalfSpaceSplit.single_radiance`), which is linear in q, and
+the diffusion's part leaves with the angular shape of multiple scattering, ``c_v = c(P alpha, 1)``
+along the normal (eq. 4 there), so G becomes ``G_c = B diag(c_v) P`` per channel.  The
+bounce is then ``q_b = G_c (phi0_s - 2 m q) + H q`` with ``H = B' diag(sigma_v) P`` (B' the bounce sum
 without G's ``gamma / (2 (1 + F_dr))``), and the second pass solves for ``m (q + q_b)``::
 
-    [ A      0 ] [phi0]   [ S m q                         ]
-    [ -S m G A ] [phi1] = [ S m (q - 2 G m q + H q)        ]                         (1')
+    [ A        0 ] [phi0]   [ S m q                         ]
+    [ -S m G_c A ] [phi1] = [ S m (q - 2 G_c m q + H q)      ]                       (1')
 
 the same block lower-triangular form, with ``S m`` in place of ``S``: the spectrum argument below
 holds unchanged.  At convergence (1') is the two passes of the split solve.
@@ -133,8 +135,9 @@ class BouncedSweepOperator(SweepOperator):
     in-place sparse products per channel (``t = P d0_s``, ``r1_s += diag(S_c) Bg t``), no gather.
     """
 
-    def __init__(self, base, factors, dtype=np.float64, m=None):
+    def __init__(self, base, factors, dtype=np.float64, m=None, ms_shape=None):
         super().__init__(base, copies=2, dtype=dtype)
+        self.ms_shape = None if ms_shape is None else np.ascontiguousarray(ms_shape.T, dtype=self.dtype)
         Bg, P = factors
         scale = base.b_scale if m is None else base.b_scale * m  # S, or S m with the split (1')
         self.c0 = base.diag.shape[1]
@@ -157,6 +160,8 @@ class BouncedSweepOperator(SweepOperator):
         for c in range(c0):  # r1 += K d0
             t[:] = 0.0
             _csr_matvec(P.shape[0], P.shape[1], P.indptr, P.indices, P.data, d[c, ni:], t)
+            if self.ms_shape is not None:
+                t *= self.ms_shape[c]  # diag(c_v) of (1')
             m = self.SB[c]
             _csr_matvec(m.shape[0], m.shape[1], m.indptr, m.indices, m.data, t, r[c0 + c, ni:])
 
@@ -166,12 +171,13 @@ class BouncedSystem:
 
     scheme = "bounced"  # not "fv": no deflation of its own (the caller checks the base level's)
 
-    def __init__(self, base, factors, m=None, sigma=None):
+    def __init__(self, base, factors, m=None, sigma=None, ms_shape=None):
         """``m`` (n_s, C): the split's source factors (None: no split); ``sigma`` (n_vertices, C): the
         closed-form single scattering per unit q at the vertices along the normal, divided by
-        :func:`current_to_radiance` so that ``Bg`` applies B' to it (H of (1'): ``H q = Bg (sigma P q)``)."""
+        :func:`current_to_radiance` so that ``Bg`` applies B' to it (H of (1'): ``H q = Bg (sigma P q)``);
+        ``ms_shape`` (n_vertices, C): c_v of (1'), the multiple-scattering shape along the normal."""
         self.base, self.factors = base, factors
-        self.m, self.sigma = m, sigma
+        self.m, self.sigma, self.ms_shape = m, sigma, ms_shape
         self.level = base.level
         lo, hi = spectral_bounds(base)
         self.lam_min, self.lam_max = np.tile(lo, 2), np.tile(hi, 2)  # the spectrum of (1) is that of A
@@ -189,27 +195,32 @@ class BouncedSystem:
     def sweep_operator(self, dtype=np.float64):
         key = np.dtype(dtype).str
         if key not in self._ops:
-            self._ops[key] = BouncedSweepOperator(self.base, self.factors, dtype=dtype, m=self.m)
+            self._ops[key] = BouncedSweepOperator(self.base, self.factors, dtype=dtype, m=self.m,
+                                                  ms_shape=self.ms_shape)
         return self._ops[key]
 
     def source(self, q: np.ndarray) -> np.ndarray:
         """The diffusion's source for entering light q (n_s, C): m q with the split, else q."""
         return q if self.m is None else self.m * q
 
+    def shaped(self, v: np.ndarray) -> np.ndarray:
+        """diag(c_v) v (n_vertices, C): the multiple-scattering shape along the normal, where the split runs."""
+        return v if self.ms_shape is None else self.ms_shape * v
+
     def bounce(self, phi0_s: np.ndarray, q: np.ndarray) -> np.ndarray:
-        """q_b (n_s, C): the light the object sends itself, ``G (phi0_s - 2 m q) + H q``."""
+        """q_b (n_s, C): the light the object sends itself, ``G_c (phi0_s - 2 m q) + H q``."""
         Bg, P = self.factors
-        qb = Bg @ (P @ (phi0_s - 2.0 * self.source(q)))
+        qb = Bg @ self.shaped(P @ (phi0_s - 2.0 * self.source(q)))
         if self.sigma is not None:
             qb = qb + Bg @ (self.sigma * (P @ q))
         return qb
 
     def coupling(self, x0: np.ndarray) -> np.ndarray:
-        """K x0 (N, C): S m G x0_s on the surface rows, zero inside."""
+        """K x0 (N, C): S m G_c x0_s on the surface rows, zero inside."""
         ni = self.level.n_inner
         out = np.zeros_like(x0)
         Bg, P = self.factors
-        out[ni:] = self.base.b_scale * self.source(Bg @ (P @ x0[ni:]))
+        out[ni:] = self.base.b_scale * self.source(Bg @ self.shaped(P @ x0[ni:]))
         return out
 
     def apply(self, x: np.ndarray) -> np.ndarray:
@@ -229,7 +240,9 @@ class BouncedSystem:
         A = sparse_matrix(self.base, channel)
         ni, n = self.level.n_inner, self.n
         S = sp.diags(self.base.b_scale[:, channel] * (1.0 if self.m is None else self.m[:, channel]))
-        K = sp.bmat([[sp.csr_matrix((ni, ni)), None], [None, S @ self.G]], format="csr")
+        Bg, P = self.factors
+        Gc = self.G if self.ms_shape is None else (Bg @ sp.diags(self.ms_shape[:, channel]) @ P).tocsr()
+        K = sp.bmat([[sp.csr_matrix((ni, ni)), None], [None, S @ Gc]], format="csr")
         assert K.shape == (n, n)
         return sp.bmat([[A, None], [-K, A]], format="csr")
 
@@ -245,7 +258,7 @@ def bounced_system(solver, cols, single=(False, False, False)) -> BouncedSystem:
     key = (id(base), tuple(cols), float(solver.eta), tuple(on))
     if key not in cache:
         cache.clear()
-        m = sigma = None
+        m = sigma = ms_shape = None
         if on.any():
             split = half_space_split(solver.eta)
             alpha = solver.surface_albedo[-1][:, cols]
@@ -254,7 +267,8 @@ def bounced_system(solver, cols, single=(False, False, False)) -> BouncedSystem:
             a_v = np.einsum("vk,vkc->vc", np.asarray(w, dtype=np.float64), alpha[np.asarray(idx)])
             # single_radiance is linear in q: its value for q = 1 along the normal is sigma_v
             sigma = split.single_radiance(np.ones_like(a_v), a_v, np.ones(len(a_v))) * on / current_to_radiance(solver)
-        cache[key] = BouncedSystem(base, bounce_operator(solver), m=m, sigma=sigma)
+            ms_shape = np.where(on, split.multiple_shape(a_v, np.ones(len(a_v))), 1.0)
+        cache[key] = BouncedSystem(base, bounce_operator(solver), m=m, sigma=sigma, ms_shape=ms_shape)
     return cache[key]
 
 
