@@ -332,3 +332,54 @@ def knob_table(b, knob, extra=()):
     head = ["scene", "setting", "nodes (finest)", "bake s", "first frame ms", "iterations per level",
             "(a) vs converged", "(b) vs path tracer"] + [e[0] for e in extra]
     return table(head, body)
+
+
+# issue 17's targets: (scene, target on the converged Final graph's debiased error, the issue's "today")
+TRANSPORT_TARGETS = (("bunny_marble_sky", 0.020, "3.3 %"), ("bunny_skimmilk_sky", 0.030, "4.7 %"),
+                     ("bunny_hetero_sky", 0.040, "7.6 %"), ("bunny_skin1_sky", 0.080, "15.9 % (blue 42 %)"))
+BLUE_TARGET = ("bunny_skin1_sky", 0.15)
+
+
+def transport_targets_table(b):
+    """Issue 17's target table from this run: the converged Final graph (debiased) per scene against its
+    target; every term against diffusion alone (the ss knob, Preview); Preview's distance from converged."""
+    body = []
+    for name, target, before in TRANSPORT_TARGETS:
+        r = rows(b, "converged", name)
+        if not r:
+            continue
+        err = r[0]["err_ref_debiased"]
+        cell, ok = pct(err), err <= target
+        if name == BLUE_TARGET[0]:
+            blue = r[0]["err_ref_rgb"][2]
+            cell += f" (blue {pct(blue)}, not debiased)"
+            ok = ok and blue <= BLUE_TARGET[1]
+            tgt = f"<= {pct(target)} (blue <= {pct(BLUE_TARGET[1])})"
+        else:
+            tgt = f"<= {pct(target)}"
+        body.append([f"{name}, converged Final", tgt, before, cell, "met" if ok else "**missed**"])
+    pairs = []
+    for name in b.scenes:
+        alone, every = one(b, "ss", name, "diffusion only"), one(b, "ss", name, "every term (split)")
+        if alone and every:
+            pairs.append((name, alone, every))
+    if pairs:
+        worse = [n for n, a, e in pairs if e["err_ref_debiased"] > a["err_ref_debiased"]]
+        cell = "; ".join(f"{n} {pct(a['err_ref_debiased'])} -> {pct(e['err_ref_debiased'])}" for n, a, e in pairs)
+        body.append(["every term on against diffusion alone (Preview, debiased)", "never worse",
+                     "worse on every scene", cell, "met" if not worse else f"**missed** on {', '.join(worse)}"])
+        cost = "; ".join(f"{n} {ms(e['frame_ms'])} against {ms(a['frame_ms'])} ms" for n, a, e in pairs)
+        over = [n for n, a, e in pairs if e["frame_ms"] > 1.3 * a["frame_ms"]]
+        body.append(["Preview warm frame, every term on against diffusion alone (same run, faster of two)", "<= 1.3x",
+                     "-", cost,
+                     "met" if not over else f"**missed** on {', '.join(over)}"])
+    gaps = []
+    for name in b.scenes:
+        pv, c = one(b, "preset", name, "preview"), rows(b, "converged", name)
+        if pv and c:
+            gaps.append((pv["err_ref_debiased"] - c[0]["err_ref_debiased"], name))
+    if gaps:
+        g, n = max(gaps)
+        body.append(["Preview within 1.5 points of the converged Final, every scene", "<= 1.5 points", "-",
+                     f"largest gap {100 * g:.1f} points ({n})", "met" if g <= 0.015 else "**missed**"])
+    return table(["scene", "target", "issue 17's today", "this run", ""], body)
