@@ -43,35 +43,40 @@ that angle and the 1/eta^2 of radiance crossing into air; seen from outside at c
 and the power it carries out is ``s(alpha) q`` with
 ``s = 2 pi int_0^1 L_in(m) T_in(m) m dm / q = alpha/2 int_0^1 T_in(m) m sum_j p_j/(m + nu_j) dm``.
 Checked against a Monte Carlo random walk of the same half-space (``tests/test_scattering_split.py``):
-0.0567 q against 0.0566 at alpha = 0.68, eta = 1.3.
+0.0565 q against 0.0566 at alpha = 0.68, eta = 1.3.
 
 **Multiple scattering.**  Light scattered once either leaves (above), or is reflected back by the boundary
 (``R_in = 1 - T_in``), or travels deeper; scattered a second time it is the source of everything that
-scatters more: ``S2(z) = alpha phi_1(z)`` with ``phi_1`` the once-scattered fluence,
+scatters more.  M(alpha), the power of that light that leaves per unit q, comes from the transport
+solution of the half-space (:mod:`.half_space`: the integral equation of transport with the Fresnel
+boundary, solved on a depth grid; against a random walk order by order to its noise,
+``tests/test_scattering_split.py``), tabulated over alpha once per eta (0.6 s).
+
+The diffusion approximation of the same M closes in closed form (kept as ``M_diffusion_table``, for the
+comparison): ``S2(z) = alpha phi_1(z)`` with the once-scattered fluence
 ``phi_1(z) = int S1(z') K(z, z') dz'``, ``S1(z') = alpha sum_j p_j e^{-z'/nu_j}/nu_j`` and the plane kernel
 of isotropic emission with one boundary reflection
-``K = 1/2 int_0^1 [e^{-|z - z'|/m} + R_in(m) e^{-(z + z')/m}] dm/m``.  In the diffusion approximation
-(``kappa = 1/(3 sigma_t)``, ``sigma_tr = sqrt(3 sigma_a sigma_t)``, the boundary condition of eq. 2 with
-``A = (1 + F_dr)/(1 - F_dr)``) a plane source at depth z sends ``e^{-sigma_tr z}/(1 + 2 A kappa sigma_tr)``
-of its power out through the surface (the half-space Green's function: image term chosen to satisfy the
-boundary condition).  With ``s = sigma_tr/sigma_t`` all integrals close::
+``K = 1/2 int_0^1 [e^{-|z - z'|/m} + R_in(m) e^{-(z + z')/m}] dm/m``; a plane source at depth z sends
+``e^{-sigma_tr z}/(1 + 2 A kappa sigma_tr)`` of its power out (``kappa = 1/(3 sigma_t)``,
+``sigma_tr = sqrt(3 sigma_a sigma_t)``, ``A = (1 + F_dr)/(1 - F_dr)``, the boundary condition of eq. 2),
+and with ``s = sigma_tr/sigma_t``::
 
     M(alpha) = alpha^2 / (1 + 2 A s/3) * sum_j p_j int_0^1 1/2 [D(m, nu_j) + R_in(m) m/((1 + s m)(m + nu_j))] dm
     D(m, nu) = 1/((1 + s m)(1 + s nu)) + (1/(1 + s nu) - m/(m + nu)) / (1 - s m)          (3)
 
-the power of multiple scattering that leaves, per unit q.  This is the diffusion of the once-scattered
-light's source *minus* what the single-scattering term already outputs: the escaping part of phi_1 never
-becomes S2.
+It is 8.3 % over transport at alpha = 0.68 (skin1's blue) and 4.1 % at 0.84, 0.6 % under at 0.999
+(eta = 1.3): the diffusion of light that has scattered only a few times, which the split no longer
+inherits.
 
 **On the graph.**  The graph's boundary-source solve of a half-space returns
 ``B(alpha) = (1 - F_dr) J+/q`` with ``J+ = (phi_0 - 2q)/(2(1 + F_dr))``,
 ``phi_0 = 4q/((1 - F_dr)(1 + 2 A kappa sigma_tr))`` (the planner's ``semi_infinite_albedo``).  So the
 diffusion runs with the boundary source ``m(alpha) q``, ``m = M/B``: a half-space then returns exactly
-``s + M`` -- single plus multiple, each path once -- while the graph still carries the light sideways
-through the object's real shape.  m is capped at ``1 - s`` (the source can never exceed the light that
-did not leave by single scattering: energy bound), and where B vanishes (alpha below ~0.27 at eta = 1.3,
-where the boundary-source diffusion returns nothing) m is the once-scattered light that stays,
-``alpha - s``.
+``s + M`` -- single plus multiple, each path once, as transport returns them -- while the graph still
+carries the light sideways through the object's real shape.  m is capped at ``1 - s`` (the source can
+never exceed the light that did not leave by single scattering: energy bound), and where B vanishes
+(alpha below ~0.27 at eta = 1.3, where the boundary-source diffusion returns nothing) m is the
+once-scattered light that stays, ``alpha - s``.
 
 **The direction in which multiple scattering leaves.**  The diffusion's output is isotropic inside
 (``L_o = F_t J+/(pi eta^2)``, :func:`..radiance.outgoing_radiance`).  Without the split that is close to
@@ -79,32 +84,28 @@ transport where it matters most: at alpha -> 1 and eta = 1 a diffusely lit objec
 equally bright in every direction.  With the split it is not: the once-scattered light leaves mostly at
 grazing angles (eq. 1, ``1/(m + nu)``), so an isotropic remainder makes the sum too dark head-on and too
 bright at the rim -- at alpha = 0.999, eta = 1, -4 % along the normal and +7 % at mu_o = 0.22 against the
-random walk (``tests/test_scattering_split.py``); on the marble sphere under a uniform world, -6 % along
-the normals.  The remainder leaves instead with the angular shape of the light scattered two or more
-times.  Its radiance reaching the boundary from inside is the emission integral of the scatterings it
-comes from (every second and later scattering is fed by the fluence ``phi_>=1`` of light scattered at
-least once)::
+random walk; on the marble sphere under a uniform world, -6 % along the normals.  The remainder leaves
+instead with the angular shape of the light scattered two or more times, the emission integral of the
+scatterings it comes from (every second and later scattering is fed by the fluence ``phi_s`` of light
+scattered at least once, the transport solution's)::
 
-    L_ms(m) = alpha/(4 pi) int_0^inf phi_>=1(z) e^{-z/m} dz/m,    phi_>=1 = phi_1 + phi_>=2         (4)
+    L_ms(m) = alpha/(4 pi) int_0^inf phi_s(z) e^{-z/m} dz/m                                           (4)
 
-with ``phi_1`` the once-scattered fluence (exact, in closed form over the incoming cosines, below) and
-``phi_>=2`` the half-space diffusion of the second-scatter source ``alpha phi_1``: Green's function
-``3/(2 s) [e^{-s|z - z'|} + r e^{-s (z + z')}]``, ``r = (2 A s/3 - 1)/(1 + 2 A s/3)`` from the boundary
-condition of eq. 2.  The output uses only its *shape*: normalised to the power the diffusion sends out,
-``L_o = F_t J+/(pi eta^2) c(alpha, m)`` with ``2 pi int T_in c m dm = pi (1 - F_dr)`` (c = 1 is the isotropic
-output), so power, the solve and the planner's budgets are unchanged; only the direction moves.  Against
-the random walk (same test): the sum head-on at alpha = 0.999, eta = 1 is -0.2 % instead of -4 %, at the
-rim -1.0 % instead of +7 %; at eta = 1.3, where Fresnel shapes both alike, the two are within 1 %.
+The output uses only its *shape*: normalised to the power the diffusion sends out,
+``L_o = F_t J+/(pi eta^2) c(alpha, m)`` with ``2 pi int T_in c m dm = pi (1 - F_dr)`` (c = 1 is the
+isotropic output), so power, the solve and the planner's budgets are unchanged; only the direction
+moves.  Against the random walk, radiance per direction (10 bins, RMS): 3.9 % isotropic against 0.6 %
+with eq. 4 at alpha = 0.999, eta = 1; at eta = 1.3, where Fresnel shapes both alike, within the walk's
+noise either way.  This is the shape under diffuse light; under a sun it depends on the incidence (head-on
+light leaves more head-on), which the tables do not carry.
 
-Against transport (the Monte Carlo random walk, eta = 1.3, diffuse light; docs/accuracy.md): total
-returned light at alpha = 0.68, 0.84, 0.96 (skin1's B, G, R) is 0.121, 0.219, 0.441; diffusion alone
-gives 0.129, 0.245, 0.481 (+6 %, +12 %, +9 %), the split 0.131, 0.236, 0.463 (+8 %, +8 %, +5 %); at
-alpha -> 1 (marble) both tend to the same total, and the split's difference is where and in which
-direction the once-scattered light leaves.
+Against transport (eta = 1.3, diffuse light; the corrected random walk of the tests): total returned
+light at alpha = 0.68, 0.84, 0.96 (skin1's B, G, R) is 0.1255, 0.2287, 0.4628; diffusion alone gives
+0.1285, 0.2445, 0.4805 (+2.4 %, +6.9 %, +3.8 %), the split 0.1253, 0.2290, 0.4633 (within 0.2 %).  On
+the graph what remains is the object's shape: a real object is not a half-space.
 
 Hand-written: scipy has no half-space transport; the integrals are 1D Gauss-Legendre quadratures
-(64 nodes, tabulated over alpha once per eta), eq. (4) Gauss-Laguerre in z/m over fluences tabulated on a
-graded depth grid (150 depths to 40 mean free paths: the shape agrees with 1,200 depths to 60 to 1e-4).
+(64 nodes, tabulated over alpha once per eta), the transport solution :mod:`.half_space`'s.
 """
 
 from __future__ import annotations
@@ -117,10 +118,8 @@ from ..fresnel import boundary_A, check_eta, diffuse_reflectance_internal, fresn
 
 N_QUAD = 64
 N_ALPHA = 513
-N_SHAPE_ALPHA = 65  # eq. (4)'s table: alpha uniform in sqrt(1 - alpha), like the others
-N_SHAPE_M = 65  # inside cosines 0..1
-N_DEPTH = 150  # graded depths of eq. (4)'s fluences
-DEPTH_MAX = 40.0  # mean free paths: e^{-z/m} <= e^{-40}
+N_TRANSPORT_ALPHA = 65  # transport solves (half_space.py): alpha uniform in sqrt(1 - alpha), like the others
+N_SHAPE_M = 65  # inside cosines 0..1 of eq. (4)'s table
 
 
 def inside_transmittance(m, eta: float) -> np.ndarray:
@@ -164,14 +163,15 @@ class HalfSpaceSplit:
         self.alpha_grid = 1.0 - np.linspace(1.0, 0.0, int(n_alpha)) ** 2
         a = self.alpha_grid
         self.s_table = a * self._single_unit()
-        self.M_table = self._multiple(a)
+        self.M_diffusion_table = self._multiple(a)  # eq. 3: diffusion's M, for comparison (docs, tests)
         self._u_grid = np.sqrt(1.0 - a)
         self.B_table = self._boundary(a)
+        self.shape_m = np.linspace(0.0, 1.0, N_SHAPE_M)
+        self._shape_u = np.linspace(0.0, 1.0, N_TRANSPORT_ALPHA)
+        M_t, self.shape_table = self._transport(1.0 - self._shape_u**2)
+        self.M_table = np.interp(self._u_grid, self._shape_u, M_t)  # M is smooth in sqrt(1 - alpha)
         m = np.where(self.B_table > 1e-9, self.M_table / np.maximum(self.B_table, 1e-300), a - self.s_table)
         self.m_table = np.clip(np.minimum(m, 1.0 - self.s_table), 0.0, None)
-        self.shape_m = np.linspace(0.0, 1.0, N_SHAPE_M)
-        self._shape_u = np.linspace(0.0, 1.0, N_SHAPE_ALPHA)
-        self.shape_table = self._multiple_shape(1.0 - self._shape_u**2)
 
     # -- the half-space integrals ------------------------------------------------------------
     def _h(self, m) -> np.ndarray:
@@ -202,46 +202,43 @@ class HalfSpaceSplit:
         phi0 = 4.0 / ((1.0 - self.fdr) * (1.0 + 2.0 * self.A * s / 3.0))
         return (1.0 - self.fdr) * np.maximum(phi0 - 2.0, 0.0) / (2.0 * (1.0 + self.fdr))
 
-    def _once_scattered_fluence(self, z) -> np.ndarray:
-        """phi_1(z)/alpha per unit q: the fluence of light scattered exactly once (eq. 3's ``int S1 K dz'``).
+    def _transport(self, alpha):
+        """(M, c) from the transport solution of the half-space (:mod:`.half_space`), rows: alpha.
 
-        Integrating the source ``sum_j p_j e^{-z'/nu_j}/nu_j`` against the kernel K in z' closes per (m, nu):
-        ``(e^{-z/nu} - e^{-z/m})/(nu - m)`` from above z (``z e^{-z/m}/m^2`` at nu = m),
-        ``e^{-z/nu}/(m + nu)`` from below and ``R_in(m) e^{-z/m}/(m + nu)`` by one boundary reflection.
+        M: the power that leaves after two or more scatterings, per unit q; c(alpha, m) on ``shape_m``:
+        eq. (4), the angular shape of that light relative to the isotropic output at equal power.
+        Two depth grids, the second twice as coarse, combined by Richardson extrapolation (the
+        discretisation error is second order in the cell size): within 0.1 % of a grid 7x finer.
+        At alpha = 1 nothing is absorbed and M = 1 - s exactly (no solve: the deep field would need an
+        infinite grid); at alpha = 0 nothing scatters twice.
         """
-        Z = np.asarray(z, dtype=np.float64)[:, None, None]
-        m = self.x[None, :, None]
-        nu = self.nu[None, None, :]
-        d = nu - m
-        same = np.abs(d) < 1e-12
-        above = np.where(same, Z * np.exp(-Z / m) / (m * m),
-                         (np.exp(-Z / nu) - np.exp(-Z / m)) / np.where(same, 1.0, d))
-        below = np.exp(-Z / nu) / (m + nu)
-        refl = (1.0 - self.t_in)[None, :, None] * np.exp(-Z / m) / (m + nu)
-        return (0.5 * (above + below + refl) * (self.w[None, :, None] * self.p[None, None, :])).sum(axis=(1, 2))
+        from .half_space import HalfSpaceTransport, depth_grid
 
-    def _multiple_shape(self, alpha) -> np.ndarray:
-        """c(alpha, m) of eq. (4) on ``shape_m`` (rows: alpha): the angular shape of the light that leaves
-        after two or more scatterings, relative to the isotropic output, at equal power."""
-        z = DEPTH_MAX * np.linspace(0.0, 1.0, N_DEPTH) ** 2
-        wz = np.zeros_like(z)
-        wz[1:] += 0.5 * np.diff(z)
-        wz[:-1] += 0.5 * np.diff(z)
-        phi1 = self._once_scattered_fluence(z)  # times alpha
-        u, wu = np.polynomial.laguerre.laggauss(48)
-        m_all = np.concatenate([self.x, self.shape_m])  # Gauss nodes (normalisation), then the table's m
-        mz = m_all[:, None] * u[None, :]
-        out = np.empty((len(alpha), len(self.shape_m)))
-        for i, a in enumerate(np.asarray(alpha, dtype=np.float64)):
-            s = np.sqrt(3.0 * max(1.0 - a, 1e-12))
-            r = (2.0 * self.A * s / 3.0 - 1.0) / (1.0 + 2.0 * self.A * s / 3.0)
-            zz, zs = np.abs(z[:, None] - z[None, :]), z[:, None] + z[None, :]
-            green = 1.5 / s * (np.exp(-s * zz) + r * np.exp(-s * zs))
-            phi = a * phi1 + green @ (wz * a * a * phi1)  # phi_1 + phi_>=2 (the common alpha/(4 pi) dropped)
-            L = (np.interp(mz, z, phi) * wu[None, :]).sum(axis=1)
-            norm = 2.0 * np.sum(self.w * self.t_in * L[: len(self.x)] * self.x) / (1.0 - self.fdr)
-            out[i] = L[len(self.x):] / norm if norm > 1e-300 else 1.0  # alpha = 0: nothing scatters twice
-        return out
+        alpha = np.asarray(alpha, dtype=np.float64)
+        m_eval = np.clip(self.shape_m, 1e-6, None)
+        runs = []
+        for f in (1.0, 2.0):
+            ht = HalfSpaceTransport(self.eta, lambda m: inside_transmittance(m, self.eta),
+                                    depth_grid(h0=0.002 * f, growth=1.0 + 0.06 * f, h_max=1.0 * f))
+            phi0 = ht.uncollided(self.nu, self.p[:, None])
+            esc = ht.escape(m_eval)
+            M = np.zeros(len(alpha))
+            L = np.zeros((len(alpha), len(m_eval)))
+            for i, a in enumerate(alpha):
+                if 0.0 < a < 1.0:
+                    phi_s = ht.solve(a, phi0)
+                    M[i] = ht.exitance(a, phi_s)[0]
+                    L[i] = a / (4.0 * np.pi) * (esc.T @ phi_s)[:, 0]
+            runs.append((M, L))
+        M = (4.0 * runs[0][0] - runs[1][0]) / 3.0
+        L = (4.0 * runs[0][1] - runs[1][1]) / 3.0
+        one = alpha >= 1.0
+        M[one] = 1.0 - alpha[one] * self._single_unit()
+        # c = L pi (1 - F_dr) / M: 2 pi int T_in c m dm = pi (1 - F_dr), as the isotropic output
+        c = np.where(M[:, None] > 1e-12, L * np.pi * (1.0 - self.fdr) / np.maximum(M[:, None], 1e-300), 1.0)
+        if one.any():  # the limit of the last solved alpha (the shape is continuous in alpha)
+            c[one] = c[np.flatnonzero(~one & (alpha > 0))[np.argmax(alpha[~one & (alpha > 0)])]]
+        return M, c
 
     # -- lookups --------------------------------------------------------------------------------
     def _lookup(self, table, alpha) -> np.ndarray:
@@ -253,7 +250,7 @@ class HalfSpaceSplit:
         return self._lookup(self.s_table, alpha)
 
     def multiple_escape(self, alpha) -> np.ndarray:
-        """M(alpha): the part of q that leaves after two or more scatterings (diffusion)."""
+        """M(alpha): the part of q that leaves after two or more scatterings (transport, :mod:`.half_space`)."""
         return self._lookup(self.M_table, alpha)
 
     def boundary_escape(self, alpha) -> np.ndarray:
@@ -274,8 +271,8 @@ class HalfSpaceSplit:
         a = np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0)
         c = np.asarray(cos_o, dtype=np.float64)
         m = refracted_cosine(np.clip(c, 0.0, 1.0), self.eta)
-        fu = np.sqrt(1.0 - a) * (N_SHAPE_ALPHA - 1)
-        i = np.minimum(fu.astype(np.int64), N_SHAPE_ALPHA - 2)
+        fu = np.sqrt(1.0 - a) * (N_TRANSPORT_ALPHA - 1)
+        i = np.minimum(fu.astype(np.int64), N_TRANSPORT_ALPHA - 2)
         tu = fu - i
         fm = np.clip(m, 0.0, 1.0) * (N_SHAPE_M - 1)
         j = np.minimum(fm.astype(np.int64), N_SHAPE_M - 2)[:, None]
