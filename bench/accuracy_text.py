@@ -321,11 +321,15 @@ def findings_scenes(b):
                            "comes back out, and single scattering is a large share of what does (about half at "
                            "0.68, blue). The first-scatter split (every term on, "
                            "`single_scattering/closed_form.py`) returns the once-scattered light in closed form "
-                           "and lets diffusion carry only what scatters more, which is where most of its error "
-                           "went; what remains is the diffusion of the second and later scatterings (over a "
-                           "half-space +8 % at 0.68 and 0.84, +5 % at 0.96 against a random walk, "
-                           "`tests/test_scattering_split.py`), largest in blue, which no graph resolution "
-                           "removes.")
+                           "and lets diffusion carry only what scatters more, with its source calibrated on the "
+                           "transport solution of a half-space (`single_scattering/half_space.py`), so that a "
+                           "half-space returns what transport returns (diffusion's own half-space answer for "
+                           "that light is 8 % high at 0.68 and 4 % at 0.84; the sum now within 0.2 % of a "
+                           "random walk, `tests/test_scattering_split.py`). What remains is where the object "
+                           "is not a half-space -- the ears, the concavities, curvature on the scale of a few "
+                           "mean free paths -- across which the graph's diffusion carries light that has "
+                           "scattered only a few times; it is largest in blue, where that light is the largest "
+                           "share.")
     sphere = _conv(b, "sphere_marble_sky")
     bunny = _conv(b, "bunny_marble_sky")
     if sphere and bunny:
@@ -340,12 +344,14 @@ def findings_scenes(b):
                    "half-space (angular RMS 3.7 %, with eq. 4 0.7 %; `tests/test_scattering_split.py`), and marble "
                    "was worse with every term on than with diffusion alone (sphere 1.4 -> 1.7 %, bunny 3.4 -> 3.7 % "
                    "at Preview, commit a03c8e1). What remains is in the mean brightness: with every term on marble "
-                   "is about 0.8 % darker than the path tracer where diffusion alone is about 0.6 % brighter "
+                   "is about 0.5 % darker than the path tracer where diffusion alone is about 0.6 % brighter "
                    "(section *Single scattering*). The split's diffusion source m = M/B is calibrated on a "
-                   "half-space; the object, 12-40 mm, is not much larger than marble's diffusion length (8.5 mm in "
-                   "red), so it holds fewer of the long, absorbing walks that calibration assumes (scaling it by the "
-                   "object's own uniform-light absorption fixed the spheres but brightened the skim-milk bunny, "
-                   "whose diffusion alone is already 2.6 % bright in red: not adopted).")
+                   "half-space, where light injected a mean free path deep (the second scattering) is absorbed "
+                   "1.6 % more than light injected at the surface, on the long walks that reach deep; the object, "
+                   "12-40 mm, is not much larger than marble's diffusion length (8.5 mm in red) and holds fewer of "
+                   "those walks, so the split takes a little too much (scaling the calibration by the object's own "
+                   "uniform-light absorption fixed the spheres but brightened the skim-milk bunny, whose diffusion "
+                   "alone is already bright in red: not adopted).")
     return out
 
 
