@@ -64,7 +64,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.reference.cycles_ref import volume_material  # noqa: E402  (the validated reference's set-up)
+from bench.reference.cycles_ref import empty_node_tree, volume_material  # noqa: E402  (the reference's set-up)
 
 HEADING = "## The user's alternative: Cycles, timed (issue 17)\n"
 RESULTS = ROOT / "bench" / "data" / "cycles_alternative.json"
@@ -138,10 +138,7 @@ def _material(bpy, scene, setup: str, k: float) -> tuple[object, dict]:
     if setup != "principled_rw":
         raise ValueError(f"unknown set-up {setup!r}; choose one of {', '.join(SETUPS)}")
     mat = bpy.data.materials.new(setup)
-    if getattr(mat, "node_tree", None) is None:
-        mat.use_nodes = True
-    nt = mat.node_tree
-    nt.nodes.clear()
+    nt = empty_node_tree(mat)
     out = nt.nodes.new("ShaderNodeOutputMaterial")
     info = {}
     p = nt.nodes.new("ShaderNodeBsdfPrincipled")
@@ -169,10 +166,7 @@ def _world(bpy, env):
     is the ray's direction (measured: a camera looking along +x, +y, +z, -x and an oblique direction
     saw this function to 4 digits)."""
     world = bpy.data.worlds.new("sky")
-    if getattr(world, "node_tree", None) is None:
-        world.use_nodes = True
-    nt = world.node_tree
-    nt.nodes.clear()
+    nt = empty_node_tree(world)
     if env.sh is None:
         bg = nt.nodes.new("ShaderNodeBackground")
         bg.inputs["Color"].default_value = (*[float(x) for x in env.radiance], 1.0)

@@ -135,6 +135,8 @@ def hdri_sun():
 def _scene(kind="hdri"):
     import bpy
 
+    from bench.reference.cycles_ref import empty_node_tree
+
     bpy.ops.wm.read_factory_settings(use_empty=True)
     sc = bpy.context.scene
     bpy.ops.mesh.primitive_uv_sphere_add(radius=1.0, segments=48, ring_count=24)
@@ -148,11 +150,7 @@ def _scene(kind="hdri"):
     sc.collection.objects.link(cam)
     sc.camera = cam
     world = bpy.data.worlds.new("HDRI")
-    tree = world.node_tree if world.node_tree is not None else None
-    if tree is None:
-        world.use_nodes = True
-        tree = world.node_tree
-    tree.nodes.clear()
+    tree = empty_node_tree(world)
     bg = tree.nodes.new("ShaderNodeBackground")
     out = tree.nodes.new("ShaderNodeOutputWorld")
     if kind == "uniform":

@@ -53,6 +53,15 @@ def _setup_blender_user_dir():
     os.environ.setdefault("BLENDER_USER_RESOURCES", d)
 
 
+def empty_node_tree(idblock):
+    """The node tree of a new material or world, emptied (before Blender 5 it exists once ``use_nodes`` is set)."""
+    if getattr(idblock, "node_tree", None) is None:
+        idblock.use_nodes = True
+    tree = idblock.node_tree
+    tree.nodes.clear()
+    return tree
+
+
 def volume_material(bpy, name: str, sigma_s, sigma_a, per_unit: float, *, surface: str | None = "glass",
                     eta: float = 1.0):
     """A Cycles material for a homogeneous medium: Volume Scatter + Volume Absorption inside.
@@ -70,10 +79,7 @@ def volume_material(bpy, name: str, sigma_s, sigma_a, per_unit: float, *, surfac
     sa = np.broadcast_to(np.asarray(sigma_a, dtype=np.float64), (3,))
     smax, amax = float(ss.max()), float(sa.max())
     mat = bpy.data.materials.new(name)
-    if getattr(mat, "node_tree", None) is None:
-        mat.use_nodes = True
-    nt = mat.node_tree
-    nt.nodes.clear()
+    nt = empty_node_tree(mat)
     out = nt.nodes.new("ShaderNodeOutputMaterial")
     scat = nt.nodes.new("ShaderNodeVolumeScatter")
     if hasattr(scat, "phase"):
