@@ -98,7 +98,7 @@ def test_closed_form_against_a_random_walk(alpha):
     single, multiple = random_walk(alpha)
     s = float(split.single_escape(alpha))
     M = float(split.multiple_escape(alpha))
-    M_diff = float(np.interp(-np.sqrt(1 - alpha), -split._u_grid, split.M_diffusion_table))
+    M_diff = float(split._lookup(split.M_diffusion_table, alpha))  # eq. 3, looked up as M is
     B = float(split.boundary_escape(alpha))
     total = single + multiple
     print(f"alpha {alpha}: walk single {single:.4f} multiple {multiple:.4f} total {total:.4f}; "

@@ -215,6 +215,8 @@ class HalfSpaceSplit:
         from .half_space import HalfSpaceTransport, depth_grid
 
         alpha = np.asarray(alpha, dtype=np.float64)
+        one = alpha >= 1.0
+        solved = (alpha > 0.0) & ~one
         m_eval = np.clip(self.shape_m, 1e-6, None)
         runs = []
         for f in (1.0, 2.0):
@@ -224,20 +226,18 @@ class HalfSpaceSplit:
             esc = ht.escape(m_eval)
             M = np.zeros(len(alpha))
             L = np.zeros((len(alpha), len(m_eval)))
-            for i, a in enumerate(alpha):
-                if 0.0 < a < 1.0:
-                    phi_s = ht.solve(a, phi0)
-                    M[i] = ht.exitance(a, phi_s)[0]
-                    L[i] = a / (4.0 * np.pi) * (esc.T @ phi_s)[:, 0]
+            for i in np.flatnonzero(solved):
+                phi_s = ht.solve(alpha[i], phi0)
+                M[i] = ht.exitance(alpha[i], phi_s)[0]
+                L[i] = alpha[i] / (4.0 * np.pi) * (esc.T @ phi_s)[:, 0]
             runs.append((M, L))
         M = (4.0 * runs[0][0] - runs[1][0]) / 3.0
         L = (4.0 * runs[0][1] - runs[1][1]) / 3.0
-        one = alpha >= 1.0
         M[one] = 1.0 - alpha[one] * self._single_unit()
         # c = L pi (1 - F_dr) / M: 2 pi int T_in c m dm = pi (1 - F_dr), as the isotropic output
         c = np.where(M[:, None] > 1e-12, L * np.pi * (1.0 - self.fdr) / np.maximum(M[:, None], 1e-300), 1.0)
-        if one.any():  # the limit of the last solved alpha (the shape is continuous in alpha)
-            c[one] = c[np.flatnonzero(~one & (alpha > 0))[np.argmax(alpha[~one & (alpha > 0)])]]
+        if one.any():  # the limit of the largest solved alpha (the shape is continuous in alpha)
+            c[one] = c[np.flatnonzero(solved)[np.argmax(alpha[solved])]]
         return M, c
 
     # -- lookups --------------------------------------------------------------------------------

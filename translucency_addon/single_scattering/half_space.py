@@ -67,10 +67,15 @@ def _e2_interval(d0, d1) -> np.ndarray:
     return expn(2, d0) - expn(2, d1)
 
 
+def _e1_abs_antiderivative(t) -> np.ndarray:
+    """An antiderivative of E_1(|t|) over the whole line: sign(t) (1 - E_2(|t|)) (E_2' = -E_1, E_2(0) = 1)."""
+    return np.sign(t) * (1.0 - expn(2, np.abs(t)))
+
+
 class HalfSpaceTransport:
     """Eq. (1)-(2) for one eta on a fixed depth grid; :meth:`solve` for one alpha and entering distribution.
 
-    ``m_out``: the inside cosines at which (2) is evaluated (the caller's table); ``t_in``: ``T_in`` there.
+    ``transmittance_in(m)``: ``T_in`` at inside cosines m (``closed_form.inside_transmittance``).
     """
 
     def __init__(self, eta: float, transmittance_in, edges: np.ndarray | None = None):
@@ -78,17 +83,10 @@ class HalfSpaceTransport:
         self.edges = depth_grid() if edges is None else np.asarray(edges, dtype=np.float64)
         a, b = self.edges[:-1], self.edges[1:]
         self.h = b - a
-        z = 0.5 * (a + b)
-        self.z = z
-        T = transmittance_in
+        self.z = 0.5 * (a + b)
         # -- K of (1), collocated at the cell centres --------------------------------------------------
-        zi, aj, bj = z[:, None], a[None, :], b[None, :]
-        below = np.clip(aj - zi, 0.0, None)  # cells entirely below z_i: E_2(a - z) - E_2(b - z)
-        direct = np.where(aj >= zi, _e2_interval(below, bj - zi), 0.0)
-        direct += np.where(bj <= zi, _e2_interval(np.clip(zi - bj, 0.0, None), zi - aj), 0.0)
-        inside = (aj < zi) & (bj > zi)
-        direct += np.where(inside, 2.0 - expn(2, np.clip(zi - aj, 0.0, None)) - expn(2, np.clip(bj - zi, 0.0, None)),
-                           0.0)
+        zi, aj, bj = self.z[:, None], a[None, :], b[None, :]
+        direct = _e1_abs_antiderivative(bj - zi) - _e1_abs_antiderivative(aj - zi)  # int_cell E_1(|z - z'|) dz'
         self.m_c = float(np.sqrt(max(1.0 - 1.0 / self.eta**2, 0.0)))
         refl = np.zeros_like(direct)
         if self.m_c > 0.0:  # total internal reflection below m_c: int_0^{m_c} e^{-d/m} dm/m = E_1(d/m_c)
@@ -96,7 +94,7 @@ class HalfSpaceTransport:
         x, w = np.polynomial.legendre.leggauss(N_FRESNEL)
         self.mf = self.m_c + (1.0 - self.m_c) * 0.5 * (x + 1.0)  # Fresnel part: m in [m_c, 1]
         self.wf = (1.0 - self.m_c) * 0.5 * w
-        self.t_f = np.asarray(T(self.mf), dtype=np.float64)
+        self.t_f = np.asarray(transmittance_in(self.mf), dtype=np.float64)
         r = 1.0 - self.t_f
         for mk, wk, rk in zip(self.mf, self.wf, r):
             if rk > 0.0:
