@@ -29,15 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
+from data import mesh_path
 from bench.reference.scene import Camera, RefScene, sky_environment
 from translucency_addon.fields import FieldSpec
 from translucency_addon.lights import Environment
 from translucency_addon.materials import Material, material_from_preset
 
 ROOT = Path(__file__).resolve().parents[1]
-MESHES = ROOT.parent / "shared" / "meshes"
-if not MESHES.exists():
-    MESHES = Path("/work/shared/meshes")
 
 SKY_DIR = (1.0, 0.6, 0.35)  # towards the bright side of the sky: right, up, towards the camera
 BUNNY_SIZE_MM = 40.0
@@ -94,7 +92,7 @@ def bunny_mesh(triangles: int = 10_000):
     from translucency_addon.bake import resample_surface
     from translucency_addon.meshio import count_holes, load_obj, signed_volume
 
-    V, F = load_obj(MESHES / "stanford-bunny.obj")
+    V, F = load_obj(mesh_path("stanford-bunny"))
     V, F = resample_surface(V, F, triangles)
     V, F = fill_holes(V, F)
     holes, _ = count_holes(F)

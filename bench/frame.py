@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """Where a frame's time goes, against a baseline checkout in the same run, and how cost grows (issue 18).
 
-    .venv/bin/python bench/frame.py [--baseline /work/main] [--qualities preview final]
+    .venv/bin/python bench/frame.py [--baseline OTHER_CHECKOUT] [--qualities preview final]
                                     [--sizes 10000 30000 100000 300000 1000000] [--profile final]
                                     [--out docs/bench_solve.md]
 
@@ -235,7 +235,7 @@ def frame_section(baseline: Path | None, qualities) -> tuple[str, list]:
     lines = ["## A frame with Self-Occlusion (bunny_marble_sky, tol 1e-4)", "",
              f"Both trees in this run, alternating, best of two: *baseline* = `{baseline}` (today's two passes, "
              "node-major sweeps), *ours* = this tree (one block solve, `interreflection.py`; sweeps in "
-             "`sweeps.py`).  Command: `nice .venv/bin/python bench/frame.py --baseline /work/main`.", "",
+             "`sweeps.py`).  Command: `nice .venv/bin/python bench/frame.py --baseline OTHER_CHECKOUT`.", "",
              "Times are CPU ms of the process (`time.process_time`; numpy/scipy run these sweeps on one core), "
              "steadier than wall time on this shared machine; the wall time of the same runs is in brackets.", "",
              "| preset | finest nodes | first frame ms: baseline / ours | ratio | warm frame ms: baseline / ours | "

@@ -40,7 +40,8 @@ if str(ROOT) not in sys.path:
 
 import numpy as np  # noqa: E402
 
-BUNNY = Path("/work/shared/meshes/stanford-bunny.obj")
+from data import mesh_path  # noqa: E402
+
 SUN = dict(irradiance=1000.0, direction=(0.3, -0.5, -0.8))
 
 
@@ -82,7 +83,7 @@ def get_bake(name: str, cache_dir: Path | None, _memo={}):
     from translucency_addon import bake as bake_mod
     from translucency_addon import meshio
 
-    V, F = meshio.load_obj(str(BUNNY))[:2]
+    V, F = meshio.load_obj(str(mesh_path("stanford-bunny")))[:2]
     bunny_settings = bake_mod.BakeSettings(quality="preview", mm_per_unit=1000.0)
     if "bunny" not in _memo:
         _memo["bunny"] = _load_or_bake(V, F, bunny_settings, cache_dir / "gpu-bench-bunny.npz" if cache_dir else None)
@@ -180,8 +181,8 @@ def cpu_step_times(system, steps: int):
     return per_call(cheb, lambda: None, steps), per_call(jac, lambda: None, steps)
 
 
-BYTES_PER_NODE_UPDATE = 48  # ../shared/NOTES.md: explicit 4-neighbour graph, fp32, one Chebyshev step
-H200_BANDWIDTH = 4.8e12  # bytes/s (NOTES.md): the roofline is ~100 G node updates/s
+BYTES_PER_NODE_UPDATE = 48  # roofline estimate: explicit 4-neighbour graph, fp32, one Chebyshev step
+H200_BANDWIDTH = 4.8e12  # bytes/s, the H200's HBM3e: the roofline is ~100 G node updates/s
 
 
 def timed_solve(solver, q, warm=None, repeat: int = 2):
@@ -332,7 +333,7 @@ def markdown(rows, renderer: str, args) -> str:
             f"{r['fp16_warm_s']:.2f} | {r['fp32_radiance_ms']:.1f} |")
     out.append("\n## Dispatches and bandwidth per converged solve\n")
     out.append(f"Achieved bandwidth = node updates (steps x nodes over the levels solved) x "
-               f"{BYTES_PER_NODE_UPDATE} B (../shared/NOTES.md's figure for one fp32 step of a 4-neighbour graph) / "
+               f"{BYTES_PER_NODE_UPDATE} B (the roofline estimate for one fp32 step of a 4-neighbour graph) / "
                f"solve time; roofline = an H200's {H200_BANDWIDTH / 1e12:.1f} TB/s (~100 G node updates/s).  "
                "The CPU column is the numpy solve of the same run.\n")
     out.append("| graph | solve | GPU dispatches | dispatches per step | node updates | GPU fp32 ms | achieved GB/s | "

@@ -38,6 +38,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from data import mesh_path  # noqa: E402
 from translucency_addon import meshio  # noqa: E402
 from translucency_addon.lights import Light  # noqa: E402
 from translucency_addon.materials import Material, Medium, material_from_preset  # noqa: E402
@@ -47,7 +48,7 @@ from translucency_addon.single_scattering import (  # noqa: E402
     render_vertices, view_rays, view_term, voxelise)
 from translucency_addon.single_scattering.runtime import all_ray_sample_pairs, exit_factor  # noqa: E402
 
-BUNNY = "/work/shared/meshes/stanford-bunny.obj"
+BUNNY = str(mesh_path("stanford-bunny"))
 
 
 def table(header, rows):

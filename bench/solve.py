@@ -30,11 +30,9 @@ from translucency_addon.bake import BakeSettings, bake_mesh  # noqa: E402
 from translucency_addon.diffusion import DiffusionSolver, SolveOptions  # noqa: E402
 from translucency_addon.lights import Light  # noqa: E402
 from translucency_addon.materials import material_from_preset  # noqa: E402
+from data import mesh_path  # noqa: E402
 from translucency_addon.meshio import load_obj  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "meshes"
-if not SHARED.exists():
-    SHARED = Path("/work/shared/meshes")
 
 
 def rotate_z(v, deg):
@@ -107,7 +105,7 @@ def main(argv=None):
     ap.add_argument("--tol", type=float, default=1e-3)
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
-    V, F = load_obj(SHARED / "stanford-bunny.obj")
+    V, F = load_obj(mesh_path("stanford-bunny"))
     rows = []
     for qual in a.qualities:
         rows.append(bench_quality(V, F, qual, a.tol))

@@ -10,7 +10,8 @@ What it does, through the add-on's own user path (operators and handlers):
 
 1. loads the extension from this checkout and registers it (a temporary
    Blender user directory, so your profile is never touched);
-2. builds a scene with bpy: ``../shared/meshes/stanford-bunny.obj`` (0.155
+2. builds a scene with bpy: the Stanford bunny, ``data/meshes/stanford-bunny.obj``
+   in this repository (``data/README.md`` gives its source and terms; 0.155
    units across; the scene unit scale is 1 m per unit, so it is ~155 mm,
    the size the Jensen coefficients per mm expect), marble mixed with ketchup
    by a Blender *Marble* texture (red veins), a point light that moves from
@@ -42,7 +43,10 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-MESH = ROOT.parent / "shared" / "meshes" / "stanford-bunny.obj"
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+from data import mesh_path  # noqa: E402 - the repository's own meshes (data/README.md)
+
 PACKAGE = "translucency"
 
 if "bpy" not in sys.modules and not os.environ.get("TRANSLUCENCY_KEEP_USER_RESOURCES"):
@@ -134,10 +138,12 @@ def look_at(obj, target) -> None:
 
 
 def import_bunny():
-    if not MESH.exists():
-        raise SystemExit(f"demo: {MESH} not found; the demo expects ../shared/meshes beside the checkout")
+    try:
+        mesh = mesh_path("stanford-bunny")
+    except FileNotFoundError as exc:
+        raise SystemExit(f"demo: {exc}") from None
     before = set(bpy.data.objects)
-    bpy.ops.wm.obj_import(filepath=str(MESH))  # Y-up OBJ -> Z-up (a 90 degree X rotation)
+    bpy.ops.wm.obj_import(filepath=str(mesh))  # Y-up OBJ -> Z-up (a 90 degree X rotation)
     obj = next(o for o in bpy.data.objects if o not in before)
     obj.name = obj.data.name = "Bunny"
     # Bake the import rotation into the mesh, and stand the bunny on z = 0, centred on x, y.
@@ -351,7 +357,7 @@ def main(argv=None) -> int:
     bunny = build_scene(args)
     scene = bpy.context.scene
     scene.translucency.cache_directory = str(out / "cache") + os.sep
-    log(f"scene: {MESH.name} ({len(bunny.data.vertices)} vertices, "
+    log(f"scene: {mesh_path('stanford-bunny').name} ({len(bunny.data.vertices)} vertices, "
         f"{max(bunny.dimensions) * scene.unit_settings.scale_length * 1000:.0f} mm), marble + ketchup veins, "
         f"{args.resolution[0]}x{args.resolution[1]}, {scene.render.engine}, {args.samples} samples, "
         f"bake quality {args.quality}")

@@ -7,25 +7,23 @@ from pathlib import Path
 
 import numpy as np
 
+from data import mesh_path
 from translucency_addon import meshio, primitives
 from translucency_addon.bake import BakeSettings, bake_mesh, resample_surface
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
-if not SHARED.exists():  # CI clones next to ../shared; a worktree may sit elsewhere
-    SHARED = Path("/work/shared/meshes")
 
 
 @lru_cache(maxsize=None)
 def mesh(name: str):
-    """A test mesh by name: files in ../shared/meshes, or 'bunny-decimated', or primitives."""
+    """A test mesh by name: the project's own meshes (data/meshes, through data.mesh_path), or 'bunny-decimated', or primitives."""
     if name == "bunny-decimated":
-        V, F = meshio.load_obj(SHARED / "stanford-bunny.obj")
+        V, F = meshio.load_obj(mesh_path("stanford-bunny"))
         return resample_surface(V, F, 6000)
     if name == "sphere":
         return primitives.icosphere(1.0, 3)
     if name == "cube":
         return primitives.box((1.0, 1.0, 1.0), subdivisions=2)
-    return meshio.load_obj(SHARED / f"{name}.obj")
+    return meshio.load_obj(mesh_path(name))
 
 
 @lru_cache(maxsize=None)

@@ -27,10 +27,10 @@ from bench.reference import metrics  # noqa: E402
 from bench.reference.mitsuba_ref import render_mask, render_reference  # noqa: E402
 from bench.reference.raster import rasterize  # noqa: E402
 from bench.reference.scene import Camera, mesh_sky, mesh_sun, sky_environment, sphere_env  # noqa: E402
+from data import mesh_path  # noqa: E402
 from translucency_addon.fields import FieldSpec  # noqa: E402
 from translucency_addon.materials import Material, Medium, material_from_preset, preset  # noqa: E402
 
-MESHES = ROOT.parent / "shared" / "meshes"
 WHITE = Medium((0.0, 0.0, 0.0), (2.19, 2.62, 3.00), "white-marble")  # albedo 1, marble's sigma_s'
 
 
@@ -93,18 +93,16 @@ def cmd_masks(a):
     m = material_from_preset("marble")
     scenes = [("sphere 32 seg, 32x32", sphere_env(m, image_res=32)),
               ("sphere 64 seg, 128x128", sphere_env(m, res=64, image_res=128))]
-    if (MESHES / "stanford-bunny.obj").exists():
-        scenes.append(("bunny, 256x256 ortho", mesh_sun(MESHES / "stanford-bunny.obj", m, image_res=256)))
-    if (MESHES / "spot.obj").exists():
-        s = mesh_sun(MESHES / "spot.obj", m, image_res=64, view_direction=(1, -0.3, -1))
-        s.resolution = (96, 64)
-        scenes.append(("spot, 96x64 ortho oblique", s))
-        s2 = mesh_sun(MESHES / "spot.obj", m, image_res=64)
-        lo, hi = s2.bbox
-        c, d = 0.5 * (lo + hi), np.linalg.norm(hi - lo)
-        s2.camera = Camera.perspective(c + np.array([0.5, 0.3, 0.9]) * d, c, (0, 1, 0), 50.0)
-        s2.resolution = (80, 60)
-        scenes.append(("spot, 80x60 perspective", s2))
+    scenes.append(("bunny, 256x256 ortho", mesh_sun(mesh_path("stanford-bunny"), m, image_res=256)))
+    s = mesh_sun(mesh_path("spot"), m, image_res=64, view_direction=(1, -0.3, -1))
+    s.resolution = (96, 64)
+    scenes.append(("spot, 96x64 ortho oblique", s))
+    s2 = mesh_sun(mesh_path("spot"), m, image_res=64)
+    lo, hi = s2.bbox
+    c, d = 0.5 * (lo + hi), np.linalg.norm(hi - lo)
+    s2.camera = Camera.perspective(c + np.array([0.5, 0.3, 0.9]) * d, c, (0, 1, 0), 50.0)
+    s2.resolution = (80, 60)
+    scenes.append(("spot, 80x60 perspective", s2))
     for label, sc in scenes:
         t = time.perf_counter()
         mm = render_mask(sc)
@@ -133,13 +131,12 @@ def cmd_sky(a):
     W = a.res
     print(f"lobe-2 sky from +x: right third {_fmt(np.nanmean(img[:, 2 * W // 3:], axis=(0, 1)))}, "
           f"left third {_fmt(np.nanmean(img[:, :W // 3], axis=(0, 1)))} ({lobe.seconds:.1f} s)")
-    if (MESHES / "stanford-bunny.obj").exists():
-        b = mesh_sky(MESHES / "stanford-bunny.obj", m, image_res=a.res, spp=a.spp)
-        res = render_reference(b)
-        P = metrics.comparison_mask(res.mask)
-        print(f"bunny under the lobe-2 sky ({b.mm_per_unit:.1f} mm/unit, {a.res}x{a.res}, {res.spp} spp): "
-              f"{res.seconds:.1f} s, mean {_fmt(res.image[P].mean(0))}, noise floor "
-              f"{metrics.noise_floor(res.image, res.stderr, res.mask):.4f}")
+    b = mesh_sky(mesh_path("stanford-bunny"), m, image_res=a.res, spp=a.spp)
+    res = render_reference(b)
+    P = metrics.comparison_mask(res.mask)
+    print(f"bunny under the lobe-2 sky ({b.mm_per_unit:.1f} mm/unit, {a.res}x{a.res}, {res.spp} spp): "
+          f"{res.seconds:.1f} s, mean {_fmt(res.image[P].mean(0))}, noise floor "
+          f"{metrics.noise_floor(res.image, res.stderr, res.mask):.4f}")
 
 
 def cmd_hetero(a):

@@ -76,11 +76,9 @@ from translucency_addon.errors import CacheError, GraphTooLarge, MaterialError, 
 from translucency_addon.fields import FieldSpec, evaluate_field  # noqa: E402
 from translucency_addon.lights import Environment, Light  # noqa: E402
 from translucency_addon.graph import graph_components  # noqa: E402,F401 - the engine's own, also used by test_hard_cases
+from data import mesh_path  # noqa: E402
 from translucency_addon.materials import Material, Medium, material_from_preset  # noqa: E402
 
-SHARED = ROOT.parent / "shared" / "meshes"
-if not SHARED.exists():  # CI clones next to ../shared; a worktree may sit elsewhere
-    SHARED = Path("/work/shared/meshes")
 
 TOL = 1e-5  # relative residual of every iterative solve here (the GPU tests' tolerance)
 MP_EPS = 1e-3
@@ -145,7 +143,7 @@ class Rejection:
 
 @lru_cache(maxsize=None)
 def shared_mesh(name: str):
-    V, F = meshio.load_obj(SHARED / f"{name}.obj")
+    V, F = meshio.load_obj(mesh_path(name))
     V.setflags(write=False)
     F.setflags(write=False)
     return V, F

@@ -3,7 +3,8 @@
 A fixture returns a list: :class:`cases.Scenario` for a case that must solve
 (one per variant), :class:`cases.Rejection` for one that must be refused.
 Bakes are memoised in ``cases`` for the whole session.  Meshes come from
-``primitives`` or ``../shared/meshes`` (resolved like ``tests/bakes.py``).
+``primitives`` or the repository's ``data/meshes`` (through ``data.mesh_path``, like
+``tests/bakes.py``).
 
 This directory is a package (``__init__.py``) so that this file is imported
 as ``hard_cases.conftest`` and never shadows ``tests/conftest.py``, which
