@@ -360,12 +360,12 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         g = self._gpu_levels[-1]
         return g.read(g.x_current).astype(np.float64) / g.q_scale
 
-    def surface_partial_current(self, result, level: int = -1) -> np.ndarray:
-        lv = self.bake.levels[level]
+    def surface_phi(self, result, level: int = -1) -> np.ndarray:
+        """Surface phi of a level: read back with every solve (finest level), else from the GPU."""
         phi_s = result.surface_phi(level) if isinstance(result, GPUSolveResult) else None
         if phi_s is None:
-            phi_s = self.read_phi(result, level)[lv.n_inner:]
-        return kernels.outgoing_partial_current(phi_s, result.q[level], self.fdr)
+            phi_s = self.read_phi(result, level)[self.bake.levels[level].n_inner:]
+        return phi_s
 
     def vertex_radiance(self, result, view_dirs=None) -> np.ndarray:
         """L_o at the user's vertices: on the GPU when the result is resident, else the CPU formula."""
@@ -378,6 +378,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         g.jplus(self.fdr)  # J+ into the scratch residual texture
         out_scale = 1.0 / (np.pi * self.eta * self.eta * g.q_scale)
         L = self._vmap.radiance(g.r, self.eta, out_scale, cos_o).astype(np.float64)
+        L *= self.output_clamp(result)[None, :]  # the CPU output's power-preserving clamp, on the read-back phi_s
         idx, w = self.bake.vertex_map
         return self.split_radiance_at(result, L, idx, w, self.bake.mesh_normals, view_dirs)  # closed form, CPU
 

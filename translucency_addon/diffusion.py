@@ -533,15 +533,26 @@ class DiffusionSolver:
                                   "solved directly instead")
 
     # -- output ------------------------------------------------------------------
+    def surface_phi(self, result: SolveResult, level: int = -1) -> np.ndarray:
+        """phi at the level's surface nodes (the GPU backend reads them back instead)."""
+        return result.phi[level][self.bake.levels[level].n_inner:]
+
+    def output_clamp(self, result: SolveResult, level: int = -1) -> np.ndarray:
+        """Per-channel factor (<= 1) that keeps the output's clamp of J+ at 0 from creating power.
+
+        :func:`.radiance.clamp_scale` of the level's surface phi; every backend's output applies
+        it (the CPU's in :meth:`surface_partial_current`, the GPU's to its kernel's radiance).
+        """
+        return clamp_scale(self.surface_phi(result, level), result.q[level], self.bake.levels[level].area,
+                           self.fdr)
+
     def surface_partial_current(self, result: SolveResult, level: int = -1) -> np.ndarray:
         """J+ at the level's surface nodes: clamped at 0, scaled so that the clamp adds no power.
 
-        See :func:`clamp_scale`.
+        See :meth:`output_clamp`.
         """
-        lv = self.bake.levels[level]
-        phi_s, q = result.phi[level][lv.n_inner:], result.q[level]
-        jplus = kernels.outgoing_partial_current(phi_s, q, self.fdr)
-        return jplus * clamp_scale(phi_s, q, lv.area, self.fdr)
+        jplus = kernels.outgoing_partial_current(self.surface_phi(result, level), result.q[level], self.fdr)
+        return jplus * self.output_clamp(result, level)
 
     def vertex_radiance(self, result: SolveResult, view_dirs=None) -> np.ndarray:
         """Outgoing radiance (W/(m^2 sr)) at the baked mesh's vertices.

@@ -48,7 +48,7 @@ def outgoing_radiance(jplus: np.ndarray, cos_o, eta: float) -> np.ndarray:
     ``phi_s - 2q >= 0`` whenever ``phi_k >= q (2 - d_sk/kappa)``), i.e. on
     graphs finer than a transport mean free path, and in strong absorbers.
     The clamp removes no light from lit regions; the power it would add is
-    taken back by :func:`clamp_scale` (CPU output).
+    taken back by :func:`clamp_scale` (every backend's output: ``DiffusionSolver.output_clamp``).
     """
     ft = fresnel_transmittance(np.clip(cos_o, 0.0, 1.0), eta)
     ft = np.where(np.asarray(cos_o) > 0, ft, 0.0)

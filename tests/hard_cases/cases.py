@@ -47,8 +47,8 @@ Tolerances, and why:
   is larger (:func:`residual_floor`), or twice the CPU's measured distance
   from the direct solve (two iterates stopped at the same residual differ by
   up to that: the slivers); the GPU's convergence is judged
-  against the same floor.  The GPU radiance does not yet apply the CPU's
-  ``clamp_scale`` (:func:`gpu_clamp_factor`).
+  against the same floor.  Both outputs apply the same power-preserving
+  clamp (``DiffusionSolver.output_clamp``), so the radiance is compared as it is.
 * fp16 storage: ``FP16_TOL`` = 3e-3 (coefficients and q rounded to 11
   significant bits: 2^-11 = 4.9e-4 relative per value).
 """
@@ -769,21 +769,6 @@ def power(run: Run, level: int):
     return p_in, p_out, imbalance
 
 
-def gpu_clamp_factor(run: Run) -> np.ndarray:
-    """The per-channel ``radiance.clamp_scale`` the CPU output applies and the GPU's does not.
-
-    The GPU's radiance kernel (gpu_shaders) clamps J+ at 0 without taking
-    back the power the clamp adds; until it does, the GPU radiance is
-    compared with the CPU's after applying this factor (1 in every ordinary
-    case; 0.9998 on the thin shell).  The GPU's own, unscaled output is still
-    held to the energy bound.
-    """
-    from translucency_addon.radiance import clamp_scale
-
-    lv = run.scenario.bake.finest
-    return clamp_scale(run.phi[-1][lv.n_inner:], run.result.q[-1], lv.area, run.solver.fdr)
-
-
 def compare(run: Run, ref: Run, tol: float) -> tuple[float, list[str]]:
     """Radiance difference ``max |L - L_ref| / scale`` and the problem if above ``tol``.
 
@@ -791,14 +776,13 @@ def compare(run: Run, ref: Run, tol: float) -> tuple[float, list[str]]:
     ``max q / (pi eta^2)``, the radiance the incoming light sets: a strong
     absorber returns almost nothing (all J+ clamped in the direct solve),
     and a relative error of almost nothing says nothing about the solve.
-    Both exactly zero: 0.  A GPU run's radiance gets :func:`gpu_clamp_factor`.
+    Both exactly zero: 0.  The GPU's radiance is compared as it is: its output applies the
+    CPU's power-preserving clamp (``DiffusionSolver.output_clamp``) itself.
     """
     q = ref.result.q[-1]
     scale = max(float(np.abs(ref.radiance).max()),
                 float(np.abs(q).max()) / (np.pi * ref.solver.eta ** 2) if q is not None else 0.0)
     L = run.radiance
-    if run.solver_name.startswith("gpu") and q is not None and run.phi[-1] is not None:
-        L = L * gpu_clamp_factor(run)[None, :]
     diff = float(np.abs(L - ref.radiance).max())
     err = diff / scale if scale > 0 else (0.0 if diff == 0 else np.inf)
     problems = [] if err <= tol else [f"{run.solver_name} vs {ref.solver_name}: radiance differs by {err:.3g} (tol {tol:g})"]
