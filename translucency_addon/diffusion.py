@@ -591,7 +591,7 @@ class DiffusionSolver:
         q = result.q[level]
         phi = result.phi[level]
         phi_s = phi[lv.n_inner:]
-        jp = (phi_s - 2.0 * q) / (2.0 * (1.0 + self.fdr))
+        jp = kernels.partial_current(phi_s, q, self.fdr)
         if clamp:  # what the radiance output emits (surface_partial_current)
             jp = np.maximum(jp, 0.0) * clamp_scale(phi_s, q, lv.area, self.fdr)
         p_in = a @ q

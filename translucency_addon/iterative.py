@@ -274,7 +274,7 @@ def energy_imbalance(system: LevelSystem, q: np.ndarray, x: np.ndarray, fdr: flo
         system.__dict__["_absorption_w"] = w
     a = system.level.area * system.mm_per_unit**2
     p_in = a @ q
-    jp = (x[ni:] - 2.0 * q) / (2.0 * (1.0 + fdr))
+    jp = kernels.partial_current(x[ni:], q, fdr)
     gap = np.abs(p_in - a @ ((1.0 - fdr) * jp) - np.einsum("nc,nc->c", w, x))
     lit = p_in > 0
     return float(np.max(gap[lit] / p_in[lit])) if lit.any() else 0.0

@@ -81,10 +81,20 @@ def shepard_upsample(idx: np.ndarray, w: np.ndarray, x_coarse: np.ndarray) -> np
     return np.einsum("nb,nbc->nc", w.astype(x_coarse.dtype), gather(idx, x_coarse))
 
 
+def partial_current(phi_s, q, fdr: float) -> np.ndarray:
+    """J+ = (phi - 2 q) / (2 (1 + F_dr)), unclamped: the outgoing partial current of the
+    diffusive-source boundary condition (derived in ``diffusion.py``; the corrected eq. 6/9).
+
+    The one place this formula is written in Python; the energy balances use it unclamped, the
+    output through :func:`outgoing_partial_current` (its GLSL twin: ``jplus.glsl``).
+    """
+    return (np.asarray(phi_s) - 2.0 * np.asarray(q)) / (2.0 * (1.0 + fdr))
+
+
 def outgoing_partial_current(phi_s: np.ndarray, q: np.ndarray, fdr: float) -> np.ndarray:
     """J+ = max(0, phi - 2 q) / (2 (1 + F_dr)) at surface nodes (kernel ``radiance.glsl``).
 
-    Derived in ``diffusion.py``; negative values are clamped to zero (see
-    ``radiance.outgoing_radiance`` for when they can occur and why).
+    :func:`partial_current` clamped at zero (see ``radiance.outgoing_radiance`` for when it can
+    be negative and why).
     """
-    return np.maximum(phi_s - 2.0 * q, 0.0) / (2.0 * (1.0 + fdr))
+    return np.maximum(partial_current(phi_s, q, fdr), 0.0)

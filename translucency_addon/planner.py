@@ -80,10 +80,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .fresnel import boundary_A, diffuse_reflectance_internal
 from .lights import Environment, Light, spot_falloff
 from .materials import Material, reduced_albedo
-from .single_scattering.closed_form import half_space_split
+from .single_scattering.closed_form import half_space_split, semi_infinite_albedo  # noqa: F401 - the planner's measure
 
 ALBEDO_MIN = 0.5
 THICK_MIN = 1.0
@@ -153,20 +152,6 @@ class Plan:
             return np.broadcast_to(mask, (len(idx), 3)).copy()
         mapped = np.einsum("vk,vkc->vc", np.asarray(w, dtype=np.float64), p.weights[idx])
         return np.clip(mapped, 0.0, 1.0) * mask
-
-
-def semi_infinite_albedo(alpha_reduced, eta: float) -> np.ndarray:
-    """Fraction of the transmitted light a half-space returns under our diffusion model.
-
-    Solving eq. 1-2 for a half-space lit uniformly: phi(z) = phi0 exp(-sigma_tr z),
-    phi0 = 4q/(1 - F_dr) / (1 + 2 A kappa sigma_tr) with kappa sigma_tr = sqrt((1 - alpha')/3);
-    the exitant flux is (1 - F_dr) J+ with J+ = max(0, phi0 - 2q)/(2 (1 + F_dr)).
-    """
-    a = np.clip(np.asarray(alpha_reduced, dtype=np.float64), 0.0, 1.0)
-    fdr = diffuse_reflectance_internal(eta)
-    A = boundary_A(eta)
-    phi0 = 4.0 / ((1.0 - fdr) * (1.0 + 2.0 * A * np.sqrt((1.0 - a) / 3.0)))
-    return (1.0 - fdr) * np.maximum(phi0 - 2.0, 0.0) / (2.0 * (1.0 + fdr))
 
 
 def surface_thickness(bake) -> np.ndarray:

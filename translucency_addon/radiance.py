@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from .fresnel import fresnel_transmittance
+from .kernels import partial_current
 
 
 def clamp_scale(phi_s: np.ndarray, q: np.ndarray, area: np.ndarray, fdr: float) -> np.ndarray:
@@ -30,7 +31,7 @@ def clamp_scale(phi_s: np.ndarray, q: np.ndarray, area: np.ndarray, fdr: float) 
     was clamped, or the model gives a net inflow: an absorber, where the
     clamped output is already below the light that came in) the factor is 1.
     """
-    j = (np.asarray(phi_s) - 2.0 * np.asarray(q)) / (2.0 * (1.0 + fdr))
+    j = partial_current(phi_s, q, fdr)
     a = np.asarray(area, dtype=np.float64)
     unclamped = a @ j
     clamped = a @ np.maximum(j, 0.0)

@@ -115,6 +115,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..fresnel import boundary_A, check_eta, diffuse_reflectance_internal, fresnel_transmittance
+from ..kernels import outgoing_partial_current
 
 N_QUAD = 64
 N_ALPHA = 513
@@ -138,6 +139,20 @@ def refracted_cosine(mu_out, eta: float) -> np.ndarray:
     """Inside cosine of a ray that crosses the boundary at outside cosine ``mu_out``."""
     mu = np.clip(np.asarray(mu_out, dtype=np.float64), 0.0, 1.0)
     return np.sqrt(1.0 - (1.0 - mu * mu) / (eta * eta))
+
+
+def semi_infinite_albedo(alpha_reduced, eta: float) -> np.ndarray:
+    """Fraction of the transmitted light a half-space returns under our diffusion model.
+
+    Solving eq. 1-2 for a half-space lit uniformly: phi(z) = phi0 exp(-sigma_tr z),
+    phi0 = 4q/(1 - F_dr) / (1 + 2 A kappa sigma_tr) with kappa sigma_tr = sqrt((1 - alpha')/3);
+    the exitant flux is (1 - F_dr) J+ with J+ = max(0, phi0 - 2q)/(2 (1 + F_dr)).
+    """
+    a = np.clip(np.asarray(alpha_reduced, dtype=np.float64), 0.0, 1.0)
+    fdr = diffuse_reflectance_internal(eta)
+    phi0 = 4.0 / ((1.0 - fdr) * (1.0 + 2.0 * boundary_A(eta) * np.sqrt((1.0 - a) / 3.0)))
+    return (1.0 - fdr) * outgoing_partial_current(phi0, 1.0, fdr)
+
 
 
 class HalfSpaceSplit:
@@ -198,9 +213,7 @@ class HalfSpaceSplit:
 
     def _boundary(self, alpha) -> np.ndarray:
         """B(alpha): the boundary-source diffusion's half-space return (our graph's model)."""
-        s = np.sqrt(3.0 * np.maximum(1.0 - np.asarray(alpha, dtype=np.float64), 0.0))
-        phi0 = 4.0 / ((1.0 - self.fdr) * (1.0 + 2.0 * self.A * s / 3.0))
-        return (1.0 - self.fdr) * np.maximum(phi0 - 2.0, 0.0) / (2.0 * (1.0 + self.fdr))
+        return semi_infinite_albedo(alpha, self.eta)
 
     def _transport(self, alpha):
         """(M, c) from the transport solution of the half-space (:mod:`.half_space`), rows: alpha.
