@@ -269,7 +269,7 @@ def _solver_sig(frame: FluidInputs) -> tuple:
 
 def _solve(st: state.FluidObjectState, frame: FluidInputs):
     """``FluidSolver.solve`` for this frame, warm-started from the last one where that is the same fluid."""
-    from ..translucency_addon.errors import ParticleError
+    from ..translucency_addon.errors import ParticleError, RadiusError
     from ..translucency_addon.fluid import FluidOptions, FluidSolver
 
     options = FluidOptions(tol=frame.tolerance)
@@ -283,6 +283,11 @@ def _solve(st: state.FluidObjectState, frame: FluidInputs):
             frame.particles.points, ids=frame.particles.ids, field_values=frame.field, lights=list(frame.lights),
             environment=frame.environment, surface=None if frame.use_points else (out.positions, out.faces),
             view_dirs=view_dirs, occluders=frame.occluders, shadows=True, warm_start=warm)
+    except RadiusError as ex:  # in scene units, with one suggestion: the panel's settings
+        scene = bpy.context.scene
+        text = ex.describe(lambda x: length_text(scene, x * frame.scale),
+                           "turn on Auto Radius, or set Radius to about {spacing}")
+        raise ParticleError(f"{frame.particles.source}, frame {frame.frame}: {text}") from None
     except ParticleError as ex:
         hint = ""
         if "radius" in str(ex) and frame.suggested > 0:

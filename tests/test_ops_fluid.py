@@ -504,6 +504,9 @@ def test_bad_input_is_refused_and_the_scene_is_unchanged(blender, addon, ui, mon
     bpy.context.scene.frame_set(2)  # the handler path
     live.flush()
     assert expect in state.ERRORS.get("Milk", ""), state.ERRORS
+    if case == "radius_huge":  # one suggestion, in scene units, naming the panel's settings
+        message = state.ERRORS["Milk"]
+        assert "Auto Radius" in message and "suggest_radius" not in message and "object units" not in message
     assert snapshot() == before
     assert expect in _panel_text(ui, target)
     assert any(level == 'ERROR' and expect in message for level, message in state.INFO)

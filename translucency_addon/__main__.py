@@ -31,12 +31,76 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
 import numpy as np
 
 from .errors import TranslucencyError
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse whose errors are one line on stderr, exit status 2, like every other refusal of the CLI."""
+
+    def error(self, message):
+        print(f"error: {message} (run '{self.prog} --help' for what each option accepts)", file=sys.stderr)
+        sys.exit(2)
+
+
+def _checked(check, what: str):
+    """An argparse type: ``float(text)`` passed through the engine's ``check`` (its message on failure)."""
+    def parse(text):
+        try:
+            return check(float(text))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what}: expected a number, got {text!r}") from None
+        except TranslucencyError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    parse.__name__ = what
+    return parse
+
+
+def _in_range(lo: float, hi: float, what: str, cast=float, lo_open: bool = False, hi_open: bool = False):
+    """An argparse type: a finite number in [lo, hi] (open ends where asked)."""
+    def check(v):
+        v = cast(v)
+        if not (np.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)):
+            ends = ("(" if lo_open else "[") + f"{lo:g}, {hi:g}" + (")" if hi_open else "]")
+            raise TranslucencyError(f"expected a finite number in {ends}, got {v:g}")
+        return v
+    if cast is int:
+        def parse(text):
+            try:
+                return check(int(text))
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"{what}: expected a whole number, got {text!r}") from None
+            except TranslucencyError as exc:
+                raise argparse.ArgumentTypeError(str(exc)) from None
+        parse.__name__ = what
+        return parse
+    return _checked(check, what)
+
+
+def _mm_per_unit(text):
+    from .materials import check_mm_per_unit
+
+    return _checked(check_mm_per_unit, "--mm-per-unit")(text)
+
+
+def _radius(text):
+    from .fluid.particles import check_radius
+
+    return _checked(check_radius, "--radius")(text)
+
+
+def _eta(text):
+    from .fresnel import check_eta
+
+    return _checked(check_eta, "--eta")(text)
+
+
+_tolerance = _in_range(0.0, 1.0, "--tol", lo_open=True, hi_open=True)
 
 
 def _floats(text: str, n: int, what: str) -> tuple:
@@ -46,11 +110,17 @@ def _floats(text: str, n: int, what: str) -> tuple:
         raise argparse.ArgumentTypeError(f"{what}: expected {n} comma-separated numbers, got {text!r}")
     if len(vals) != n:
         raise argparse.ArgumentTypeError(f"{what}: expected {n} comma-separated numbers, got {text!r}")
+    if not all(np.isfinite(vals)):
+        raise argparse.ArgumentTypeError(f"{what}: expected {n} finite numbers (no NaN or Inf), got {text!r}")
     return vals
 
 
 def _rgb(text):
-    return _floats(text, 3, "RGB")
+    return _floats(text, 3, "R,G,B")
+
+
+def _camera(text):
+    return _floats(text, 3, "--camera X,Y,Z")
 
 
 def _sun(text):
@@ -58,7 +128,7 @@ def _sun(text):
         d, e = text.split(":")
     except ValueError:
         raise argparse.ArgumentTypeError(f"--sun: expected DX,DY,DZ:E, got {text!r}")
-    return _floats(d, 3, "--sun direction"), float(e)
+    return _floats(d, 3, "--sun direction"), _floats(e, 1, "--sun irradiance")[0]
 
 
 def _point(text):
@@ -66,30 +136,38 @@ def _point(text):
         p, w = text.split(":")
     except ValueError:
         raise argparse.ArgumentTypeError(f"--point: expected X,Y,Z:W, got {text!r}")
-    return _floats(p, 3, "--point position"), float(w)
+    return _floats(p, 3, "--point position"), _floats(w, 1, "--point power")[0]
 
 
 def _field(text):
     kind, _, scale = text.partition(":")
-    return kind, float(scale) if scale else 1.0
+    if not scale:
+        return kind, 1.0
+    return kind, _in_range(0.0, np.inf, "--field SCALE", lo_open=True, hi_open=True)(scale)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m translucency_addon", description=__doc__.split("\n\n")[0],
+    ap = _Parser(prog="python -m translucency_addon", description=__doc__.split("\n\n")[0],
                                  epilog="Run 'python -m translucency_addon COMMAND --help' for a command's options. "
-                                        "Errors exit with status 2 and a line 'error: ...' that names the problem.")
+                                        "Errors exit with status 2 and one line 'error: ...' that names the problem; "
+                                        "arguments and files are checked before any work, and nothing is written "
+                                        "unless everything succeeds.")
     sub = ap.add_subparsers(dest="command", required=True)
 
     b = sub.add_parser("bake", help="bake the multi-resolution QuadGraph of a mesh")
-    b.add_argument("mesh", help="triangle mesh (.obj), in object units")
-    b.add_argument("-o", "--output", required=True, help="cache file to write (.npz)")
+    b.add_argument("mesh", help="triangle mesh (.obj, a readable file), in object units")
+    b.add_argument("-o", "--output", required=True,
+                   help="cache file to write (.npz) in an existing, writable folder")
     b.add_argument("--quality", default="preview", choices=["draft", "preview", "final"],
                    help="graph resolution and level count (draft: fastest bake, coarsest graph; default preview)")
-    b.add_argument("--levels", type=int, default=None, help="number of multi-resolution levels (default: the quality's)")
-    b.add_argument("--mm-per-unit", type=float, default=1.0, help="millimetres per mesh unit (default 1)")
-    b.add_argument("--sky-directions", type=int, default=0,
+    b.add_argument("--levels", type=_in_range(1, 6, "--levels", int), default=None,
+                   help="number of multi-resolution levels, 1 to 6 (default: the quality's)")
+    b.add_argument("--mm-per-unit", type=_mm_per_unit, default=1.0,
+                   help="millimetres per mesh unit, a finite number > 0 (default 1)")
+    b.add_argument("--sky-directions", type=_in_range(0, 4096, "--sky-directions", int), default=0,
                    help="also bake sky visibility with N rays per surface node (self-occlusion and one "
-                        "interreflection bounce for world light; 0 = off, the default; the Blender add-on uses 64)")
+                        "interreflection bounce for world light; 0 = off, the default, or 8 to 4096; the Blender "
+                        "add-on uses 64)")
     b.add_argument("--level-mode", choices=["refine", "independent"], default="refine",
                    help="finer levels by nested refinement (fast) or independent tetrahedralisation (paper)")
     b.add_argument("--no-optimize", action="store_true", help="skip fTetWild's optimisation (fast, slivers)")
@@ -97,11 +175,14 @@ def build_parser() -> argparse.ArgumentParser:
     _material_args(b, "single scattering: ")
     b.add_argument("--ss-quality", default="preview", choices=["draft", "preview", "final"],
                    help="single scattering: voxel resolution (32/48/64 on the longest side)")
-    b.add_argument("--ss-dirs", type=int, default=128, help="single scattering: optical-depth directions (32, 128, 512)")
-    b.add_argument("--ss-samples", type=int, default=20000, help="single scattering: target number of RBF samples")
+    b.add_argument("--ss-dirs", type=int, default=128,
+                   help="single scattering: optical-depth directions, at least 6 (32, 128, 512; default 128)")
+    b.add_argument("--ss-samples", type=int, default=20000,
+                   help="single scattering: target number of RBF samples, at least 8 (default 20000)")
     b.add_argument("--ss-order", type=int, default=4, choices=[1, 2, 3, 4], help="single scattering: SH order")
     b.add_argument("--inner", action="append", default=[], metavar="PART.obj:ROLE",
-                   help="an inner part (same object space): ROLE a preset name (another medium), cavity or opaque")
+                   help="an inner part (a readable .obj, same object space): ROLE a preset name (another "
+                        "medium), cavity or opaque")
     b.add_argument("--voxel-number-map", action="store_true",
                    help="also bake the Voxel Number Map (surface-voxel optical-thickness LUT, Mochida et al.)")
     b.add_argument("--vnm-quality", default="preview", choices=["draft", "preview", "final"],
@@ -113,28 +194,36 @@ def build_parser() -> argparse.ArgumentParser:
                      "and the Voxel Number Map when the cache holds them (the --stats file says why a term was "
                      "left out).")
     s.add_argument("cache", help="bake cache (.npz) from 'bake'")
-    s.add_argument("-o", "--output", required=True, help="RGB radiance per vertex of the baked mesh (.npy)")
+    s.add_argument("-o", "--output", required=True,
+                   help="RGB radiance per vertex of the baked mesh, W/(m^2 sr) (.npy, in an existing, writable "
+                        "folder)")
     _material_args(s, "")
-    s.add_argument("--env", type=_rgb, default=None, help="uniform environment radiance R,G,B (unoccluded)")
+    s.add_argument("--env", type=_rgb, default=None, help="uniform environment radiance R,G,B, W/(m^2 sr), each >= 0 (unoccluded)")
     s.add_argument("--sun", type=_sun, action="append", default=[],
-                   help="sun light DX,DY,DZ:E -- direction the light travels (object space) and irradiance in W/m^2")
+                   help="sun light DX,DY,DZ:E -- direction the light travels (object space, not 0,0,0) and "
+                        "irradiance in W/m^2, >= 0 (repeatable)")
     s.add_argument("--point", type=_point, action="append", default=[],
-                   help="point light X,Y,Z:W -- position (object units) and radiant power in W (isotropic)")
+                   help="point light X,Y,Z:W -- position (object units) and radiant power in W, >= 0 (isotropic; "
+                        "repeatable)")
     s.add_argument("--solver", choices=["paper", "fast", "direct"], default="fast",
                    help="paper: Jacobi relaxation (eqs. 8-9, slow on fine graphs); fast: Chebyshev (default); "
                         "direct: sparse LU (exact, memory grows fast)")
-    s.add_argument("--tol", type=float, default=1e-4, help="relative residual tolerance (default 1e-4)")
+    s.add_argument("--tol", type=_tolerance, default=1e-4,
+                   help="relative residual tolerance, in (0, 1) (default 1e-4)")
     s.add_argument("--no-shadows", action="store_true", help="ignore occlusion of point and sun lights")
-    s.add_argument("--mm-per-unit", type=float, default=None, help="override the baked scene scale")
-    s.add_argument("--stats", default=None, help="write node counts, sweeps, residual and timings (.json)")
-    s.add_argument("--camera", type=_rgb, default=None,
+    s.add_argument("--mm-per-unit", type=_mm_per_unit, default=None,
+                   help="override the baked scene scale: millimetres per mesh unit, a finite number > 0")
+    s.add_argument("--stats", default=None, help="write node counts, sweeps, residual and timings (.json, in an "
+                                                 "existing, writable folder)")
+    s.add_argument("--camera", type=_camera, default=None,
                    help="perspective camera position X,Y,Z (object units): view-dependent radiance toward it "
                         "(default: each vertex seen along its normal)")
     s.add_argument("--no-single-scattering", action="store_true",
                    help="leave out the single-scattering term even when the cache holds it")
-    s.add_argument("--ss-output", default=None, help="also write the single-scattering term alone (.npy)")
+    s.add_argument("--ss-output", default=None,
+                   help="also write the single-scattering term alone (.npy, in an existing, writable folder)")
     s.add_argument("--deformed", default=None, metavar="POSED.obj",
-                   help="solve on the baked graph deformed to this pose (the baked mesh's vertices, same count "
+                   help="solve on the baked graph deformed to this pose (a readable .obj: the baked mesh's vertices, same count "
                         "and order; Wang et al. sec. 6.4) instead of re-baking; radiance at the posed vertices")
     s.add_argument("--no-voxel-number-map", action="store_true",
                    help="leave out the Voxel Number Map term even when the cache holds it")
@@ -149,36 +238,50 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("cache", help="bake cache (.npz) from 'bake'")
     p.add_argument("--material", default="marble",
                    help="preset name (marble, skimmilk, skin1, ketchup, ...; default marble)")
-    p.add_argument("--env", type=_rgb, default=None, help="uniform environment radiance R,G,B (default: none)")
+    p.add_argument("--env", type=_rgb, default=None, help="uniform environment radiance R,G,B, W/(m^2 sr), each >= 0 (default: none)")
     p.add_argument("--sun", type=_sun, action="append", default=[],
-                   help="sun light DX,DY,DZ:E -- direction the light travels (object space) and irradiance in W/m^2")
+                   help="sun light DX,DY,DZ:E -- direction the light travels (object space, not 0,0,0) and "
+                        "irradiance in W/m^2, >= 0 (repeatable)")
     p.add_argument("--point", type=_point, action="append", default=[],
-                   help="point light X,Y,Z:W -- position (object units) and radiant power in W (isotropic)")
-    p.add_argument("--mm-per-unit", type=float, default=None, help="override the baked scene scale (mm per unit)")
+                   help="point light X,Y,Z:W -- position (object units) and radiant power in W, >= 0 (isotropic; "
+                        "repeatable)")
+    p.add_argument("--mm-per-unit", type=_mm_per_unit, default=None,
+                   help="override the baked scene scale: millimetres per mesh unit, a finite number > 0")
     return ap
 
 
 def _fluid_parser(sub) -> None:
     """The ``fluid`` subcommand (particle fluids, Kang & Kim 2013; ``fluid/cli.py``)."""
     f = sub.add_parser("fluid", help="solve a particle fluid frame by frame (Voronoi-fluid cells)")
-    f.add_argument("points", help="(N, 3) or (F, N, 3) float array (.npy) of particle positions, object units")
-    f.add_argument("-o", "--output", required=True, help="per-cell phi, V, surface flag and radiance (.npz)")
-    f.add_argument("--radius", type=float, required=True, help="particle radius, object units")
-    f.add_argument("--mm-per-unit", type=float, required=True, help="millimetres per object unit")
+    f.add_argument("points", help="(N, 3) or (F, N, 3) float array (.npy, numpy.save) of particle positions, "
+                                  "object units; NaN rows are absent particles")
+    f.add_argument("-o", "--output", required=True,
+                   help="per-cell phi, V, surface flag and radiance (.npz, in an existing, writable folder)")
+    f.add_argument("--radius", type=_radius, required=True,
+                   help="particle radius, object units, a finite number > 0 (about the particle spacing)")
+    f.add_argument("--mm-per-unit", type=_mm_per_unit, required=True,
+                   help="millimetres per object unit, a finite number > 0")
     _material_args(f, "")
-    f.add_argument("--env", type=_rgb, default=None, help="uniform environment radiance R,G,B")
-    f.add_argument("--sun", type=_sun, action="append", default=[], help="sun DX,DY,DZ:E (W/m^2)")
-    f.add_argument("--point", type=_point, action="append", default=[], help="point light X,Y,Z:W (W)")
-    f.add_argument("--surface", default=None, help="surface mesh (.obj, object units) to carry radiance onto")
-    f.add_argument("--surface-out", default=None, help="per-vertex RGB radiance on --surface (.npy)")
-    f.add_argument("--tol", type=float, default=1e-4, help="relative residual tolerance (default 1e-4)")
+    f.add_argument("--env", type=_rgb, default=None, help="uniform environment radiance R,G,B, W/(m^2 sr), each >= 0")
+    f.add_argument("--sun", type=_sun, action="append", default=[],
+                   help="sun DX,DY,DZ:E -- direction (not 0,0,0) and irradiance in W/m^2, >= 0 (repeatable)")
+    f.add_argument("--point", type=_point, action="append", default=[],
+                   help="point light X,Y,Z:W -- position (object units) and power in W, >= 0 (repeatable)")
+    f.add_argument("--surface", default=None,
+                   help="surface mesh (a readable .obj, object units) to carry radiance onto")
+    f.add_argument("--surface-out", default=None,
+                   help="per-vertex RGB radiance on --surface (.npy, in an existing, writable folder)")
+    f.add_argument("--tol", type=_tolerance, default=1e-4, help="relative residual tolerance, in (0, 1) (default 1e-4)")
     f.add_argument("--no-shadows", action="store_true", help="ignore occlusion of point and sun lights")
-    f.add_argument("--stats", default=None, help="cell counts, seconds per stage, sweeps per frame (.json)")
+    f.add_argument("--stats", default=None,
+                   help="cell counts, seconds per stage, sweeps per frame (.json, in an existing, writable folder)")
 
 
 def cmd_fluid(a) -> int:
     from .fluid.cli import run_fluid
 
+    check_files([("POINTS", a.points), ("--surface", a.surface)],
+                [("-o", a.output), ("--surface-out", a.surface_out), ("--stats", a.stats)])
     return run_fluid(a, material_from_args(a), *lights_from_args(a), field_spec=lambda P: field_spec_from_args(a, P))
 
 
@@ -186,11 +289,14 @@ def _material_args(parser, prefix: str) -> None:
     parser.add_argument("--material", default=None, help=prefix + "preset name (marble, skimmilk, skin1, ketchup, ...)")
     parser.add_argument("--mix-with", default=None, help=prefix + "second preset mixed in by --field")
     parser.add_argument("--field", type=_field, default=None,
-                        help=prefix + "mixing field KIND[:SCALE], e.g. marble:0.05 (default marble, a quarter of the size)")
-    parser.add_argument("--sigma-a", type=_rgb, default=None, help=prefix + "absorption R,G,B per mm (custom material)")
+                        help=prefix + "mixing field KIND[:SCALE], SCALE in object units > 0, e.g. marble:0.05 "
+                                      "(default marble, a quarter of the size)")
+    parser.add_argument("--sigma-a", type=_rgb, default=None,
+                        help=prefix + "absorption R,G,B per mm, each >= 0 (custom material)")
     parser.add_argument("--sigma-s", type=_rgb, default=None,
-                        help=prefix + "reduced scattering R,G,B per mm (custom material)")
-    parser.add_argument("--eta", type=float, default=1.3, help=prefix + "relative refractive index (default 1.3)")
+                        help=prefix + "reduced scattering R,G,B per mm, each >= 0 (custom material)")
+    parser.add_argument("--eta", type=_eta, default=1.3,
+                        help=prefix + "relative refractive index, in [1, 4] (default 1.3)")
 
 
 def field_spec_from_args(a, V):
@@ -223,14 +329,60 @@ def lights_from_args(a):
     return lights, env
 
 
+def check_files(inputs=(), outputs=()) -> None:
+    """Refuse, before any work, an input that is not a readable file or an output that cannot be written.
+
+    ``inputs`` and ``outputs`` are ``(option, path)`` pairs (``path`` None: not given).  An output's folder
+    must exist and be writable (nothing creates it), the output must not be a folder, and no two outputs
+    may be the same file.  Raises :class:`InputError` naming the option and the file."""
+    from .errors import InputError
+
+    for option, path in inputs:
+        if path is None:
+            continue
+        if not os.path.exists(path):
+            raise InputError(f"{option} {path}: no such file")
+        if not os.path.isfile(path):
+            raise InputError(f"{option} {path}: is a folder, not a file")
+        if not os.access(path, os.R_OK):
+            raise InputError(f"{option} {path}: cannot be read (no read permission for this user)")
+    seen = {}
+    for option, path in outputs:
+        if path is None:
+            continue
+        full = os.path.realpath(path)
+        folder = os.path.dirname(full)
+        if full in seen:
+            raise InputError(f"{option} and {seen[full]} are the same file {path}; give each output its own name")
+        seen[full] = option
+        if os.path.isdir(full):
+            raise InputError(f"{option} {path}: is a folder; give a file name inside it")
+        if not os.path.isdir(folder):
+            raise InputError(f"{option} {path}: the folder {os.path.dirname(os.path.abspath(path))} does not exist; "
+                             "create it first")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise InputError(f"{option} {path}: the folder {folder} is not writable for this user")
+        if os.path.exists(full) and not os.access(full, os.W_OK) and not os.access(folder, os.W_OK):
+            raise InputError(f"{option} {path}: cannot be replaced (no write permission)")
+
+
+def _inner_paths(specs) -> list:
+    """The files of ``--inner PART.obj:ROLE`` (malformed specs are refused later, with the spec)."""
+    return [("--inner", str(spec).rpartition(":")[0]) for spec in specs if str(spec).rpartition(":")[0]]
+
+
 def cmd_bake(a) -> int:
     from .bake import BakeSettings, bake_mesh, format_stats
     from .cache import save_bake
     from .meshio import load_obj
 
-    V, F = load_obj(a.mesh)
+    check_files([("MESH", a.mesh)] + _inner_paths(a.inner), [("-o", a.output)])
     settings = BakeSettings(quality=a.quality, levels=a.levels, mm_per_unit=a.mm_per_unit,
                             level_mode=a.level_mode, optimize=not a.no_optimize, sky_directions=a.sky_directions)
+    settings.resolved()  # its ranges (levels, sky directions), before the mesh is read
+    if a.single_scattering or a.inner or a.voxel_number_map:
+        material_from_args(a)
+    V, F = load_obj(a.mesh)
     t0 = time.perf_counter()
 
     def progress(frac, stage):
@@ -300,18 +452,22 @@ def cmd_solve(a) -> int:
     from .diffusion import DiffusionSolver, SolveOptions
     from .fields import evaluate_field
 
+    from .cache import write_files
+
+    check_files([("CACHE", a.cache), ("--deformed", a.deformed)],
+                [("-o", a.output), ("--stats", a.stats), ("--ss-output", a.ss_output)])
+    material = material_from_args(a)
+    lights, env = lights_from_args(a)
     t0 = time.perf_counter()
     bake = load_bake(a.cache)
     if a.mm_per_unit is not None:
         bake = bake.with_scale(a.mm_per_unit)
     t_load = time.perf_counter() - t0
-    material = material_from_args(a)
     field_values = None
     spec = None
     if material.heterogeneous:
         spec = field_spec_from_args(a, bake.mesh_vertices)
         field_values = [evaluate_field(spec, lv.position) for lv in bake.levels]
-    lights, env = lights_from_args(a)
     deformation = None
     if a.deformed and bake.composite is not None:
         from .errors import DeformationError
@@ -350,8 +506,10 @@ def cmd_solve(a) -> int:
     L = solver.vertex_radiance(result, view_dirs)
     t_diff = time.perf_counter()
     ss_stats = _solve_single_scattering(a, bake, outer_material, spec, lights, env)
+    L_ss = None
     if ss_stats is not None:
-        L = L + ss_stats.pop("radiance")
+        L_ss = ss_stats.pop("radiance")
+        L = L + L_ss
     vnm_stats = {"enabled": False, "reason": "turned off (--no-voxel-number-map)" if a.no_voxel_number_map
                  else "the cache holds no Voxel Number Map (bake with --voxel-number-map)"}
     if bake.voxel_number_map is not None and not a.no_voxel_number_map:
@@ -360,7 +518,6 @@ def cmd_solve(a) -> int:
         view = ("PERSP", tuple(a.camera)) if a.camera is not None else None
         L_vnm, vnm_stats = solve_voxel_number_map(bake, outer_material, lights, env, view, shadows=not a.no_shadows)
         L = L + L_vnm
-    np.save(a.output, L.astype(np.float32))
     t2 = time.perf_counter()
     stats = {
         "levels": [{"n_inner": lv.n_inner, "n_surface": lv.n_surface} for lv in bake.levels],
@@ -382,9 +539,15 @@ def cmd_solve(a) -> int:
         "n_vertices": int(len(L)),
         "deformation": deformation,
     }
+    L32 = L.astype(np.float32)
+    writers = {a.output: lambda fh: np.save(fh, L32)}
+    if L_ss is not None and a.ss_output:
+        L_ss32 = L_ss.astype(np.float32)
+        writers[a.ss_output] = lambda fh: np.save(fh, L_ss32)
     if a.stats:
-        with open(a.stats, "w", encoding="utf-8") as fh:
-            json.dump(stats, fh, indent=2)
+        text = json.dumps(stats, indent=2)
+        writers[a.stats] = lambda fh: fh.write(text.encode("utf-8"))
+    write_files(writers)  # all or nothing, after everything else succeeded
     ss_note = ""
     if ss_stats is not None:
         ss_note = f" + single scattering ({ss_stats['n_samples']} samples, {ss_stats['seconds']['total']:.2f} s)"
@@ -417,25 +580,24 @@ def _solve_single_scattering(a, bake, material, spec, lights, env):
     seconds = dict(ev.seconds)
     seconds["setup"] = time.perf_counter() - t0 - seconds["total"]
     seconds["total"] = time.perf_counter() - t0
-    if a.ss_output:
-        np.save(a.ss_output, L.astype(np.float32))
     return {"enabled": True, "backend": "CPU (numpy)", "n_samples": data.n_samples, "n_dirs": data.n_dirs,
             "sh_order": data.order, "view": "camera" if view is not None else "normal", "stale": reasons,
-            "seconds": seconds, "radiance_mean": L.mean(axis=0).tolist(), "radiance": L}
+            "seconds": seconds, "radiance_mean": L.mean(axis=0).tolist(), "radiance": L}  # popped by the caller
 
 
 def cmd_plan(a) -> int:
     from .cache import load_bake
     from .planner import describe_plan, plan_object
 
-    bake = load_bake(a.cache)
-    if a.mm_per_unit is not None:
-        bake = bake.with_scale(a.mm_per_unit)
+    check_files([("CACHE", a.cache)])
     a.sigma_a = a.sigma_s = None
     a.mix_with = None
     a.eta = 1.3
     material = material_from_args(a)
     lights, env = lights_from_args(a)
+    bake = load_bake(a.cache)
+    if a.mm_per_unit is not None:
+        bake = bake.with_scale(a.mm_per_unit)
     plan = plan_object(bake, material, lights, env)
     print(describe_plan(plan))
     return 0
@@ -446,7 +608,11 @@ def main(argv=None) -> int:
     try:
         return {"bake": cmd_bake, "solve": cmd_solve, "plan": cmd_plan, "fluid": cmd_fluid}[a.command](a)
     except TranslucencyError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a disk full or a file gone while writing: nothing was written (cache.write_files)
+        where = f" {exc.filename}" if exc.filename else ""
+        print(f"error: cannot write or read{where}: {exc.strerror or exc}; nothing was written", file=sys.stderr)
         return 2
 
 

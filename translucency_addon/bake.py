@@ -31,6 +31,7 @@ import numpy as np
 
 from . import meshio, tetra
 from .errors import BakeCancelled, MeshError
+from .materials import check_mm_per_unit
 from .quadgraph import BLOCK_SIZE, GraphLevel, build_level
 from .raycast import TriangleBVH
 
@@ -95,8 +96,7 @@ class BakeSettings:
             r = replace(r, refinements=min(max(r.refinements, 0), r.levels - 1))
         if r.level_mode not in ("refine", "independent"):
             raise MeshError(f"level_mode must be 'refine' or 'independent', got {r.level_mode!r}")
-        if not (np.isfinite(r.mm_per_unit) and r.mm_per_unit > 0):
-            raise MeshError(f"mm_per_unit must be a positive number, got {r.mm_per_unit}")
+        check_mm_per_unit(r.mm_per_unit, MeshError)
         if r.K < 0 or r.base_triangles < 20:
             raise MeshError("K must be >= 0 and base_triangles >= 20")
         if r.sky_directions and not 8 <= r.sky_directions <= 4096:
@@ -149,7 +149,7 @@ class Bake:
 
     def with_scale(self, mm_per_unit: float) -> "Bake":
         """The same bake at another scene scale (no re-bake needed: geometry is in object units)."""
-        return replace(self, mm_per_unit=float(mm_per_unit))
+        return replace(self, mm_per_unit=check_mm_per_unit(mm_per_unit))
 
     def graph_bytes(self) -> int:
         total = sum(lv.nbytes() for lv in self.levels)

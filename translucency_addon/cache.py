@@ -3,8 +3,12 @@
 Layout: numeric arrays only.  Metadata (format version, key, settings,
 statistics) is JSON stored as a ``uint8`` array, never a pickled object, so a
 cache file that a .blend points to can never execute code.  Writes go to a
-temporary file that is renamed into place, so a crash or a cancelled bake
-never leaves a half-written cache under the real name.
+temporary file that is renamed into place (:func:`write_files`, also every
+output of the command line), so a crash or a cancelled bake never leaves a
+half-written cache under the real name; the file gets the umask's permissions,
+as any file Blender writes (0644 under the usual umask 022), not
+``mkstemp``'s 0600, so a farm worker running as another user, or a copy made
+with ``cp -p`` or ``rsync -a``, can read it.
 
 Errors (missing, truncated, corrupt, wrong version, stale key) raise
 :class:`CacheError` with a message naming the file and the problem.
@@ -89,22 +93,53 @@ def bake_to_arrays(bake: Bake) -> dict:
 
 
 def save_bake(path, bake: Bake) -> str:
-    """Write ``bake`` to ``path`` atomically; returns the path."""
+    """Write ``bake`` to ``path`` atomically (its folder is created); returns the path."""
     path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     arrays = bake_to_arrays(bake)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".npz", dir=folder)
-    os.close(fd)
-    try:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    write_files({path: lambda fh: np.savez_compressed(fh, **arrays)})
     return path
+
+
+def umask_mode() -> int:
+    """The mode a new file gets from the umask, ``0o666 & ~umask`` (0o644 under umask 022).
+
+    The umask can only be read by setting it; it is set back at once (the
+    process's umask is not changed by another thread in this add-on)."""
+    old = os.umask(0)
+    os.umask(old)
+    return 0o666 & ~old
+
+
+def write_files(writers: dict) -> list[str]:
+    """Write several files all or nothing: ``{path: write(binary file object)}``.
+
+    Each file is written to a temporary file in its own folder, flushed to
+    disk, and only when every one of them is written are they renamed to their
+    names and given the umask's mode (:func:`umask_mode`); if any write fails,
+    the temporary files are removed and no file of the set is created or
+    replaced.  Returns the paths."""
+    mode = umask_mode()
+    done: list[tuple[str, str]] = []
+    try:
+        for path, write in writers.items():
+            path = os.fspath(path)
+            folder = os.path.dirname(os.path.abspath(path))
+            fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=folder)
+            done.append((tmp, path))
+            with os.fdopen(fd, "wb") as fh:
+                write(fh)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.chmod(tmp, mode)
+        for tmp, path in done:
+            os.replace(tmp, path)
+    except BaseException:
+        for tmp, _ in done:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+        raise
+    return [path for _, path in done]
 
 
 def read_meta(path) -> dict:
@@ -128,6 +163,15 @@ def _open(path):
     path = os.fspath(path)
     if not os.path.exists(path):
         raise CacheError(f"bake cache {path!r} does not exist (re-bake the object)")
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4)
+    except OSError as exc:
+        raise CacheError(f"bake cache {path!r} cannot be read: {exc.strerror or exc}") from None
+    if head != b"PK\x03\x04" and len(head) == 4:  # a zip's local header; shorter: truncated, said below
+        raise CacheError(f"bake cache {path!r} is corrupt or truncated, or not a cache at all: it is not an .npz "
+                         "archive (a cache is written by a bake: 'python -m translucency_addon bake' or the "
+                         "add-on's Bake)")
     try:
         return np.load(path, allow_pickle=False)
     except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as exc:

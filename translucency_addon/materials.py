@@ -74,6 +74,18 @@ def preset(name: str) -> Medium:
     return PRESETS[key]
 
 
+def check_mm_per_unit(value, error=MaterialError) -> float:
+    """The scene scale as a float, or ``error`` naming the value: a finite number > 0 of millimetres per
+    object unit (the length every coefficient per mm is converted with)."""
+    try:
+        mm = float(value)
+    except (TypeError, ValueError):
+        raise error(f"mm_per_unit (millimetres per object unit) must be a number, got {value!r}") from None
+    if not (np.isfinite(mm) and mm > 0):
+        raise error(f"mm_per_unit (millimetres per object unit) must be a finite number > 0, got {mm:g}")
+    return mm
+
+
 def check_medium(m: Medium) -> Medium:
     """Raise :class:`MaterialError` naming the problem for NaN, negative or absurd values."""
     sa, ss = m.arrays()

@@ -26,20 +26,29 @@ def load_obj(path) -> tuple[np.ndarray, np.ndarray]:
     """
     verts: list[list[float]] = []
     faces: list[list[int]] = []
-    with open(path, "r", encoding="utf-8", errors="replace") as fh:
+    try:
+        fh = open(path, "r", encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise MeshError(f"cannot read the mesh {path}: {exc.strerror or exc}") from None
+    with fh:
         for line in fh:
-            if line.startswith("v "):
-                parts = line.split()
-                if len(parts) < 4:
-                    raise MeshError(f"{path}: malformed vertex line {line.strip()!r}")
-                verts.append([float(x) for x in parts[1:4]])
-            elif line.startswith("f "):
-                idx = []
-                for tok in line.split()[1:]:
-                    i = int(tok.split("/")[0])
-                    idx.append(i - 1 if i > 0 else len(verts) + i)
-                for k in range(1, len(idx) - 1):
-                    faces.append([idx[0], idx[k], idx[k + 1]])
+            try:
+                if line.startswith("v "):
+                    parts = line.split()
+                    if len(parts) < 4:
+                        raise ValueError
+                    verts.append([float(x) for x in parts[1:4]])
+                elif line.startswith("f "):
+                    idx = []
+                    for tok in line.split()[1:]:
+                        i = int(tok.split("/")[0])
+                        idx.append(i - 1 if i > 0 else len(verts) + i)
+                    for k in range(1, len(idx) - 1):
+                        faces.append([idx[0], idx[k], idx[k + 1]])
+            except ValueError:
+                kind = "vertex" if line.startswith("v ") else "face"
+                raise MeshError(f"{path}: malformed {kind} line {line.strip()[:80]!r} (not a Wavefront OBJ "
+                                "mesh?)") from None
     if not verts:
         raise MeshError(f"{path}: no vertices")
     if not faces:

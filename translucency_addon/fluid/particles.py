@@ -11,8 +11,9 @@ first.  What it does with bad input (each case has a test):
   (a bisecting plane needs two distinct points), with a warning;
 * **radius** zero, negative or not finite: :class:`ParticleError`; **larger
   than the fluid** (than the particles' extent) or more than
-  ``MAX_RADIUS_SPACING`` times the particle spacing: :class:`ParticleError`
-  naming the spacing and the radius :func:`suggest_radius` would choose;
+  ``MAX_RADIUS_SPACING`` times the particle spacing: :class:`RadiusError`
+  (a :class:`ParticleError`) naming the spacing, the radius to use (what
+  :func:`suggest_radius` chooses), which callers say in their own units;
 * **all particles in a plane** (or on a line): :class:`ParticleError` -- a
   single layer of balls has no inside for diffusion;
 * **more particles than memory allows**: :class:`ParticleError` with the
@@ -28,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import ParticleError
+from ..errors import ParticleError, RadiusError
 from ..meshio import DEFAULT_MEMORY_BUDGET_BYTES
 
 MAX_RADIUS_SPACING = 4.0  # radius / spacing beyond which cells would have hundreds of neighbours
@@ -88,6 +89,17 @@ def suggest_radius(points) -> float:
     return particle_spacing(points)
 
 
+def check_radius(radius) -> float:
+    """The particle radius as a float, or :class:`ParticleError`: a finite number > 0 of object units."""
+    try:
+        R = float(radius)
+    except (TypeError, ValueError):
+        raise ParticleError(f"the particle radius must be a number, got {radius!r}") from None
+    if not (np.isfinite(R) and R > 0):
+        raise ParticleError(f"the particle radius must be a positive number of object units, got {R:g}")
+    return R
+
+
 def estimate_bytes(n: int) -> int:
     return int(BYTES_PER_PARTICLE * n)
 
@@ -98,12 +110,7 @@ def prepare_particles(points, radius, ids=None, field_values=None,
     P = np.asarray(points)
     if P.ndim != 2 or P.shape[1] != 3:
         raise ParticleError(f"particle positions must be an (N, 3) array, got shape {P.shape}")
-    try:
-        R = float(radius)
-    except (TypeError, ValueError):
-        raise ParticleError(f"the particle radius must be a number, got {radius!r}") from None
-    if not (np.isfinite(R) and R > 0):
-        raise ParticleError(f"the particle radius must be a positive number of object units, got {R}")
+    R = check_radius(radius)
     n_in = len(P)
     need = estimate_bytes(n_in)
     if need > memory_budget:
@@ -162,13 +169,9 @@ def _check_shape(Q, R, spacing):
         return
     extent = float(np.ptp(Q, axis=0).max())
     if R >= extent:
-        raise ParticleError(f"the particle radius {R:.4g} is larger than the whole fluid (its particles span "
-                            f"{extent:.4g} units): the radius is one particle's size, about the spacing between "
-                            f"particles ({spacing:.4g} here, the radius suggest_radius() gives)")
+        raise RadiusError("fluid", R, spacing, extent)
     if spacing > 0 and R > MAX_RADIUS_SPACING * spacing:
-        raise ParticleError(f"the particle radius {R:.4g} is {R / spacing:.0f} times the particle spacing "
-                            f"({spacing:.4g}): every cell would have ~{int(4.19 * (2 * R / spacing) ** 3):,} "
-                            f"neighbours; use a radius near the spacing (suggest_radius() gives {spacing:.4g})")
+        raise RadiusError("spacing", R, spacing, extent)
     c = Q - Q.mean(axis=0)
     if len(Q) >= 3:
         s = np.linalg.svd(c[:: max(1, len(Q) // 50000)], compute_uv=False)

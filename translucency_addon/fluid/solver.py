@@ -31,6 +31,7 @@ import numpy as np
 
 from ..diffusion import DiffusionSolver, SolveOptions, SolveResult
 from ..errors import MaterialError, MeshError
+from ..materials import check_mm_per_unit
 from ..meshio import DEFAULT_MEMORY_BUDGET_BYTES, vertex_normals
 from ..radiance import outgoing_radiance
 from ..spectral import gershgorin_upper
@@ -147,11 +148,9 @@ class FluidSolver:
     """
 
     def __init__(self, material, radius: float, mm_per_unit: float, options: FluidOptions | None = None):
-        if not (np.isfinite(mm_per_unit) and mm_per_unit > 0):
-            raise MaterialError(f"mm_per_unit must be a positive number, got {mm_per_unit}")
         self.material = material
         self.radius = float(radius)
-        self.mm_per_unit = float(mm_per_unit)
+        self.mm_per_unit = check_mm_per_unit(mm_per_unit)
         self.options = options or FluidOptions()
 
     def solve(self, points, *, ids=None, field_values=None, lights=(), environment=None, surface=None,
