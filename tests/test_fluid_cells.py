@@ -260,7 +260,22 @@ def test_suggested_radius_closes_the_interior():
     assert g.stats["voids"] == 0 and g.n_surface == 8**3 - 6**3
     g = build_graph(build_cells(P, 0.8 * R))
     assert g.stats["voids"] > 0 and "voids" in g.warnings[0]
+    assert "below the particle spacing" in g.warnings[0] and f"{R:.4g}" in g.warnings[0]
     assert g.n_surface == 8**3 - 6**3  # the void faces are not mistaken for the free surface
+
+
+def test_the_void_warning_at_the_suggested_radius_gives_advice_that_works():
+    """Auto Radius picks the spacing; where voids remain there (particles spread unevenly) the
+    warning does not tell the user to pick the spacing again, and what it does suggest closes them."""
+    P = _jittered(10, 0.45, 1)
+    R = suggest_radius(P)
+    g = build_graph(build_cells(P, R))
+    assert g.stats["voids"] > 0, "the case must have voids at the spacing to test the advice"
+    text = g.warnings[0]
+    assert "already the particle spacing" in text and "near the spacing" not in text
+    suggested = float(text.split("about ")[1].split(";")[0])
+    assert suggested > R
+    assert build_graph(build_cells(P, suggested)).stats["voids"] == 0
 
 
 # -- bad input: a clear message with numbers, or a zero result where zero is right ------------------------

@@ -83,6 +83,25 @@ class FluidGraph:
         return self.position[self.n_inner:]
 
 
+def _void_warning(n_void: int, R: float, cells: VoronoiCells) -> str:
+    """What to change when surface faces enclose voids: a radius below the particle spacing
+    leaves holes on any lattice, so raise it to the spacing; a radius already at the spacing
+    (what Auto Radius and ``suggest_radius`` choose) leaves them only where the particles are
+    spread unevenly, so the spacing is no longer the answer: a radius above it is (a lattice
+    jittered by 45 % of its spacing keeps voids at the spacing and none at 1.1 times it)."""
+    from .particles import particle_spacing
+
+    spacing = particle_spacing(cells.points, cells.tree)
+    head = f"{n_void:,} surface faces enclose interior voids and get no light: "
+    if R < 0.95 * spacing:
+        return head + (f"the radius {R:.4g} is below the particle spacing {spacing:.4g} (object units) and leaves "
+                       f"holes between the balls; a radius near the spacing ({spacing:.4g}) closes them")
+    return head + (f"the radius {R:.4g} is already the particle spacing ({spacing:.4g} object units), but the "
+                   "particles are spread unevenly and leave gaps between the balls; a radius 10 % or more above "
+                   f"the spacing (about {1.1 * spacing:.4g}; with Auto Radius, turn it off to set it), or more "
+                   "particles, closes them")
+
+
 def build_graph(cells: VoronoiCells) -> FluidGraph:
     """The contract graph of ``cells`` (see the module docstring)."""
     P, R, N = cells.points, cells.radius, cells.n_cells
@@ -102,8 +121,7 @@ def build_graph(cells: VoronoiCells) -> FluidGraph:
         n_void = int(void.sum())
         surf[idx[void]] = False
     if n_void:
-        warnings.append(f"{n_void:,} surface faces enclose interior voids (the radius {R:.4g} leaves holes between "
-                        "the balls) and get no light; a radius near the particle spacing closes them")
+        warnings.append(_void_warning(n_void, R, cells))
     # Pieces (faces' connected components) that have no surface node receive no light: leave them out.
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
