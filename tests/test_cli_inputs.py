@@ -244,5 +244,5 @@ def test_engine_refusals_name_the_file(tmp_path):
     from bakes import baked
     from translucency_addon.errors import MaterialError
 
-    with pytest.raises(MaterialError, match="must be a finite number > 0, got -3"):
+    with pytest.raises(MaterialError, match=r"must be a finite number > 0 \(positive\), got -3"):
         baked("sphere").with_scale(-3.0)  # a new scale is checked where it enters, as the baked one is

@@ -48,13 +48,15 @@ class _Parser(argparse.ArgumentParser):
         sys.exit(2)
 
 
-def _checked(check, what: str):
-    """An argparse type: ``float(text)`` passed through the engine's ``check`` (its message on failure)."""
+def _checked(check, what: str, cast=float):
+    """An argparse type: ``cast(text)`` passed through the engine's ``check`` (its message on failure)."""
+    kind = "a whole number" if cast is int else "a number"
+
     def parse(text):
         try:
-            return check(float(text))
+            return check(cast(text))
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{what}: expected a number, got {text!r}") from None
+            raise argparse.ArgumentTypeError(f"{what}: expected {kind}, got {text!r}") from None
         except TranslucencyError as exc:
             raise argparse.ArgumentTypeError(str(exc)) from None
     parse.__name__ = what
@@ -64,22 +66,11 @@ def _checked(check, what: str):
 def _in_range(lo: float, hi: float, what: str, cast=float, lo_open: bool = False, hi_open: bool = False):
     """An argparse type: a finite number in [lo, hi] (open ends where asked)."""
     def check(v):
-        v = cast(v)
         if not (np.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)):
             ends = ("(" if lo_open else "[") + f"{lo:g}, {hi:g}" + (")" if hi_open else "]")
             raise TranslucencyError(f"expected a finite number in {ends}, got {v:g}")
         return v
-    if cast is int:
-        def parse(text):
-            try:
-                return check(int(text))
-            except ValueError:
-                raise argparse.ArgumentTypeError(f"{what}: expected a whole number, got {text!r}") from None
-            except TranslucencyError as exc:
-                raise argparse.ArgumentTypeError(str(exc)) from None
-        parse.__name__ = what
-        return parse
-    return _checked(check, what)
+    return _checked(check, what, cast)
 
 
 def _mm_per_unit(text):

@@ -74,16 +74,21 @@ def preset(name: str) -> Medium:
     return PRESETS[key]
 
 
+def check_positive(value, what: str, error=MaterialError) -> float:
+    """``value`` as a float, or ``error`` naming ``what`` and the value: a finite number > 0."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise error(f"{what} must be a number, got {value!r}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise error(f"{what} must be a finite number > 0 (positive), got {v:g}")
+    return v
+
+
 def check_mm_per_unit(value, error=MaterialError) -> float:
     """The scene scale as a float, or ``error`` naming the value: a finite number > 0 of millimetres per
     object unit (the length every coefficient per mm is converted with)."""
-    try:
-        mm = float(value)
-    except (TypeError, ValueError):
-        raise error(f"mm_per_unit (millimetres per object unit) must be a number, got {value!r}") from None
-    if not (np.isfinite(mm) and mm > 0):
-        raise error(f"mm_per_unit (millimetres per object unit) must be a finite number > 0, got {mm:g}")
-    return mm
+    return check_positive(value, "mm_per_unit (millimetres per object unit)", error)
 
 
 def check_medium(m: Medium) -> Medium:

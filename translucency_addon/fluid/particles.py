@@ -91,13 +91,9 @@ def suggest_radius(points) -> float:
 
 def check_radius(radius) -> float:
     """The particle radius as a float, or :class:`ParticleError`: a finite number > 0 of object units."""
-    try:
-        R = float(radius)
-    except (TypeError, ValueError):
-        raise ParticleError(f"the particle radius must be a number, got {radius!r}") from None
-    if not (np.isfinite(R) and R > 0):
-        raise ParticleError(f"the particle radius must be a positive number of object units, got {R:g}")
-    return R
+    from ..materials import check_positive
+
+    return check_positive(radius, "the particle radius (object units)", ParticleError)
 
 
 def estimate_bytes(n: int) -> int:
