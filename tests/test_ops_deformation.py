@@ -308,6 +308,16 @@ def test_a_change_of_topology_asks_for_a_rebake(blender, addon, cache_dir, memo_
     assert "re-bake to update the graph" in st.stale_message
     solved = status.solve_status(obj)
     assert "stale bake: the mesh changed since it was baked" in solved.message and solved.deformation == ""
+    # Not solved on the old graph as if it were current: the live check refused it and removed the radiance,
+    # so the overlay shows nothing; Solve refuses with the reason and the fix.
+    from translucency.ops import overlay
+
+    assert "stale bake: the mesh changed since it was baked" in state.ERRORS["Bar"]
+    assert obj.data.attributes.get("translucency_radiance") is None and not overlay.has_radiance(obj)
+    activate(obj)
+    with pytest.raises(RuntimeError, match="Cannot solve 'Bar': stale bake: .*re-bake to update the graph"):
+        bpy.ops.translucency.solve()
+    assert state.CACHE_STATUS["Bar"].startswith("Stale: the mesh changed since it was baked")
 
 
 def test_refused_poses_keep_the_last_valid_frame(blender, addon, cache_dir, memo_bakes, ui):
@@ -366,6 +376,35 @@ def test_refused_poses_keep_the_last_valid_frame(blender, addon, cache_dir, memo
     bpy.context.view_layer.update()
     live.flush()
     refused("links shrunk to nothing")
+
+
+def test_a_render_of_a_refused_pose_never_shows_another_frame(blender, addon, cache_dir, memo_bakes, capfd):
+    """F12 (a render depsgraph) of a pose the deformation check refuses: the frame renders without the pass
+    ("Render Without"; under ``blender -b`` "Fail the Frame" stops with exit 1, tests/test_render_farm.py), never
+    with the last valid frame's radiance that the viewport keeps."""
+    from translucency.ops import state
+
+    obj, rig = baked_bar(blend=0.2, preserve_volume=False)
+    key_bend(rig, 20, 20.0)
+    key_bend(rig, 37, 150.0)
+    scene = bpy.context.scene
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    camera.location, camera.rotation_euler = (0.0, -10.0, 1.0), (math.radians(90.0), 0.0, 0.0)
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    scene.render.engine = 'CYCLES'
+    scene.cycles.device, scene.cycles.samples = 'CPU', 1
+    scene.render.resolution_x = scene.render.resolution_y = 8
+    scene.translucency.missing_cache_in_render = 'SKIP'
+    scene.frame_set(20)
+    assert radiance(obj).max() > 0.0
+    capfd.readouterr()
+    scene.frame_set(37)
+    assert "Bar" in state.ERRORS and radiance(obj).max() > 0.0  # the viewport keeps frame 20's radiance, and says so
+    bpy.ops.render.render()
+    out = capfd.readouterr().out
+    assert "frame 37: 'Bar' renders WITHOUT its Translucency pass: the deformation at frame 37 folds" in out, out
+    assert obj.data.attributes.get("translucency_radiance") is None
 
 
 def test_animation_render_follows_the_pose(blender, addon, cache_dir, memo_bakes, tmp_path, capfd):
