@@ -441,6 +441,8 @@ def test_a_refused_pose_renders_the_same_on_every_worker(render_pass_module, mem
         rc, log = _render(blend, first, REFUSED, out, policy, "Bar")
         runs[label] = (rc, log, out)
     _assert_same_everywhere(runs, REFUSED, policy, "folds the baked graph")
+    for _rc, log, _out in runs.values():  # a render never claims to keep another frame's radiance
+        assert "nothing was solved for this frame" in log and "keeps frame" not in log, log[-3000:]
     rc, log, out = runs["after frame 9"]
     assert "frame 9: 'Bar' solved on the CPU" in log, log[-3000:]
     assert _passes(out, [9])[9].max() > 0.0  # frame 9 rendered its own pose
