@@ -171,8 +171,9 @@ def test_armature_bend_solves_on_the_deformed_graph(blender, addon, cache_dir, m
     assert rel_rms(posed, out.radiance) < 1e-4
     # the panel's line: this frame's worst link stretch, from the runtime state
     solved = status.solve_status(obj)
-    assert solved.deformation.startswith("Deformed, frame 10: worst link stretch")
-    assert f"{out.report.worst_stretch:.2f}x" in solved.deformation and solved.backend == "CPU"
+    assert solved.deformation.startswith("Deformed, frame 10: worst link compressed to")  # the bend's inside
+    assert solved.deformation.startswith(f"Deformed, frame 10: {out.report.worst_link()})")
+    assert f"{out.report.worst_ratio:.2f}x" in solved.deformation and solved.backend == "CPU"
     # independent: a fresh engine bake of Blender's posed mesh, solved cold
     fresh = bake_mod.bake_mesh(V, F, st.bake.settings)
     solver = DiffusionSolver(fresh.with_scale(inputs.mm), inputs.material, options=inputs.solve_options())
@@ -347,7 +348,8 @@ def test_refused_poses_keep_the_last_valid_frame(blender, addon, cache_dir, memo
 
     scene.frame_set(37)
     message = refused("the deformation at frame 37 folds the baked graph: ")
-    assert "tets inverted" in message and "worst link stretch" in message
+    assert "tets inverted" in message and "worst link compressed to" in message  # the pinched joint
+    assert state.get_state(obj).deformation.report.worst_link() in message
     assert "re-bake in this pose or at rest" in message
     report = state.get_state(obj).deformation.report
     assert report.folded and report.inverted_volume > 1e-3
@@ -435,7 +437,7 @@ def test_animation_render_follows_the_pose(blender, addon, cache_dir, memo_bakes
     frames = dict(written.frames)
     assert sorted(frames) == [1, 10]
     log = capfd.readouterr().out
-    assert "frame 10: 'Bar' solved on the CPU" in log and "deformed, frame 10: worst link stretch" in log
+    assert "frame 10: 'Bar' solved on the CPU" in log and "deformed, frame 10: worst link compressed to" in log
     for number in (1, 10):  # what each frame's render wrote: the engine's solve of that frame's pose
         scene.frame_set(number)
         V, _ = evaluated(obj)
