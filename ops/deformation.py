@@ -32,9 +32,10 @@ valid).
 A pose the engine refuses -- a fold, a link stretched beyond the limit, NaN
 vertices from a broken rig, a bone scaled to zero -- raises its
 :class:`~translucency_addon.errors.DeformationError` with the frame and the
-numbers, and nothing is written: the attribute keeps the last valid frame's
-radiance, which the message, the log and the panel
-(:meth:`.state.DeformationState.describe`) name.
+numbers, and nothing is written: in the viewport the attribute keeps the last
+valid frame's radiance, which the message, the log and the panel
+(:meth:`.state.DeformationState.describe`) name; in a render the frame fails or
+renders without the pass (``handlers``), never with another frame's radiance.
 """
 
 from __future__ import annotations
@@ -89,8 +90,11 @@ def diffuse(st: state.ObjectState, frame: FrameInputs, number: int, solve_sig, f
         d.report = ex.report if isinstance(ex, GraphFolded) else None
         d.refused = str(ex)
         st.view_sig = None  # the attribute no longer shows this frame: the next valid one writes and reports
-        kept = (f"frame {d.solved_frame}'s radiance" if d.solved_frame is not None else "its last radiance")
-        message = f"{ex}; the object keeps {kept}, nothing was written"
+        if frame.rendering:  # a render never shows another frame's radiance (handlers: fail, or no pass)
+            message = f"{ex}; nothing was solved for this frame"
+        else:
+            kept = (f"frame {d.solved_frame}'s radiance" if d.solved_frame is not None else "its last radiance")
+            message = f"{ex}; the object keeps {kept}, nothing was written"
         raise (GraphFolded(message, ex.report) if isinstance(ex, GraphFolded) else DeformationError(message)) from None
     seconds = time.perf_counter() - t0
     d.report, d.refused, d.solve_sig = out.report, "", solve_sig

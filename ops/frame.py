@@ -185,23 +185,35 @@ def make_plan(name: str, st: ObjectState, settings, material, lights, environmen
     from ..translucency_addon.planner import plan_object
 
     has_ss = st.bake.single_scattering is not None
-    overrides = {}
+    overrides, why = {}, {}
     every = getattr(settings, "pass_planning", "AUTO") == 'ALL'
+    all_passes = "by the object's Pass Planning setting 'All Passes' (Translucency panel)"
     if not settings.use_multiple_scattering:
-        overrides["multiple"] = False
+        overrides["multiple"], why["multiple"] = False, _off_because(settings, "use_multiple_scattering")
     elif every:
-        overrides["multiple"] = True
+        overrides["multiple"], why["multiple"] = True, all_passes
     if not (settings.use_single_scattering and has_ss):
         overrides["single"] = False
+        why["single"] = (_off_because(settings, "use_single_scattering") if not settings.use_single_scattering else
+                         "because Single Scattering is on but not baked (press Bake Single Scattering)")
     elif every:
-        overrides["single"] = True
+        overrides["single"], why["single"] = True, all_passes
     if not settings.use_voxel_number_map:
-        overrides["voxel_number_map"] = False
+        overrides["voxel_number_map"], why["voxel_number_map"] = False, _off_because(settings, "use_voxel_number_map")
     elif every and st.bake.voxel_number_map is not None:
-        overrides["voxel_number_map"] = True
+        overrides["voxel_number_map"], why["voxel_number_map"] = True, all_passes
     return plan_object(st.bake.with_scale(mm), material, list(lights), environment, field_values=st.field_values,
                        has_single_scattering=has_ss, in_view=in_view, enabled=bool(settings.enabled),
-                       overrides=overrides, name=name)
+                       overrides=overrides, name=name, override_reasons=why)
+
+
+def _off_because(settings, prop: str) -> str:
+    """What turned a pass off: the setting's default (the user never touched it) or the user's setting, by the
+    name the panel shows."""
+    label = settings.bl_rna.properties[prop].name
+    if settings.is_property_set(prop):
+        return f"by the user's setting: '{label}' is off (Translucency panel)"
+    return f"by default: '{label}' is off unless turned on (Translucency panel)"
 
 
 def _ss_staleness(obj, st: ObjectState, settings, depsgraph, material, field_sig, mm: float, part_media) -> str:

@@ -25,12 +25,18 @@
   nothing else here: each solve compares the evaluated mesh with the bake
   (``cache_files``) and solves a pose on the deformed graph
   (``deformation``), or reports a change of topology.
-* a render (any of the above) never bakes and never writes a cache: an object
-  whose cache is missing, stale, unreadable or from another version of the
-  extension loses its radiance attribute for the frame, and the scene's
-  ``missing_cache_in_render`` decides: ``FAIL`` stops a background render
-  with exit code 1 and the reason (a farm marks the frame failed), ``SKIP``
-  renders it without the pass (:func:`_render_without_cache`).
+* a render (any of the above) never bakes and never writes a cache, and a
+  frame's pass is computed from a valid bake and this frame's inputs or not
+  at all: an object whose solve fails for the frame (its cache is missing,
+  unreadable or from another version of the extension, its bake is stale --
+  ``runtime`` refuses to solve a bake that no longer matches the mesh --, the
+  deformation check refuses its pose, or any other error) loses its radiance
+  attribute for the frame, and the scene's ``missing_cache_in_render``
+  decides: ``FAIL`` stops a background render with exit code 1 and the
+  reason as the log's last line (a farm marks the frame failed), ``SKIP``
+  renders it without the pass (:func:`_render_without_cache`).  Never a pass
+  from another frame, another pose or a stale bake, whatever the worker
+  rendered before.
 * ``render_init``/``render_pre``/``render_post``/``render_cancel``/
   ``render_complete``: track whether a render is running (for the log).
 * ``load_post``: drop all runtime state (GPU memory too), move the status a
@@ -121,19 +127,19 @@ def on_frame_change_post(scene, depsgraph=None):
     if rendering:
         for r in reports:
             state.log(f"frame {scene.frame_current}: {r.describe()}, view towards the camera")
-        cache_problems = [(name, message) for name, message, cache in failed if cache]
-        if cache_problems:
-            _render_without_cache(scene, cache_problems)
+        if failed:  # a cache problem, a stale bake, a refused pose, any error: never another frame's pass
+            _render_without_cache(scene, [(name, message) for name, message, _cache in failed])
     else:
         live.announce_fluids(reports)
     live.report_info()
 
 
-FARM_EXIT_CODE = 1  # a background render stopped by a missing or unusable cache (render farms read it)
+FARM_EXIT_CODE = 1  # a background render stopped by a frame that cannot be solved (render farms read it)
 
 
 def _render_without_cache(scene, problems: list[tuple[str, str]]) -> None:
-    """A render found no usable cache for some objects (a farm worker without the cache folder).
+    """A render could not solve some objects for this frame (a farm worker without the cache folder, a stale
+    bake, a refused pose, an error).
 
     Nothing is baked here.  Each object's radiance attribute is removed, so the frame can never carry the
     values the .blend was saved with (another frame's).  ``missing_cache_in_render``: ``FAIL`` (default)

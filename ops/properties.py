@@ -683,16 +683,21 @@ class TranslucencySceneSettings(bpy.types.PropertyGroup):
     missing_cache_in_render: EnumProperty(
         name="Cache Missing in Render",
         description=(
-            "What a render does when an object's bake cache is missing, stale, unreadable or from another "
-            "version of the extension (a render farm worker without the cache folder); renders never bake"
+            "What a render does with a frame an object cannot be solved for: its bake cache is missing, "
+            "unreadable or from another version of the extension (a render farm worker without the cache "
+            "folder), its bake is stale (the mesh changed since the bake: re-bake), the deformation check "
+            "refuses its pose (a fold or an overstretch), or the solve fails. A frame is never rendered with "
+            "another frame's, another pose's or a stale bake's pass, whatever the worker rendered before; "
+            "renders never bake"
         ),
         items=(
             ("FAIL", "Fail the Frame",
-             "Background renders (blender -b, render farms) stop with exit code 1 and the reason, so the farm "
-             "marks the frame failed; in the UI the object renders without its pass and the error is shown"),
+             "Background renders (blender -b, render farms) stop with exit code 1 and the reason as the log's "
+             "last line, before the image is written, so the farm marks the frame failed; in the UI the object "
+             "renders without its pass and the error is shown"),
             ("SKIP", "Render Without",
-             "Render the frame without the object's Translucency pass (its attribute is removed, never a stale "
-             "frame's), and log why"),
+             "Render the frame without the object's Translucency pass (its attribute is removed, never another "
+             "frame's or a stale bake's values), and log why"),
         ),
         default="FAIL",
     )

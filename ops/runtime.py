@@ -146,7 +146,9 @@ def solve_object(obj, scene=None, depsgraph=None, *, use_camera: bool = False, f
 
 def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     st = cache_files.ensure_state(obj, retry=retry_load)
-    cache_files.update_staleness(obj, st, depsgraph)  # and whether the evaluated mesh is a pose of the bake
+    stale = cache_files.update_staleness(obj, st, depsgraph)  # and whether the evaluated mesh is a pose of the bake
+    if stale:
+        _refuse_stale(obj, st, stale)
     frame = gather(obj, scene, depsgraph, st, use_camera)
     st.plan = state.PLANS[obj.name] = frame.plan
     if frame.unseen:
@@ -180,6 +182,25 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     if not frame.off_main:
         status.publish(st)
     return _report(st, frame, ms)
+
+
+def _refuse_stale(obj, st: state.ObjectState, message: str) -> None:
+    """A bake that no longer matches the object is never solved as if it were current.
+
+    Every path comes through here (the live viewport, Solve, F12, ``blender -b``): the radiance attributes
+    are removed (the overlay and the render pass show nothing rather than a stale solution), the panel's
+    cache line says Stale, and :class:`CacheError` says why and what to do.  A render then applies the
+    scene's Cache Missing in Render policy (``handlers``): exit 1 under ``-b``, or the frame without the pass.
+    """
+    from ..translucency_addon.errors import CacheError
+
+    st.view_sig = None  # whatever the attribute held is gone: the next valid frame writes and reports
+    state.CACHE_STATUS[obj.name] = f"Stale: {message}"
+    for name in (attributes.ATTRIBUTE_NAME, attributes.SS_ATTRIBUTE_NAME):
+        if attributes.remove_attribute(obj, name):
+            state.OWN_WRITES.add(obj.name)
+    raise CacheError(f"stale bake: {message}. Nothing was solved, and the object shows no Translucency radiance "
+                     "until it is re-baked (Bake in the Translucency panel) or the change is undone")
 
 
 # ------------------------------------------------------------------ the steps

@@ -49,18 +49,13 @@ class DeformationState:
             kept = (f"the attribute keeps frame {self.solved_frame}" if self.solved_frame is not None
                     else "the attribute keeps its last values")
             if self.report is not None:
-                return f"{at}: refused (worst link stretch {_stretch(self.report)}); {kept}"
+                return f"{at}: refused ({self.report.worst_link()})); {kept}"
             return f"{at}: refused; {kept}"
         if self.report is None:
             return at
         slivers = self.report.inverted_tets
-        return (f"{at}: worst link stretch {_stretch(self.report)} (limit {self.report.stretch_limit:g}x)"
+        return (f"{at}: {self.report.worst_link()})"
                 + (f", {slivers} sliver tets turned over (tolerated)" if slivers else ""))
-
-
-def _stretch(report) -> str:
-    w = report.worst_stretch
-    return f"{w:.2f}x" if w < 1e6 else "unbounded"
 
 
 @dataclass

@@ -87,6 +87,24 @@ def test_rigid_motion_with_the_lights_gives_the_same_radiance(bar):
     assert np.abs(q_turned - q_rest).max() > 0.05 * np.abs(q_rest).max()
 
 
+def test_a_compression_is_called_a_compression(bar):
+    """A pose that squeezes the bar's links to 0.1 of their length (issue 32) is refused and says "compressed to
+    0.10x", not "stretch 10.00x"; a stretch still says "stretch"."""
+    V, F, bake, rig = bar
+    squeezed = V * np.array([0.1, 1.0, 1.0])
+    with pytest.raises(GraphFolded, match="overstretches") as info:
+        rig.deform(squeezed)
+    report = info.value.report
+    text = report.describe(5)
+    assert 0.1 - 1e-9 < report.worst_ratio < 0.2 and abs(report.worst_stretch * report.worst_ratio - 1.0) < 1e-9
+    assert f"worst link compressed to {report.worst_ratio:.2f}x of its rest length (limit 0.33x" in text, text
+    assert f"{report.worst_stretch:.2f}x" not in text and "stretch" not in text.replace("overstretches", ""), text
+    with pytest.raises(GraphFolded) as info:
+        rig.deform(V * np.array([4.0, 1.0, 1.0]))
+    report = info.value.report
+    assert report.worst_ratio > 1.0 and f"worst link stretch {report.worst_stretch:.2f}x (limit 3x" in report.describe()
+
+
 def test_uniform_scale_equals_a_larger_scene_scale(bar):
     """A pose scaled by s about any point is the bake at mm_per_unit x s (lengths x s, areas x s^2,
     volumes x s^3): the radiance agrees to rounding.  Independent of the deformation code."""

@@ -329,15 +329,21 @@ def test_stale_cache_is_reported(blender, addon, tmp_path, memo_bakes):
     obj = bpy.data.objects["Blob"]
     assert state.CACHE_STATUS["Blob"].startswith("Stale: the mesh changed since it was baked (modifiers "
                                                  "included): 42 vertices baked, 242 now")
-    # It still solves (on the old graph), and says why the result may be off.
+    # Solve refuses it (never the old graph's solution as if it were current), with the reason and the fix,
+    # and the object keeps no radiance from the old graph.
     activate(obj)
-    assert bpy.ops.translucency.solve() == {'FINISHED'}
+    with pytest.raises(RuntimeError, match="Cannot solve 'Blob': stale bake: the mesh changed since it was baked") \
+            as info:
+        bpy.ops.translucency.solve()
+    assert "42 vertices baked, 242 now" in str(info.value) and "re-bake" in str(info.value)
     assert "stale bake" in status.solve_status(obj).message
+    assert obj.data.attributes.get("translucency_radiance") is None
 
 
 
 def test_changed_bake_settings_are_reported(blender, addon, cache_dir, memo_bakes):
     from translucency.ops import cache_files, runtime, state
+    from translucency.translucency_addon.errors import CacheError
 
     obj = sphere()
     assert bake(obj) == {'FINISHED'}
@@ -346,7 +352,8 @@ def test_changed_bake_settings_are_reported(blender, addon, cache_dir, memo_bake
     obj.translucency.levels = 3
     found = cache_files.check_cache(obj, depsgraph)
     assert found.startswith("Stale: the bake settings changed (baked: draft, 2 levels)")
-    runtime.solve_object(obj, force=True)
+    with pytest.raises(CacheError, match=r"stale bake: the bake settings changed \(baked: draft, 2 levels\)"):
+        runtime.solve_object(obj, force=True)
     assert state.CACHE_STATUS["Blob"] == found
 
 

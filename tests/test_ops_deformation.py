@@ -171,8 +171,9 @@ def test_armature_bend_solves_on_the_deformed_graph(blender, addon, cache_dir, m
     assert rel_rms(posed, out.radiance) < 1e-4
     # the panel's line: this frame's worst link stretch, from the runtime state
     solved = status.solve_status(obj)
-    assert solved.deformation.startswith("Deformed, frame 10: worst link stretch")
-    assert f"{out.report.worst_stretch:.2f}x" in solved.deformation and solved.backend == "CPU"
+    assert solved.deformation.startswith("Deformed, frame 10: worst link compressed to")  # the bend's inside
+    assert solved.deformation.startswith(f"Deformed, frame 10: {out.report.worst_link()})")
+    assert f"{out.report.worst_ratio:.2f}x" in solved.deformation and solved.backend == "CPU"
     # independent: a fresh engine bake of Blender's posed mesh, solved cold
     fresh = bake_mod.bake_mesh(V, F, st.bake.settings)
     solver = DiffusionSolver(fresh.with_scale(inputs.mm), inputs.material, options=inputs.solve_options())
@@ -308,6 +309,16 @@ def test_a_change_of_topology_asks_for_a_rebake(blender, addon, cache_dir, memo_
     assert "re-bake to update the graph" in st.stale_message
     solved = status.solve_status(obj)
     assert "stale bake: the mesh changed since it was baked" in solved.message and solved.deformation == ""
+    # Not solved on the old graph as if it were current: the live check refused it and removed the radiance,
+    # so the overlay shows nothing; Solve refuses with the reason and the fix.
+    from translucency.ops import overlay
+
+    assert "stale bake: the mesh changed since it was baked" in state.ERRORS["Bar"]
+    assert obj.data.attributes.get("translucency_radiance") is None and not overlay.has_radiance(obj)
+    activate(obj)
+    with pytest.raises(RuntimeError, match="Cannot solve 'Bar': stale bake: .*re-bake to update the graph"):
+        bpy.ops.translucency.solve()
+    assert state.CACHE_STATUS["Bar"].startswith("Stale: the mesh changed since it was baked")
 
 
 def test_refused_poses_keep_the_last_valid_frame(blender, addon, cache_dir, memo_bakes, ui):
@@ -337,7 +348,8 @@ def test_refused_poses_keep_the_last_valid_frame(blender, addon, cache_dir, memo
 
     scene.frame_set(37)
     message = refused("the deformation at frame 37 folds the baked graph: ")
-    assert "tets inverted" in message and "worst link stretch" in message
+    assert "tets inverted" in message and "worst link compressed to" in message  # the pinched joint
+    assert state.get_state(obj).deformation.report.worst_link() in message
     assert "re-bake in this pose or at rest" in message
     report = state.get_state(obj).deformation.report
     assert report.folded and report.inverted_volume > 1e-3
@@ -368,6 +380,35 @@ def test_refused_poses_keep_the_last_valid_frame(blender, addon, cache_dir, memo
     refused("links shrunk to nothing")
 
 
+def test_a_render_of_a_refused_pose_never_shows_another_frame(blender, addon, cache_dir, memo_bakes, capfd):
+    """F12 (a render depsgraph) of a pose the deformation check refuses: the frame renders without the pass
+    ("Render Without"; under ``blender -b`` "Fail the Frame" stops with exit 1, tests/test_render_farm.py), never
+    with the last valid frame's radiance that the viewport keeps."""
+    from translucency.ops import state
+
+    obj, rig = baked_bar(blend=0.2, preserve_volume=False)
+    key_bend(rig, 20, 20.0)
+    key_bend(rig, 37, 150.0)
+    scene = bpy.context.scene
+    camera = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    camera.location, camera.rotation_euler = (0.0, -10.0, 1.0), (math.radians(90.0), 0.0, 0.0)
+    scene.collection.objects.link(camera)
+    scene.camera = camera
+    scene.render.engine = 'CYCLES'
+    scene.cycles.device, scene.cycles.samples = 'CPU', 1
+    scene.render.resolution_x = scene.render.resolution_y = 8
+    scene.translucency.missing_cache_in_render = 'SKIP'
+    scene.frame_set(20)
+    assert radiance(obj).max() > 0.0
+    capfd.readouterr()
+    scene.frame_set(37)
+    assert "Bar" in state.ERRORS and radiance(obj).max() > 0.0  # the viewport keeps frame 20's radiance, and says so
+    bpy.ops.render.render()
+    out = capfd.readouterr().out
+    assert "frame 37: 'Bar' renders WITHOUT its Translucency pass: the deformation at frame 37 folds" in out, out
+    assert obj.data.attributes.get("translucency_radiance") is None
+
+
 def test_animation_render_follows_the_pose(blender, addon, cache_dir, memo_bakes, tmp_path, capfd):
     """``render(animation=True)`` of frames 1 and 10 with Cycles (what ``blender -b -a`` runs): each frame
     is solved on its own pose towards the camera, and the Translucency AOV of the multilayer EXR
@@ -396,7 +437,7 @@ def test_animation_render_follows_the_pose(blender, addon, cache_dir, memo_bakes
     frames = dict(written.frames)
     assert sorted(frames) == [1, 10]
     log = capfd.readouterr().out
-    assert "frame 10: 'Bar' solved on the CPU" in log and "deformed, frame 10: worst link stretch" in log
+    assert "frame 10: 'Bar' solved on the CPU" in log and "deformed, frame 10: worst link compressed to" in log
     for number in (1, 10):  # what each frame's render wrote: the engine's solve of that frame's pose
         scene.frame_set(number)
         V, _ = evaluated(obj)

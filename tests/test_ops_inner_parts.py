@@ -433,14 +433,16 @@ def test_moving_an_inner_part_makes_the_bake_stale(blender, addon, cache_dir, me
     assert solve_op(cube) == {'FINISHED'} and not state.get_state(cube).stale_message
     sphere.location.x += 0.1
     bpy.context.view_layer.update()
-    assert solve_op(cube) == {'FINISHED'}  # it still solves, on the bake it has, and says why it is off
+    with pytest.raises(RuntimeError, match="Cannot solve 'Cube': stale bake: inner part 'Sphere' moved"):
+        solve_op(cube)  # never solved on the bake it has as if it were current: refused, with the reason
     message = status.solve_status(cube).message
     assert "stale bake: inner part 'Sphere' moved or changed shape since the bake (relative to 'Cube')" in message
     sphere.location.x -= 0.1
     bpy.context.view_layer.update()
     assert solve_op(cube) == {'FINISHED'} and not state.get_state(cube).stale_message
     cube.translucency.inner_parts[0].role = 'OPAQUE'
-    assert solve_op(cube) == {'FINISHED'}
+    with pytest.raises(RuntimeError, match="stale bake: the inner parts changed since the bake"):
+        solve_op(cube)
     assert "the inner parts changed since the bake (baked: Sphere (cavity); now: Sphere (opaque))" in \
         state.get_state(cube).stale_message
 
@@ -635,7 +637,8 @@ def test_undo_brings_the_list_back(blender, addon, cache_dir, memo_composites):
     activate(cube)
     assert bpy.ops.translucency.inner_part_remove() == {'FINISHED'}
     bpy.ops.ed.undo_push(message="removed the part")
-    assert solve_op(cube) == {'FINISHED'}
+    with pytest.raises(RuntimeError, match="stale bake: the inner parts changed since the bake"):
+        solve_op(cube)  # a stale bake is refused, not solved
     assert "the inner parts changed since the bake (baked: Sphere (cavity); now: none)" in \
         state.get_state(cube).stale_message
     assert bpy.ops.ed.undo() == {'FINISHED'}

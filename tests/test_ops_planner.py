@@ -123,3 +123,25 @@ def test_solve_all_with_nothing_baked_says_what_to_do(blender, cache_dir, capfd)
     text = out.out + out.err
     assert ("No enabled, baked object or fluid to solve: 1 mesh objects in the scene, 1 with Translucency enabled; "
             "not baked: Blob (select one, press Bake)") in text, text
+
+
+def test_a_pass_off_by_default_is_not_called_the_users_choice(blender, addon, cache_dir, memo_bakes):
+    """Issue 32: a user who never touched Single Scattering (off by default) is not told it was "forced off by
+    the user"; the plan names what turned it off -- the default, or the user's setting -- by the panel's name."""
+    from translucency.ops import runtime, state
+
+    obj = sphere()
+    add_light()
+    assert bake(obj) == {'FINISHED'}
+    runtime.solve_object(obj, force=True)
+    reasons = state.PLANS["Blob"].single.reasons if state.PLANS["Blob"].single is not None else []
+    assert reasons and all("forced off by default: 'Single Scattering' is off unless turned on" in r
+                           for r in reasons), reasons
+    assert not any("by the user" in r for r in reasons)
+    obj.translucency.use_multiple_scattering = False  # the user's own choice
+    try:
+        runtime.solve_object(obj, force=True)
+    except Exception:  # noqa: BLE001 - nothing may run; the plan is what is checked
+        pass
+    reasons = state.PLANS["Blob"].multiple.reasons
+    assert all("forced off by the user's setting: 'Multiple Scattering' is off" in r for r in reasons), reasons

@@ -42,6 +42,7 @@ _WORKER = textwrap.dedent(r"""
     import numpy as np
     root, blend, first, last, out = sys.argv[1:6]
     policy = sys.argv[6] if len(sys.argv) > 6 else ""
+    name = sys.argv[7] if len(sys.argv) > 7 else "Blob"
     spec = importlib.util.spec_from_file_location("translucency", os.path.join(root, "__init__.py"),
                                                   submodule_search_locations=[root])
     module = importlib.util.module_from_spec(spec)
@@ -54,7 +55,7 @@ _WORKER = textwrap.dedent(r"""
         scene.translucency.missing_cache_in_render = policy
     scene.frame_start, scene.frame_end = int(first), int(last)   # -s first -e last -a  (or -f N)
     scene.render.filepath = os.path.join(out, "frame_")
-    obj = bpy.data.objects["Blob"]
+    obj = bpy.data.objects[name]
 
     def keep(scene, *_args):                            # the per-vertex radiance this frame rendered
         attr = obj.data.attributes.get("translucency_radiance")
@@ -115,12 +116,12 @@ def _snapshot(folder):
     return sorted((str(p.relative_to(folder)), p.stat().st_size, p.stat().st_mtime_ns) for p in folder.rglob("*"))
 
 
-def _run(blend, first, last, out, policy="", wait=True):
+def _run(blend, first, last, out, policy="", wait=True, name="Blob"):
     out.mkdir(parents=True, exist_ok=True)
     script = out / "_worker.py"  # one per worker: a shared script rewritten while another worker reads it
     script.write_text(_WORKER)  # can be read empty (such a worker ran nothing and exited 0)
     proc = subprocess.Popen([sys.executable, str(script), str(ROOT), str(blend), str(first), str(last), str(out),
-                             policy], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                             policy, name], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             cwd=out)
     return proc.communicate(timeout=600)[0] if wait else proc
 
@@ -343,3 +344,129 @@ def test_a_stale_cache_in_a_render_is_named_and_never_rendered(render_pass_modul
     assert "frame 5: 'Blob' renders WITHOUT its Translucency pass: bake cache" in out and "is stale" in out, out
     assert obj.data.attributes.get("translucency_radiance") is None
     assert _snapshot(src) == before
+
+
+# ------------------------------------------------------------------ issue 32: every frame right or loudly refused
+#
+# A frame's pass depends on the frame, never on what the worker rendered before: a pose the deformation check
+# refuses and a bake that no longer matches the mesh either fail the frame (exit 1, the reason as the log's last
+# line) or, with "Render Without", render without the pass; the same on a fresh worker and on one that rendered
+# other frames first, bit for bit.
+
+REFUSED = 10  # the posed shot's frame whose pose folds the baked graph
+
+
+def _posed_shot(tmp_path, render_pass_module):
+    """A Draft bake of the deformation tests' bar with a two-bone rig, saved as ``tmp_path/src/shot.blend``:
+    frame 1 at rest, frame 9 bent by 20 degrees (a valid pose), frame 10 by 150 degrees with linear skinning
+    (the graph folds: refused)."""
+    from test_ops_deformation import armature, bar, key_bend, sun
+
+    src = tmp_path / "src"
+    src.mkdir()
+    bpy.ops.wm.save_as_mainfile(filepath=str(src / "shot.blend"))
+    scene = bpy.context.scene
+    obj = bar()
+    rig = armature(obj, blend=0.2, preserve_volume=False)
+    sun()
+    key_bend(rig, 1, 0.0)
+    key_bend(rig, 9, 20.0)
+    key_bend(rig, REFUSED, 150.0)
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    cam.data.type, cam.data.ortho_scale = 'ORTHO', 6.0
+    cam.location, cam.rotation_euler = (0.0, -10.0, 1.0), (np.pi / 2, 0.0, 0.0)
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    scene.render.engine = 'CYCLES'
+    scene.cycles.device, scene.cycles.samples, scene.cycles.use_denoising, scene.cycles.seed = 'CPU', 1, False, 0
+    scene.render.resolution_x = scene.render.resolution_y = SIZE
+    scene.render.resolution_percentage = 100
+    render_pass_module.configure_output(scene.render.image_settings, 'OPEN_EXR_MULTILAYER')
+    scene.frame_set(1)
+    activate(obj)
+    assert bpy.ops.translucency.bake(base_triangles=200) == {'FINISHED'}, obj.translucency.status.bake_status
+    assert bpy.ops.translucency.add_to_material() == {'FINISHED'}
+    scene.frame_set(9)  # the .blend is saved holding frame 9's radiance (what a fresh worker would find)
+    bpy.ops.wm.save_mainfile()
+    return src
+
+
+def _render(blend, first, last, out, policy, name):
+    """A worker rendering ``first``..``last``: ``(exit code, log)``."""
+    proc = _run(blend, first, last, out, policy=policy, name=name, wait=False)
+    log = proc.communicate(timeout=600)[0]
+    return proc.returncode, log
+
+
+def _channels(path):
+    from tools.exr import read_exr
+
+    return read_exr(path)
+
+
+def _assert_same_everywhere(runs, frame, policy, reason):
+    """``runs``: {label: (exit code, log, out folder)} of workers that each rendered ``frame`` last."""
+    codes = {label: rc for label, (rc, _log, _out) in runs.items()}
+    if policy == 'FAIL':
+        assert set(codes.values()) == {1}, codes
+        for label, (_rc, log, out) in runs.items():
+            last = log.strip().splitlines()[-1]
+            assert last.startswith(f"Translucency: frame {frame} FAILED, the render stops with exit code 1") and \
+                reason in last, f"{label}: {log[-3000:]}"
+            assert not (out / f"frame_{frame:04d}.exr").exists(), f"{label}: a failed frame wrote an image"
+        return
+    assert set(codes.values()) == {0}, {label: (rc, log[-2000:]) for label, (rc, log, _out) in runs.items()}
+    images = {label: _channels(out / f"frame_{frame:04d}.exr") for label, (_rc, _log, out) in runs.items()}
+    (first_label, first), *others = images.items()
+    for label, image in others:
+        assert sorted(image) == sorted(first)
+        for channel in first:  # bit for bit
+            assert np.array_equal(image[channel], first[channel]), (label, first_label, channel)
+    for label, (_rc, log, _out) in runs.items():
+        assert f"frame {frame}: " in log and "renders WITHOUT its Translucency pass" in log and reason in log, log
+    aov = [c for c in first if ".Translucency." in c and c[-1] in "RGB"]
+    assert aov and all(first[c].max() == 0.0 for c in aov), "the pass of a refused frame is not empty"
+
+
+@pytest.mark.parametrize("policy", ['FAIL', 'SKIP'])
+def test_a_refused_pose_renders_the_same_on_every_worker(render_pass_module, memo_bakes, tmp_path, policy):
+    """Frame 10's pose folds the graph.  A fresh worker (the .blend holds frame 9's radiance) and a worker that
+    rendered frame 9 first give the same result: exit 1 with the reason last under Fail the Frame; with Render
+    Without, exit 0 and the same image bit for bit, without the pass; never frame 9's radiance."""
+    src = _posed_shot(tmp_path, render_pass_module)
+    blend = src / "shot.blend"
+    runs = {}
+    for label, first in (("fresh", REFUSED), ("after frame 9", 9)):
+        out = tmp_path / label.replace(" ", "_")
+        rc, log = _render(blend, first, REFUSED, out, policy, "Bar")
+        runs[label] = (rc, log, out)
+    _assert_same_everywhere(runs, REFUSED, policy, "folds the baked graph")
+    for _rc, log, _out in runs.values():  # a render never claims to keep another frame's radiance
+        assert "nothing was solved for this frame" in log and "keeps frame" not in log, log[-3000:]
+    rc, log, out = runs["after frame 9"]
+    assert "frame 9: 'Bar' solved on the CPU" in log, log[-3000:]
+    assert _passes(out, [9])[9].max() > 0.0  # frame 9 rendered its own pose
+
+
+@pytest.mark.parametrize("policy", ['FAIL', 'SKIP'])
+def test_a_stale_bake_renders_the_same_on_every_worker(render_pass_module, memo_bakes, tmp_path, policy):
+    """A Subdivision modifier added after the bake (another vertex count: not a pose): no worker solves the rest
+    pose on the old graph.  A fresh worker on frame 5 and one rendering 4 then 5 both fail (exit 1, the re-bake
+    reason last), or both render frame 5 without the pass, bit for bit the same."""
+    src = _shot(tmp_path, render_pass_module)
+    obj = bpy.data.objects["Blob"]
+    obj.modifiers.new("Subdivision", type="SUBSURF")
+    bpy.ops.wm.save_mainfile()
+    blend = src / "shot.blend"
+    runs = {}
+    for label, first in (("fresh", 5), ("after frame 4", 4)):
+        out = tmp_path / label.replace(" ", "_")
+        rc, log = _render(blend, first, 5, out, policy, "Blob")
+        runs[label] = (rc, log, out)
+    if policy == 'SKIP':
+        _assert_same_everywhere(runs, 5, policy, "re-bake to update the graph")
+    else:  # each worker fails its first frame
+        _assert_same_everywhere({"fresh": runs["fresh"]}, 5, policy, "re-bake to update the graph")
+        _assert_same_everywhere({"after frame 4": runs["after frame 4"]}, 4, policy, "re-bake to update the graph")
+    for _rc, log, _out in runs.values():
+        assert "solved on the" not in log, log[-3000:]

@@ -224,6 +224,7 @@ class DeformationReport:
     """
 
     worst_stretch: float = 1.0  # max over links between inner nodes of max(d/d0, d0/d)
+    worst_ratio: float = 1.0  # d/d0 of that link: above 1 stretched, below 1 compressed
     inverted_tets: int = 0  # volume <= FLAT_FRACTION x rest volume
     inverted_volume: float = 0.0  # their rest volume / the level's
     inverted_links: int = 0  # links turned against the face they cross
@@ -250,9 +251,7 @@ class DeformationReport:
         at = f" at frame {frame}" if frame is not None else ""
         inv = (f"{self.inverted_tets} tets inverted ({100 * self.inverted_volume:.2g} % of the volume), "
                f"{self.inverted_links} links turned inside out ({100 * self.inverted_link_fraction:.2g} %)")
-        worst = (f"{self.worst_stretch:.2f}x" if self.worst_stretch < 1e6
-                 else "unbounded (links shrunk to nothing: a zero scale?)")
-        stretch = f"worst link stretch {worst} (limit {self.stretch_limit:g}x"
+        stretch = self.worst_link()
         stretch += f", {self.stretched_links} links beyond)" if self.stretched_links else ")"
         turned = self.inverted_tets or self.inverted_links
         if self.valid:
@@ -260,6 +259,19 @@ class DeformationReport:
         what = "folds" if self.folded else "overstretches"
         return (f"the deformation{at} {what} the baked graph: " + (f"{inv}, " if turned else "")
                 + f"{stretch}; re-bake in this pose or at rest")
+
+
+    def worst_link(self) -> str:
+        """The worst link as the panel and the log say it, with the limit's bracket left open: stretched
+        (``worst link stretch 2.30x (limit 3x``) or compressed (``worst link compressed to 0.10x of its rest
+        length (limit 0.33x``), never a compression called a stretch."""
+        if self.worst_stretch >= 1e6:
+            return ("worst link stretch unbounded (links shrunk to nothing: a zero scale?) "
+                    f"(limit {self.stretch_limit:g}x")
+        if self.worst_ratio < 1.0:
+            return (f"worst link compressed to {self.worst_ratio:.2f}x of its rest length "
+                    f"(limit {1.0 / self.stretch_limit:.2f}x")
+        return f"worst link stretch {self.worst_stretch:.2f}x (limit {self.stretch_limit:g}x"
 
 
 def level_strain(rig: LevelRig, lv: GraphLevel, vol, fv, stretch_limit: float) -> dict:
@@ -284,7 +296,8 @@ def level_strain(rig: LevelRig, lv: GraphLevel, vol, fv, stretch_limit: float) -
             # plus any link (surface links too) of no length or no number: the solver could not use it
             "stretched_links": int(np.count_nonzero(strain > stretch_limit)
                                    + np.count_nonzero(has & ~(np.isfinite(lv.edge_length) & (lv.edge_length > 0)))),
-            "worst_stretch": float(strain.max()) if strain.size else 1.0}
+            "worst_stretch": float(strain.max()) if strain.size else 1.0,
+            "worst_ratio": float(ratio.flat[int(np.argmax(strain))]) if strain.size else 1.0}
 
 
 # -- the rig and a pose ------------------------------------------------------------------------------

@@ -293,12 +293,14 @@ def unlit_reason(lights, environment, center, radius_units: float) -> str:
 def plan_object(bake, material: Material, lights=(), environment: Environment | None = None, *,
                 field_values=None, has_single_scattering: bool | None = None, in_view: bool = True,
                 enabled: bool = True, overrides: dict | None = None, name: str = "object",
-                has_voxel_number_map: bool | None = None) -> Plan:
+                has_voxel_number_map: bool | None = None, override_reasons: dict | None = None) -> Plan:
     """Decide the passes of one baked object for this frame (see the module docstring).
 
     ``overrides`` force a pass on or off (``{"single": False}``: single
     scattering is turned off, so it is not available to replace diffusion;
-    ``{"voxel_number_map": False}`` likewise).
+    ``{"voxel_number_map": False}`` likewise).  ``override_reasons``: per
+    overridden pass, what forced it (the plan's reasons say it instead of
+    "by the user": a setting's default is not the user's choice).
     """
     overrides = overrides or {}
     if has_single_scattering is None:
@@ -339,7 +341,7 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
         bulk = tuple(np.asarray(x) for x in material.bulk().arrays())
         surface = tuple(np.broadcast_to(x, (lv.n_surface, 3)) for x in bulk)
     plan = _plan(name, geo, np.asarray(lv.area, dtype=np.float64), material, bulk, surface, lights, environment,
-                 bake.mm_per_unit, bool(has_single_scattering), overrides,
+                 bake.mm_per_unit, bool(has_single_scattering), overrides, override_reasons=override_reasons,
                  ms_cost=lambda channels: 1e-4 * lv.n_nodes * sum(channels) / 3.0,  # ~0.1 us per node-channel sweep x ~50
                  ss_available=ss_available, split_replacement=split,
                  split_blocked=("the cavity exchange's solve does not carry the split yet (diffusion alone)"
@@ -425,7 +427,7 @@ def _skipped(name: str, enabled: bool, in_view: bool) -> Plan | None:
 
 def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_unit, has_single_scattering,
           overrides, ms_cost, single_pass: bool = True, ss_available: bool | None = None, split_replacement=None,
-          vnm_cost: float = 0.0, split_blocked: str = "") -> Plan:
+          vnm_cost: float = 0.0, split_blocked: str = "", override_reasons: dict | None = None) -> Plan:
     """The passes of one object from its geometry facts (``geo``, per-node ``area``), its bulk and surface-node
     coefficients, and the light reaching it: the criteria of the module docstring, per channel and node.
 
@@ -613,7 +615,8 @@ def _plan(name, geo, area, material, bulk, surface, lights, environment, mm_per_
         force = overrides.get(p.name)
         if force is not None:
             p.channels = (bool(force),) * 3
-            p.reasons = [f"{CHANNELS[c]}: forced {'on' if force else 'off'} by the user" for c in range(3)]
+            why = (override_reasons or {}).get(p.name) or "by the user"
+            p.reasons = [f"{CHANNELS[c]}: forced {'on' if force else 'off'} {why}" for c in range(3)]
             p.forced = True
             p.weights = None
     if overrides.get("single") is True:  # the forced RBF pass covers everything: no closed-form term on top
