@@ -85,8 +85,12 @@ def available() -> tuple[bool, str]:
         return False, "Blender's gpu module is not available (not running inside Blender)"
     try:
         renderer = gpu.platform.renderer_get()
-    except SystemError as exc:  # background mode before the GPU backend is initialised
-        return False, f"no GPU context ({exc})"
+    except SystemError:  # background mode before the GPU backend is initialised
+        # Blender's own text ("... requires the gpu module to be initialized. See gpu.init.") names
+        # an internal call a user cannot make; say what it means instead.
+        return False, ("Blender's GPU backend is not running in this process: in background mode "
+                       "(blender -b, bpy as a Python module) Blender starts it only for a Workbench or "
+                       "EEVEE render")
     except Exception as exc:  # noqa: BLE001 - any failure means: no GPU here
         return False, f"no GPU context ({type(exc).__name__}: {exc})"
     try:

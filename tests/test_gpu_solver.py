@@ -468,3 +468,21 @@ def test_every_term_on_the_gpu_matches_the_cpu(scene):
     assert rel_err(Lg, Lc) < 1e-3
     assert rel_err(Lc, alone) > 1e-2  # the split changes the image
     gpu.free()
+
+
+def test_the_gpu_fallback_says_why_in_plain_words(monkeypatch, addon):
+    """Background mode before the GPU backend starts: Blender's own SystemError names an internal
+    call ("See gpu.init."); the fallback says what it means and what to change instead."""
+    import gpu
+
+    from translucency.ops import backend
+
+    def not_started():
+        raise SystemError("GPU functions for drawing requires the gpu module to be initialized. See gpu.init.")
+
+    monkeypatch.setattr(gpu.platform, "renderer_get", not_started)
+    ok, why = gpu_shaders.available()
+    assert not ok and "gpu.init" not in why and "background mode" in why and "blender -b" in why
+    where = backend.placement("AUTO", off_main=False)
+    assert where.backend == "CPU" and "gpu.init" not in where.reason
+    assert "The image is the same" in where.reason and "Solver to CPU" in where.reason and "EGL" in where.reason
