@@ -159,10 +159,9 @@ def _from_packed(obj) -> str:
     os.makedirs(folder, exist_ok=True)
     path = os.path.join(folder, hashlib.sha1(data).hexdigest()[:16] + "_" + text.name[len(PACKED_PREFIX):])
     if not os.path.isfile(path) or os.path.getsize(path) != len(data):
-        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".npz", dir=folder)
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
+        from ..translucency_addon.cache import write_files
+
+        write_files({path: lambda fh: fh.write(data)})  # all or nothing, with the umask's mode (not mkstemp's 0600)
     return path
 
 

@@ -23,7 +23,9 @@ import shutil
 import stat
 import subprocess
 import sys
+import tempfile
 import textwrap
+from pathlib import Path
 
 import bpy
 import numpy as np
@@ -32,6 +34,7 @@ import pytest
 from conftest import ROOT
 from test_ops_bake import activate, add_light, memo_bakes, sphere  # noqa: F401
 from tools.exr import exr_pass
+from translucency_addon.cache import umask_mode
 
 FRAMES = (1, 5, 9)
 SIZE = 16
@@ -291,8 +294,14 @@ def test_a_single_file_farm_renders_from_the_cache_packed_into_the_blend(render_
     single = tmp_path / "single_file"
     single.mkdir()
     shutil.copy(src / "shot.blend", single / "shot.blend")
+    unpacked = Path(tempfile.gettempdir()) / "translucency_packed"
+    suffix = "_" + text.name[len(".translucency_cache "):]
+    for old in unpacked.glob("*" + suffix):  # an earlier run's copy would be reused, not written
+        old.unlink()
     log = _run(single / "shot.blend", 5, 5, tmp_path / "out_packed")
     assert "WORKER DONE" in log and "using the cache of 'Blob' packed into the .blend" in log, log[-3000:]
+    (copy,) = unpacked.glob("*" + suffix)  # readable like any file the worker writes, not mkstemp's 0600
+    assert stat.S_IMODE(copy.stat().st_mode) == umask_mode(), oct(copy.stat().st_mode)
     assert sorted(p.name for p in single.iterdir()) == ["shot.blend"]
     worker = np.load(tmp_path / "out_packed" / "radiance_0005.npy")
     scene = bpy.context.scene
