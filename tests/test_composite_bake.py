@@ -139,3 +139,23 @@ def test_cli_refuses_bad_parts_and_writes_nothing(cli_bake, tmp_path, capsys):
     assert rc == 2 and not out.exists() and "'far' lies entirely outside" in capsys.readouterr().err
     rc = cli.main(["bake", str(d / "cube.obj"), "--inner", f"{d / 'hole.obj'}", "-o", str(out)])
     assert rc == 2 and not out.exists() and "PART.obj:ROLE" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("role", ["cavity", "opaque"])
+def test_cli_refuses_open_and_self_intersecting_parts_by_name(cli_bake, tmp_path, capsys, role):
+    """An open part (two holes) or one crossing itself is refused by its name, in numbers; nothing is written."""
+    d, _ = cli_bake
+    out = tmp_path / "open.npz"
+    V, F = primitives.icosphere(2.5, 2, (-5.0, -5.0, -5.0))
+    z = V[F].mean(axis=1)[:, 2] + 5.0
+    meshio.save_obj(tmp_path / "Stone.obj", V, F[np.abs(z) < 2.2])  # both caps cut off
+    rc = cli.main(["bake", str(d / "cube.obj"), "--inner", f"{tmp_path / 'Stone.obj'}:{role}", "--quality", "draft",
+                   "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and not out.exists() and not list(tmp_path.glob("*.npz*"))
+    assert "inner part 'Stone' is open: 2 holes (boundary loops of 12 and 12 edges)" in err
+    V2, F2 = primitives.icosphere(2.5, 2, (-4.0, -5.0, -5.0))
+    meshio.save_obj(tmp_path / "Knot.obj", np.concatenate([V, V2]), np.concatenate([F, F2 + len(V)]))
+    rc = cli.main(["bake", str(d / "cube.obj"), "--inner", f"{tmp_path / 'Knot.obj'}:{role}", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and not out.exists() and "inner part 'Knot' intersects itself:" in err and "pairs" in err
