@@ -121,6 +121,57 @@ def test_bad_part_meshes_and_roles():
     assert parse_role("skin", "x") == ("medium", preset("skin1"))
 
 
+def _open(V, F, cut):
+    """The mesh without the triangles whose centre ``cut`` selects (each cap it removes is one hole)."""
+    return V, F[~cut(V[F].mean(axis=1))]
+
+
+@pytest.mark.parametrize("role", ["cavity", "opaque", "medium"])
+def test_open_parts_are_refused_with_their_holes(role):
+    """A part with holes has no inside (which voxels are its medium?): refused by name, with the number of
+    boundary loops and their edges; the outer mesh's own holes stay a warning (the bake closes them)."""
+    from translucency_addon.meshio import hole_loops
+
+    V, F = _open(*sphere(0.5), lambda c: np.abs(c[:, 2]) > 0.45)  # both poles cut off: two holes
+    loops = hole_loops(V, F)
+    assert len(loops) == 2 and min(loops) >= 3
+    medium = preset("marble") if role == "medium" else None
+    with pytest.raises(MeshError) as err:
+        CompositeObject(*BOX, THIN, [InnerPart("Stone", V, F, role, medium)])
+    msg = str(err.value)
+    assert "inner part 'Stone' is open: 2 holes" in msg
+    assert f"{loops[0]} and {loops[1]} edges" in msg and "Fill Holes" in msg and "remove it" in msg
+    one = _open(*sphere(0.5), lambda c: c[:, 2] > 0.45)
+    with pytest.raises(MeshError, match=r"inner part 'Cap' is open: 1 hole \(boundary loop of \d+ edges\)"):
+        CompositeObject(*BOX, THIN, [InnerPart("Cap", *one, role, medium)])
+    # the same mesh unwelded (every triangle on its own vertices) is closed: accepted
+    Vs, Fs = sphere(0.5)
+    Vu = Vs[Fs].reshape(-1, 3)
+    CompositeObject(*BOX, THIN, [InnerPart("Soup", Vu, np.arange(len(Vu)).reshape(-1, 3), role, medium)])
+    # an open outer mesh with a closed part: a warning, as without parts
+    CompositeObject(*_open(*BOX, lambda c: c[:, 2] > 0.99), THIN, [InnerPart("Ok", Vs, Fs, role, medium)])
+
+
+@pytest.mark.parametrize("role", ["cavity", "opaque"])
+def test_self_intersecting_parts_are_refused_with_the_crossing_pairs(role):
+    """Two overlapping spheres in one mesh: its inside is not defined; the message counts the crossing pairs
+    of triangles and gives one crossing point (on the circle where the spheres meet)."""
+    from translucency_addon.meshio import self_intersections
+
+    (V1, F1), (V2, F2) = sphere(0.4, (-0.15, 0.0, 0.0)), sphere(0.4, (0.15, 0.0, 0.0))
+    V, F = np.concatenate([V1, V2]), np.concatenate([F1, F2 + len(V1)])
+    pairs, point = self_intersections(V, F)
+    assert pairs > 0 and abs(point[0]) < 0.02 and abs(np.linalg.norm(point[1:]) - np.sqrt(0.4**2 - 0.15**2)) < 0.03
+    with pytest.raises(MeshError) as err:
+        CompositeObject(*BOX, THIN, [InnerPart("Knot", V, F, role)])
+    assert f"inner part 'Knot' intersects itself: {pairs} pairs of its triangles cross" in str(err.value)
+    assert "remove it from the inner parts" in str(err.value)
+    # closed, clean meshes of every kind used as parts give no crossing (flat strips of a cylinder included)
+    for mesh in (sphere(0.4), primitives.box((0.5, 1.0, 1.0), n=2), primitives.torus(), primitives.uv_sphere(),
+                 *primitives.bottle_with_wine().values()):
+        assert self_intersections(*mesh) == (0, None)
+
+
 def test_single_scattering_bakes_on_the_composite_volume_and_says_so():
     """The single-scattering pass can render an object with inner parts from the same voxels (the planner
     prefers it over the Voxel Number Map only when its bake knows the parts)."""

@@ -139,3 +139,47 @@ def test_cli_refuses_bad_parts_and_writes_nothing(cli_bake, tmp_path, capsys):
     assert rc == 2 and not out.exists() and "'far' lies entirely outside" in capsys.readouterr().err
     rc = cli.main(["bake", str(d / "cube.obj"), "--inner", f"{d / 'hole.obj'}", "-o", str(out)])
     assert rc == 2 and not out.exists() and "PART.obj:ROLE" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("role", ["cavity", "opaque"])
+def test_cli_refuses_open_and_self_intersecting_parts_by_name(cli_bake, tmp_path, capsys, role):
+    """An open part (two holes) or one crossing itself is refused by its name, in numbers; nothing is written."""
+    d, _ = cli_bake
+    out = tmp_path / "open.npz"
+    V, F = primitives.icosphere(2.5, 2, (-5.0, -5.0, -5.0))
+    z = V[F].mean(axis=1)[:, 2] + 5.0
+    meshio.save_obj(tmp_path / "Stone.obj", V, F[np.abs(z) < 2.2])  # both caps cut off
+    rc = cli.main(["bake", str(d / "cube.obj"), "--inner", f"{tmp_path / 'Stone.obj'}:{role}", "--quality", "draft",
+                   "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and not out.exists() and not list(tmp_path.glob("*.npz*"))
+    assert "inner part 'Stone' is open: 2 holes (boundary loops of 12 and 12 edges)" in err
+    V2, F2 = primitives.icosphere(2.5, 2, (-4.0, -5.0, -5.0))
+    meshio.save_obj(tmp_path / "Knot.obj", np.concatenate([V, V2]), np.concatenate([F, F2 + len(V)]))
+    rc = cli.main(["bake", str(d / "cube.obj"), "--inner", f"{tmp_path / 'Knot.obj'}:{role}", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and not out.exists() and "inner part 'Knot' intersects itself:" in err and "pairs" in err
+
+
+def test_exchange_with_coincident_wall_nodes_drops_the_pair_without_a_warning():
+    """Two wall nodes at one point (R = 0) have no form factor: the pair is left out before any division (it
+    divided 0 by 0 and let numpy's RuntimeWarning out); every row still sums to 1."""
+    import warnings
+    from types import SimpleNamespace
+
+    from translucency_addon.cavity import build_cavity_exchange
+    from translucency_addon.composite import CompositeObject, InnerPart
+
+    (Vb, Fb), (Vs, Fs) = primitives.cube_with_sphere(20.0, R_CAVITY, n=4, subdivisions=1)
+    comp = CompositeObject(Vb, Fb, Material(Medium((0.01,) * 3, (1.0,) * 3, "m")), [InnerPart("hole", Vs, Fs, "cavity")])
+    V, F, _ = comp.diffusion_mesh()
+    P = np.concatenate([Vb, Vs, Vs[:1]])  # the outer surface's nodes, the wall's, and the wall's first node twice
+    N = np.concatenate([Vb, -Vs, -Vs[:1]]) / np.linalg.norm(np.concatenate([Vb, Vs, Vs[:1]]), axis=1)[:, None]
+    lv = SimpleNamespace(surface_position=P, normal=N, area=np.ones(len(P)))
+    bake = SimpleNamespace(finest=lv, levels=[lv], mesh_vertices=V, mesh_faces=F)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ex = build_cavity_exchange(bake, comp)
+    assert ex.m == len(Vs) + 1 and np.all(np.isfinite(ex.K))
+    assert np.allclose(ex.K.sum(axis=1), 1.0, atol=1e-5)
+    assert ex.K[0, -1] == 0.0 and ex.K[-1, 0] == 0.0  # the coincident pair exchanges nothing

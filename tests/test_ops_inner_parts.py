@@ -422,6 +422,36 @@ def test_bad_inner_parts_are_refused_and_change_nothing(blender, addon, cache_di
     assert _snapshot(cube, cache_dir) == before
 
 
+def test_open_and_self_intersecting_parts_are_refused_by_their_name(blender, addon, cache_dir, memo_composites):
+    """An open part (two holes) and a part whose triangles cross were baked, with a warning naming the outer
+    object; now each is refused naming the part, with its holes (and their edges) or crossing pairs, as a
+    cavity and as opaque; the scene, the bake and its cache stay as they were."""
+    from translucency.translucency_addon import primitives
+
+    cube, _, _, _ = cube_scene()
+    assert bake_op(cube) == {'FINISHED'}
+    s = cube.translucency
+    V, F = primitives.icosphere(0.3, 2)
+    z = V[F].mean(axis=1)[:, 2]
+    V2, F2 = primitives.icosphere(0.3, 2, (0.15, 0.0, 0.0))
+    meshes = {"Stone": (V, F[np.abs(z) < 0.27], r"inner part 'Stone' is open: 2 holes \(boundary loops of 12 and 12 "
+                                                r"edges\).*Fill Holes"),
+              "Knot": (np.concatenate([V, V2]), np.concatenate([F, F2 + len(V)]),
+                       r"inner part 'Knot' intersects itself: \d+ pairs of its triangles cross")}
+    for name, (Vp, Fp, pattern) in meshes.items():
+        part = mesh_object(name, Vp, Fp, parent=cube, location=(-0.4, 0.4, 0.4))
+        for role in ('CAVITY', 'OPAQUE'):
+            add_part(cube, part, role)
+            bpy.context.view_layer.update()
+            before = _snapshot(cube, cache_dir)
+            with pytest.raises(RuntimeError, match=pattern) as err:
+                bake_op(cube)
+            assert "Cannot bake 'Cube': inner part" in str(err.value)
+            assert _snapshot(cube, cache_dir) == before, (name, role)
+            s.inner_parts.remove(len(s.inner_parts) - 1)
+        bpy.data.objects.remove(part)
+
+
 def test_moving_an_inner_part_makes_the_bake_stale(blender, addon, cache_dir, memo_composites):
     from translucency.ops import state, status
 

@@ -178,6 +178,10 @@ def build_cavity_exchange(bake, composite, progress=None) -> CavityExchange:
         s, t = s[off], t[off]
         d = P[t] - P[s]
         R = np.linalg.norm(d, axis=1)
+        # Two wall nodes at one point (a graph that snapped both onto the same spot) have no direction and no
+        # form factor (1 / R^2): the pair is left out here, before the division, as it was after 0/0 before.
+        apart = R > 0
+        s, t, d, R = s[apart], t[apart], d[apart], R[apart]
         u = d / R[:, None]
         cs = np.einsum("ij,ij->i", N[s], u)  # the wall normal points into the hollow
         ct = -np.einsum("ij,ij->i", N[t], u)

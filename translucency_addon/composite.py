@@ -33,6 +33,11 @@ Defined behaviour (checked on the voxels of the bake by :func:`label_voxels`):
   mesh) or what resolution would give its wall a voxel.
 * **Bad part meshes** (NaN coordinates, flat, no triangles): the mesh check of
   :func:`.meshio.validate_mesh`, its message prefixed with the part's name.
+* **Open or self-intersecting parts** (holes, triangles crossing each other):
+  refused by :func:`check_part_closed` with the hole count and each boundary
+  loop's edges, or the number of crossing triangle pairs; a part's inside
+  would be undefined (an outer mesh with holes still bakes, closed by the
+  tetrahedralizer).
 * **A part given two roles** (listed twice, e.g. as cavity and as opaque, or
   a cavity that names a medium): refused before any work is done.
 
@@ -152,9 +157,10 @@ class CompositeObject:
                 raise TranslucencyError(f"two inner parts are named {p.name!r}; give each part its own name")
             names.add(p.name)
             try:
-                validate_mesh(np.asarray(p.V), np.asarray(p.F))
+                report = validate_mesh(np.asarray(p.V), np.asarray(p.F))
             except MeshError as exc:
                 raise MeshError(f"inner part {p.name!r}: {exc}") from None
+            check_part_closed(p, report)
         if self.material.heterogeneous and self.field is None:
             raise MaterialError("the outer material mixes two media and needs a field to mix them")
 
@@ -196,6 +202,37 @@ class CompositeObject:
     def describe(self) -> str:
         parts = ", ".join(f"{p.name} ({p.label})" for p in self.parts) or "none"
         return f"outer mesh {len(self.V)} vertices, inner parts: {parts}"
+
+
+def check_part_closed(part, report=None) -> None:
+    """Refuse an inner part that does not bound a volume: open (holes) or crossing itself.
+
+    An outer mesh with holes still bakes (fTetWild closes it by winding number),
+    but a part's inside decides which voxels and graph nodes are its medium, a
+    hollow or a stone, and an open or self-crossing surface has no inside: its
+    labels would follow the rays that happen to leak.  Holes: the boundary loops
+    of the welded mesh (``report.hole_edges``, :func:`.meshio.hole_loops`, the
+    outer mesh's check).  Crossings: :func:`.meshio.self_intersections` (each
+    edge cast against the part's own BVH; the docstring says what it misses).
+    """
+    from .meshio import hole_loops, self_intersections
+
+    loops = list(report.hole_edges) if report is not None else hole_loops(part.V, part.F)
+    if loops:
+        sizes = " and ".join([", ".join(str(k) for k in loops[:-1]), str(loops[-1])] if len(loops) > 1
+                             else [str(loops[0])])
+        raise MeshError(
+            f"inner part {part.name!r} is open: {len(loops)} hole{'s' if len(loops) != 1 else ''} (boundary "
+            f"loop{'s' if len(loops) != 1 else ''} of {sizes} edges); an inner part must be closed to have an "
+            "inside: close it (in Blender: Mesh > Clean Up > Fill Holes) or remove it from the inner parts")
+    pairs, point = self_intersections(part.V, part.F)
+    if pairs:
+        where = ", ".join(f"{x:.4g}" for x in point)
+        raise MeshError(
+            f"inner part {part.name!r} intersects itself: {pairs} pair{'s' if pairs != 1 else ''} of its triangles "
+            f"cross (one crossing at ({where}) in the outer object's space), so its inside is not defined: "
+            "separate or join the crossing pieces (in Blender: a Remesh modifier in Voxel mode, or the 3D-Print "
+            "Toolbox's Intersections check to find them) or remove it from the inner parts")
 
 
 def check_parts_against_outer(outer_bvh, parts, tol: float) -> list:
