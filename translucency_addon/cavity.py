@@ -52,6 +52,7 @@ import numpy as np
 
 from .errors import CacheError, TranslucencyError
 from .fresnel import diffuse_reflectance_external, diffuse_reflectance_internal
+from .kernels import partial_current
 
 
 @dataclass
@@ -204,7 +205,7 @@ def wall_partial_current(solver, result, nodes) -> np.ndarray:
     """Unclamped J+ = (phi - 2 q) / (2 (1 + F_dr)) at the wall nodes (linear in the solution)."""
     lv = solver.bake.finest
     phi_s = result.phi[-1][lv.n_inner + nodes]
-    return (phi_s - 2.0 * result.q[-1][nodes]) / (2.0 * (1.0 + solver.fdr))
+    return partial_current(phi_s, result.q[-1][nodes], solver.fdr)
 
 
 def exchange_power(solver, result, exchange: CavityExchange) -> dict:
