@@ -246,3 +246,22 @@ def test_engine_refusals_name_the_file(tmp_path):
 
     with pytest.raises(MaterialError, match=r"must be a finite number > 0 \(positive\), got -3"):
         baked("sphere").with_scale(-3.0)  # a new scale is checked where it enters, as the baked one is
+
+
+def test_ss_output_without_single_scattering_is_refused_before_the_solve(files, tmp_path, monkeypatch, capsys):
+    """--ss-output for a cache without single scattering (or with the term turned off) is refused when the
+    cache is read, before any solve: the solver is never built."""
+    from translucency_addon import __main__ as cli_main
+    from translucency_addon import diffusion
+
+    def no_solve(*args, **kwargs):
+        raise AssertionError("the solver was built before the refusal")
+
+    monkeypatch.setattr(diffusion, "DiffusionSolver", no_solve)
+    base = ["solve", str(files / "s.npz"), "-o", str(tmp_path / "L.npy"), "--env", "1,1,1",
+            "--ss-output", str(tmp_path / "ss.npy")]
+    for extra, fact in (([], "holds no single-scattering data"), (["--no-single-scattering"], "turns that term off")):
+        assert cli_main.main(base + extra) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--ss-output" in err[0] and fact in err[0], err
+    assert os.listdir(tmp_path) == []

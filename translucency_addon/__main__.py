@@ -451,6 +451,10 @@ def cmd_solve(a) -> int:
     lights, env = lights_from_args(a)
     t0 = time.perf_counter()
     bake = load_bake(a.cache)
+    if a.ss_output and (bake.single_scattering is None or a.no_single_scattering):
+        raise TranslucencyError("--ss-output: " + (
+            "--no-single-scattering turns that term off" if a.no_single_scattering
+            else f"the cache {a.cache} holds no single-scattering data (bake with --single-scattering)"))
     if a.mm_per_unit is not None:
         bake = bake.with_scale(a.mm_per_unit)
     t_load = time.perf_counter() - t0
@@ -554,9 +558,6 @@ def _solve_single_scattering(a, bake, material, spec, lights, env):
     """The single-scattering term at the bake's vertices and its statistics, or None (absent / turned off)."""
     data = bake.single_scattering
     if data is None or a.no_single_scattering:
-        if data is None and a.ss_output:
-            raise TranslucencyError("--ss-output: the cache holds no single-scattering data "
-                                    "(bake with --single-scattering)")
         return None
     from .single_scattering import FrameEvaluator, fingerprint_field, stale_message, staleness
 
