@@ -83,11 +83,31 @@ def factory_reset() -> None:
 
 # --- markers ---------------------------------------------------------------------------
 
+class _RootIsAFolder:
+    """Collect the repository root as a plain folder, not as a package.
+
+    The root is the extension's package (its ``__init__.py`` is the add-on), so pytest would make it
+    a ``Package`` and import that ``__init__.py`` under the checkout folder's name: a clone in a
+    folder whose name is no Python identifier (``translucency-main``, ``my-clone``) then failed
+    every test with "attempted relative import with no known parent package".  The tests load the
+    add-on themselves (:func:`load_addon`).  Registered as a plugin, not a conftest hook: a
+    conftest's hooks do not apply to collecting the folder above it.
+    """
+
+    @staticmethod
+    def pytest_collect_directory(path, parent):
+        if Path(path) == ROOT:
+            return pytest.Dir.from_parent(parent, path=Path(path))
+        return None
+
+
 def pytest_configure(config):
     # Also declared in pytest.ini; repeated so `blender -b --python tests/run_blender.py`
     # works from any directory.
     config.addinivalue_line("markers", "gpu: needs Blender's GPU backend (llvmpipe here); fails, never skips")
     config.addinivalue_line("markers", "slow: takes more than a minute")
+    if not config.pluginmanager.has_plugin("translucency-root-is-a-folder"):
+        config.pluginmanager.register(_RootIsAFolder(), "translucency-root-is-a-folder")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -108,3 +108,23 @@ def test_the_demo_and_the_test_meshes_resolve_through_data():
     for rel in ("demo/demo.py", "tests/bakes.py", "tests/hard_cases/cases.py", "bench/accuracy_scenes.py"):
         text = (ROOT / rel).read_text()
         assert "mesh_path(" in text, f"{rel} does not resolve its meshes through data.mesh_path"
+
+
+def test_the_tests_run_in_a_clone_whose_folder_name_is_no_identifier(tmp_path):
+    """A stranger may clone into ``translucency-main``: pytest must not import the root ``__init__.py``
+    (the add-on) under the folder's name (it failed every test there with a relative-import error)."""
+    import shutil
+    import sys
+
+    clone = tmp_path / "translucency-main"
+    for name in _tracked_files():
+        if name.startswith(("tests/", "translucency_addon/", "data/")) or "/" not in name:
+            target = clone / name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            if (ROOT / name).is_file():
+                shutil.copy2(ROOT / name, target)
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                           "tests/test_standalone.py", "-k", "pattern_catches"],
+                          cwd=clone, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    assert "1 passed" in proc.stdout
