@@ -1,7 +1,7 @@
 """Numerical stability of the hard cases (issue 9): one row per case and solver.
 
     .venv/bin/python bench/stability.py [--cases thin_shell kappa_contrast ...] [--no-gpu] [--no-paper]
-                                        [--out docs/stability.md]
+                                        [--no-passes | --only-passes] [--out docs/stability.md]
 
 The cases are those of ``tests/hard_cases/cases.py`` (the test suite asserts
 the same bounds).  Per solving case and solver the row gives: the sweeps per
@@ -12,6 +12,11 @@ bound: <= 1), and pass or fail with the violated bounds.  The paper's scheme
 (Jacobi, eqs. 5-9, capped at ``PAPER_MAX_ITERATIONS`` sweeps per level) is
 reported, not required to pass: its rows say "report" and list what it
 violates.  Rejected cases give one row per input with the error raised.
+
+Then one row per hard case of every other pass (issue 35: particle fluids, the cavity exchange,
+the Voxel Number Map, deformed graphs, the first-scatter split; ``tests/hard_cases/passes_*.py``,
+judged by ``passes.evaluate`` as the tests judge them): solved within its bounds, or refused by
+name with what it said.
 
 CPU rows always; GPU rows (the compute-shader solver through Blender's
 ``gpu`` module, llvmpipe without a GPU) when a GPU context can be created,
@@ -30,10 +35,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests" / "hard_cases"))
+sys.path.insert(0, str(ROOT / "tests"))
 
 import numpy as np  # noqa: E402
 
 import cases as hc  # noqa: E402  (tests/hard_cases on the path: the module, not the package)
+from hard_cases import passes  # noqa: E402  (the passes' cases: a package, for their relative imports)
 
 
 def init_gpu() -> tuple[bool, str]:
@@ -122,6 +129,31 @@ def fmt(row) -> list[str]:
 HEADER = ["case", "solver", "sweeps (coarse..fine)", "final residual", "max flux / max source",
           "out / in power", "result", "notes"]
 
+PASS_HEADER = ["pass", "case", "result", "status", "bounds measured, or what the refusal said", "seconds"]
+
+
+def pass_rows(select=None) -> list[passes.Row]:
+    """Every pass's hard cases (``passes.all_cases``), each judged by ``passes.evaluate``."""
+    rows = []
+    for case in passes.all_cases():
+        if select and not any(case.name.startswith(s) or case.pass_name == s for s in select):
+            continue
+        row = passes.evaluate(case)
+        print(f"{row.pass_name} | {row.case} | {row.result} | {row.status} | {row.detail}  ({row.seconds:.1f} s)",
+              flush=True)
+        rows.append(row)
+    return rows
+
+
+def pass_table(rows) -> list[str]:
+    def cell(text):
+        text = str(text).replace("|", "\\|").replace("\n", " ")
+        return text if len(text) <= 220 else text[:217] + "..."
+    lines = ["| " + " | ".join(PASS_HEADER) + " |", "|" + "---|" * len(PASS_HEADER)]
+    lines += ["| " + " | ".join([r.pass_name, r.case, r.result, r.status, cell(r.detail), f"{r.seconds:.1f}"]) + " |"
+              for r in rows]
+    return lines
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -129,7 +161,13 @@ def main(argv=None) -> int:
     ap.add_argument("--no-gpu", action="store_true", help="CPU rows only")
     ap.add_argument("--no-paper", action="store_true", help="skip the paper's scheme (slow: Jacobi)")
     ap.add_argument("--out", help="also write the table as markdown to this file")
+    which = ap.add_mutually_exclusive_group()
+    which.add_argument("--no-passes", action="store_true", help="only the diffusion solve's cases")
+    which.add_argument("--only-passes", nargs="*", metavar="PASS_OR_CASE",
+                       help="only the other passes' cases (all, or those of these passes / case-name prefixes)")
     args = ap.parse_args(argv)
+    if args.only_passes is not None:
+        args.cases = []
 
     gpu, renderer = (False, "not requested") if args.no_gpu else init_gpu()
     print(f"GPU rows: {'yes, ' + renderer if gpu else 'no (' + renderer + ')'}", flush=True)
@@ -155,21 +193,31 @@ def main(argv=None) -> int:
                 print(" | ".join(fmt(r)) + f"  ({r.get('seconds', 0):.1f} s)", flush=True)
             rows += new
         print(f"  [{cid}: built in {build:.1f} s]", flush=True)
+    prows = [] if args.no_passes else pass_rows(args.only_passes)
     total = time.perf_counter() - t_all
     n_fail = sum(r["status"] == "FAIL" for r in rows)
+    p_fail = sum(r.status == "FAIL" for r in prows)
     lines = ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
     lines += ["| " + " | ".join(fmt(r)) + " |" for r in rows]
-    summary = (f"{len(rows)} rows, {n_fail} failed; GPU: {renderer if gpu else 'none'}; tol {hc.TOL:g}; "
-               f"{total:.0f} s")
-    print("\n" + "\n".join(lines) + "\n\n" + summary)
+    plines = pass_table(prows)
+    summary = (f"diffusion solve: {len(rows)} rows, {n_fail} failed; other passes: {len(prows)} cases, {p_fail} "
+               f"failed; GPU: {renderer if gpu else 'none'}; tol {hc.TOL:g}; {total:.0f} s")
+    print("\n" + "\n".join(lines) + "\n\n" + "\n".join(plines) + "\n\n" + summary)
     if notes:
         print("\nNotes:\n" + "\n".join(f"- {n}" for n in notes))
     if args.out:
-        text = "# Stability of the hard cases (bench/stability.py)\n\n" + "\n".join(lines) + f"\n\n{summary}\n"
+        text = "# Stability of the hard cases (bench/stability.py)\n\n"
+        if rows:
+            text += "## The QuadGraph diffusion solve\n\n" + "\n".join(lines) + "\n\n"
+        if prows:
+            text += ("## Every other pass (issue 35)\n\nEach case solves within its bounds or is refused by name "
+                     "(`tests/hard_cases/passes_*.py`; the tests assert the same rows).\n\n"
+                     + "\n".join(plines) + "\n\n")
+        text += summary + "\n"
         if notes:
             text += "\nNotes:\n\n" + "\n".join(f"- {n}" for n in notes) + "\n"
         Path(args.out).write_text(text)
-    return 1 if n_fail else 0
+    return 1 if n_fail or p_fail else 0
 
 
 if __name__ == "__main__":
