@@ -99,7 +99,7 @@ def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "f
     except Exception as ex:  # noqa: BLE001 - a missing or broken GPU layer
         return Placement("CPU", f"the {kind} GPU layer is not available ({type(ex).__name__}: {ex}); using the CPU")
     if not ok:
-        return Placement("CPU", f"the GPU cannot run {kind} here. {why[:1].upper() + why[1:]}. The image is the "
+        return Placement("CPU", f"the GPU cannot run {kind} here: {why}. The image is the "
                                 "same, only slower; for the GPU, run Blender with a display, or headless on a "
                                 "machine with a GPU driver that offers EGL. Set Scene > Translucency > Solver to "
                                 "CPU to choose the CPU yourself, and this note goes away")
