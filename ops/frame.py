@@ -24,28 +24,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..translucency_addon.frame import MeshMapping, pass_overrides, passes_for
 from . import inner_parts, scene_inputs
 from .state import COUNTERS, FRAME_EPOCH, GEOMETRY_EPOCH, ObjectState
 
 NOT_BAKED_SS = ("Single Scattering is on but was not baked: press Bake Single Scattering "
                 "(or Bake, which bakes both)")
-
-
-@dataclass(frozen=True)
-class MeshMapping:
-    """How values at the finest surface nodes reach ``obj.data``'s vertices (where the attribute lives).
-
-    ``same``: ``obj.data`` has the baked (evaluated) mesh's vertex count, so the bake's own map
-    serves; otherwise (a modifier changed the count) a map to ``obj.data``'s own ``positions`` and
-    ``normals``, whose ``digest`` keys what is cached per vertex set.
-    """
-
-    same: bool
-    idx: np.ndarray
-    w: np.ndarray
-    positions: np.ndarray | None = None
-    normals: np.ndarray | None = None
-    digest: str | None = None
 
 
 @dataclass(frozen=True)
@@ -126,10 +110,8 @@ def gather(obj, scene, depsgraph, st: ObjectState, use_camera: bool) -> FrameInp
     plan = make_plan(obj.name, st, settings, material, lights, environment, mm, in_view)
 
     has_ss = st.bake.single_scattering is not None
-    use_ms = want_ms and plan.run and plan.multiple.runs
-    use_ss = plan.run and plan.single.runs and has_ss
-    vnm = plan.voxel_number_map
-    use_vnm = bool(plan.run and vnm is not None and vnm.runs and st.bake.voxel_number_map is not None)
+    passes = passes_for(plan, st.bake, want_ms)  # the engine's rule (translucency_addon.frame), as the CLI's
+    use_ms, use_ss, use_vnm = passes.use_ms, passes.use_ss, passes.use_vnm
     want_ss = bool(settings.use_single_scattering)
     occluders, occ_sig = (scene_inputs.collect_occluders(depsgraph, obj, matrix, st.occluders,
                                                          exclude=inner_parts.part_objects(obj))
@@ -151,8 +133,7 @@ def gather(obj, scene, depsgraph, st: ObjectState, use_camera: bool) -> FrameInp
         split=bool(settings.ss_split_pass),
         ss_order=min(int(settings.ss_sh_order), st.bake.single_scattering.order) if has_ss else 0,
         plan=plan, use_ms=use_ms, use_ss=use_ss, use_vnm=use_vnm, part_media=part_media,
-        ms_channels=plan.multiple.channels if plan.multiple is not None else (False, False, False),
-        single_channels=plan.multiple.split if plan.multiple is not None else (False, False, False),
+        ms_channels=passes.ms_channels, single_channels=passes.single_channels,
         occluders=occluders, occ_sig=occ_sig,
         mapping=mesh_mapping(obj, st) if use_ms or use_ss or use_vnm else None,
         ss_stale=ss_stale,
@@ -185,23 +166,23 @@ def make_plan(name: str, st: ObjectState, settings, material, lights, environmen
     from ..translucency_addon.planner import plan_object
 
     has_ss = st.bake.single_scattering is not None
-    overrides, why = {}, {}
     every = getattr(settings, "pass_planning", "AUTO") == 'ALL'
+    overrides = pass_overrides(multiple=bool(settings.use_multiple_scattering),
+                               single=bool(settings.use_single_scattering), has_single=has_ss,
+                               voxel_number_map=bool(settings.use_voxel_number_map),
+                               has_voxel_number_map=st.bake.voxel_number_map is not None, all_passes=every)
     all_passes = "by the object's Pass Planning setting 'All Passes' (Translucency panel)"
-    if not settings.use_multiple_scattering:
-        overrides["multiple"], why["multiple"] = False, _off_because(settings, "use_multiple_scattering")
-    elif every:
-        overrides["multiple"], why["multiple"] = True, all_passes
-    if not (settings.use_single_scattering and has_ss):
-        overrides["single"] = False
-        why["single"] = (_off_because(settings, "use_single_scattering") if not settings.use_single_scattering else
-                         "because Single Scattering is on but not baked (press Bake Single Scattering)")
-    elif every:
-        overrides["single"], why["single"] = True, all_passes
-    if not settings.use_voxel_number_map:
-        overrides["voxel_number_map"], why["voxel_number_map"] = False, _off_because(settings, "use_voxel_number_map")
-    elif every and st.bake.voxel_number_map is not None:
-        overrides["voxel_number_map"], why["voxel_number_map"] = True, all_passes
+    why = {}  # what forced each override, in the panel's words (the plan says it)
+    for kind, prop in (("multiple", "use_multiple_scattering"), ("single", "use_single_scattering"),
+                       ("voxel_number_map", "use_voxel_number_map")):
+        if kind not in overrides:
+            continue
+        if overrides[kind]:
+            why[kind] = all_passes
+        elif kind == "single" and settings.use_single_scattering:
+            why[kind] = "because Single Scattering is on but not baked (press Bake Single Scattering)"
+        else:
+            why[kind] = _off_because(settings, prop)
     return plan_object(st.bake.with_scale(mm), material, list(lights), environment, field_values=st.field_values,
                        has_single_scattering=has_ss, in_view=in_view, enabled=bool(settings.enabled),
                        overrides=overrides, name=name, override_reasons=why)

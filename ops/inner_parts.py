@@ -303,18 +303,17 @@ def part_objects(obj) -> set:
 
 
 def n_outer_vertices(bake) -> int:
-    """Vertices of the outer mesh: a composite bake's ``mesh_vertices`` continue with the cavity walls."""
-    info = getattr(bake, "composite", None)
-    return len(bake.mesh_vertices) if info is None else int(info.n_outer_vertices)
+    """Vertices of the outer mesh (:func:`translucency_addon.frame.n_outer_vertices`)."""
+    from ..translucency_addon.frame import n_outer_vertices as outer
+
+    return outer(bake)
 
 
 def outer_mesh(bake) -> tuple:
-    """``(V, F, N)`` of the outer mesh of a bake (the whole baked mesh when it has no inner parts)."""
-    n = n_outer_vertices(bake)
-    V, F, N = bake.mesh_vertices, np.asarray(bake.mesh_faces), bake.mesh_normals
-    if n == len(V):
-        return V, F, N
-    return V[:n], F[np.all(F < n, axis=1)], N[:n]
+    """``(V, F, N)`` of the outer mesh of a bake (:func:`translucency_addon.frame.outer_mesh`)."""
+    from ..translucency_addon.frame import outer_mesh as outer
+
+    return outer(bake)
 
 
 def part_media(obj) -> tuple | None:

@@ -67,6 +67,7 @@ import bpy
 import numpy as np
 
 from . import attributes, backend, cache_files, deformation, fluid_runtime, inner_parts, state, status
+from ..translucency_addon.frame import FramePasses, compose, diffuse, multiple_radiance, single_evaluator
 from .frame import FrameInputs, gather
 
 
@@ -168,15 +169,18 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     if frame.use_ms and deformed:
         rgb, pose_solver, solved, seconds, result = deformation.diffuse(st, frame, scene.frame_current, solve_sig,
                                                                         force)
-        ms = Diffusion(_weighted(frame, rgb), pose_solver, solved, seconds, result, backend=st.frame_backend)
+        ms = Diffusion(rgb, pose_solver, solved, seconds, result, backend=st.frame_backend)
     elif frame.use_ms:
         ms = _diffuse(st, frame, solver, solve_sig, force)
     else:
-        ms = Diffusion(np.zeros((frame.n_vertices, 3)), None, False, 0.0)
-    ss_rgb = _single_scatter(st, frame) if frame.use_ss else None
-    vnm_rgb = _voxel_number_map(st, frame) if frame.use_vnm else None
-    total = ms.rgb + sum(x for x in (ss_rgb, vnm_rgb) if x is not None)
-    _write(obj, frame, total, ss_rgb)
+        ms = Diffusion(None, None, False, 0.0)
+    # The frame's answer is the engine's composition (translucency_addon.frame.compose), as the CLI's.
+    terms = compose(frame.plan, frame.mapping, frame.name, ms.rgb,
+                    _single_scatter(st, frame) if frame.use_ss else None,
+                    inner_parts.vnm_radiance(st, frame) if frame.use_vnm else None, n=frame.n_vertices)
+    ms.rgb = terms.multiple
+    ss_rgb = terms.single
+    _write(obj, frame, terms.total, ss_rgb)
     st.deformation.solved_frame = scene.frame_current
     _record(st, frame, view_sig, ms, ss_rgb)
     if not frame.off_main:
@@ -349,19 +353,7 @@ def _diffuse(st: state.ObjectState, frame: FrameInputs, solver, solve_sig, force
             st.render_result, st.render_solve_sig = result, solve_sig
         else:
             st.result, st.result_solver, st.solve_sig = result, solver, solve_sig
-    return Diffusion(_weighted(frame, rgb), solver, solved, seconds, result)
-
-
-def _weighted(frame: FrameInputs, rgb) -> np.ndarray:
-    """The diffusion radiance weighted by the planner's region; NaN or Inf is refused, never written."""
-    from ..translucency_addon.errors import TranslucencyError
-
-    rgb = np.asarray(rgb, dtype=np.float64)
-    if frame.plan.multiple.weights is not None:  # diffusion only where the planner keeps it
-        rgb = rgb * frame.weights("multiple")
-    if not np.all(np.isfinite(rgb)):
-        raise TranslucencyError(f"'{frame.name}': the solve produced NaN or Inf radiance; check the material")
-    return rgb
+    return Diffusion(rgb, solver, solved, seconds, result)
 
 
 def _retry_on_the_cpu(st: state.ObjectState, frame: FrameInputs, where):
@@ -379,54 +371,25 @@ def _retry_on_the_cpu(st: state.ObjectState, frame: FrameInputs, where):
 
 
 def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous):
-    """One multiple-scattering solve, with the interreflection bounce when the bake has sky visibility.
-
-    The bounce comes from a first solve of the same frame (``DiffusionSolver.
-    solve_interreflected``: on the CPU both passes are one block solve, ``interreflection.py``,
-    warm-started from the previous frame's pair; on the GPU the second solve is warm-started from the first),
-    never from an earlier frame, so a frame's result depends only on that
-    frame's inputs (renders of single frames and of animations agree).  A bake with cavities solves
-    through ``cavity.solve_with_cavities`` (the wall exchange, GMRES around the same solver; frame to
-    frame it follows the last result), without the interreflection bounce.
-    """
-    lights = list(frame.lights)
-    exchange = getattr(st.bake.composite, "exchange", None)  # cavities: their walls exchange light
-    if exchange is not None:
-        from ..translucency_addon.cavity import solve_with_cavities
-
-        result, _info = solve_with_cavities(solver, exchange, lights, frame.environment, tol=frame.tolerance,
-                                            warm_start=previous, shadows=True, occluders=frame.occluders,
-                                            channels=frame.ms_channels)
-        return result
-    if solver.sky is None:
-        return solver.solve(lights, frame.environment, warm_start=previous, shadows=True, occluders=frame.occluders,
-                            channels=frame.ms_channels, single=frame.single_channels)
-    result, st.bounce = solver.solve_interreflected(lights, frame.environment, warm_start=previous, shadows=True,
-                                                    occluders=frame.occluders, channels=frame.ms_channels,
-                                                    single=frame.single_channels)
+    """One multiple-scattering solve of the frame: the engine's :func:`~translucency_addon.frame.diffuse`
+    (the split, the interreflection bounce, the cavity exchange), warm-started from ``previous``."""
+    passes = FramePasses(frame.use_ms, frame.use_ss, frame.use_vnm, frame.ms_channels, frame.single_channels)
+    result, bounce = diffuse(solver, st.bake, frame.lights, frame.environment, passes, tol=frame.tolerance,
+                             occluders=frame.occluders, warm_start=previous, shadows=True)
+    if bounce is not None:
+        st.bounce = bounce
     return result
 
 
 def radiance_for_mesh(st: state.ObjectState, solver, result, frame: FrameInputs) -> np.ndarray:
-    """(n_vertices, 3) outgoing radiance for the original mesh's vertices.
-
-    The baked (evaluated) mesh's own vertex map, or one to ``obj.data``'s vertices when a modifier
-    changed the vertex count; either way the solver's ``radiance_at`` (corrected eq. 4/7).
-    """
-    from .scene_inputs import view_directions
-
-    m = frame.mapping
-    if m.same:  # a bake with cavities continues with their walls: the mesh's vertices are the first rows
-        dirs = view_directions(frame.view, np.asarray(st.bake.mesh_vertices))
-        return np.asarray(solver.vertex_radiance(result, dirs))[: len(m.idx)]
-    return np.asarray(solver.radiance_at(result, m.idx, m.w, m.normals, view_directions(frame.view, m.positions)))
+    """(n_vertices, 3) outgoing radiance for the original mesh's vertices (the engine's
+    :func:`~translucency_addon.frame.multiple_radiance`)."""
+    return multiple_radiance(solver, result, st.bake, frame.mapping, frame.view)
 
 
 def _single_scatter(st: state.ObjectState, frame: FrameInputs) -> np.ndarray:
-    """The single-scattering radiance at ``obj.data``'s vertices, (n, 3), weighted by the planner's region."""
-    from ..translucency_addon.errors import TranslucencyError
-    from ..translucency_addon.single_scattering import FrameEvaluator
-
+    """The single-scattering radiance at ``obj.data``'s vertices, (n, 3) (weighted by the planner's region in
+    ``compose``); the evaluator is kept in ``st`` per bake, SH order, Solver setting and vertex set."""
     bake = st.bake
     data = bake.single_scattering
     m = frame.mapping
@@ -437,11 +400,7 @@ def _single_scatter(st: state.ObjectState, frame: FrameInputs) -> np.ndarray:
             st.ss = None
         data_o = data if frame.ss_order == data.order else data.with_order(frame.ss_order)
         integrator, name, message = backend.make_integrator(data_o, frame.prefer, off_main=frame.off_main)
-        V, F, N = inner_parts.outer_mesh(bake)
-        if m.same:
-            ev = FrameEvaluator(data_o, V, F, N, integrator=integrator)
-        else:
-            ev = FrameEvaluator(data_o, V, F, points=m.positions, point_normals=m.normals, integrator=integrator)
+        ev = single_evaluator(bake, frame.ss_order, m, integrator=integrator)
         st.ss, st.ss_key, st.ss_backend_message = ev, key, message
         state.log(f"'{frame.name}': single scattering on the {name}" + (f" ({message})" if message else ""),
                   once_key=("ss-backend", frame.name, name, message))
@@ -454,14 +413,7 @@ def _single_scatter(st: state.ObjectState, frame: FrameInputs) -> np.ndarray:
     if msg:
         st.ss_backend_message = msg
     st.ss_rgb = rgb
-    if not np.all(np.isfinite(rgb)):
-        raise TranslucencyError(f"'{frame.name}': single scattering produced NaN or Inf radiance")
-    return rgb * frame.weights("single")  # the planner's channels and region
-
-
-def _voxel_number_map(st: state.ObjectState, frame: FrameInputs) -> np.ndarray:
-    """The Voxel Number Map's radiance at ``obj.data``'s vertices, (n, 3), weighted by the planner's region."""
-    return inner_parts.vnm_radiance(st, frame) * frame.weights("voxel_number_map")
+    return rgb  # weighted by the planner's channels and region in compose
 
 
 def _write(obj, frame: FrameInputs, rgb: np.ndarray, ss_rgb: np.ndarray | None) -> None:

@@ -676,15 +676,11 @@ def in_camera_view(scene, depsgraph, obj) -> bool:
 
 
 def view_directions(view, positions: np.ndarray) -> np.ndarray | None:
-    """Unit vectors from each vertex towards the viewer (None: along the normal)."""
-    if view is None:
-        return None
-    kind, value = view
-    if kind == 'ORTHO':
-        return np.broadcast_to(np.asarray(value, dtype=np.float64), positions.shape).copy()
-    d = np.asarray(value, dtype=np.float64)[None, :] - positions
-    length = np.linalg.norm(d, axis=1, keepdims=True)
-    return d / np.maximum(length, 1e-30)
+    """Unit vectors from each vertex towards the viewer (None: along the normal); the engine's
+    :func:`translucency_addon.frame.view_directions`."""
+    from ..translucency_addon.frame import view_directions as towards_viewer
+
+    return towards_viewer(view, positions)
 
 
 # ------------------------------------------------------------------ single scattering

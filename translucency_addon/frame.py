@@ -1,0 +1,296 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""One frame of one baked object: the recipe the add-on, the command line and the benches share.
+
+    plan          planner.plan_object, the object's switches as overrides (:func:`pass_overrides`)
+    -> passes     which passes run, on which channels, and where the diffusion solve adds the
+                  first-scatter split's single scattering (:func:`passes_for`)
+    -> diffusion  the solve: with the split's channels, the interreflection bounce when the bake has
+                  sky visibility, the cavity exchange when it has cavities (:func:`diffuse`)
+    -> radiance   the diffusive sources' outgoing radiance at the mesh's vertices, towards the view
+                  (:func:`multiple_radiance`: corrected eqs. 4 / 7 and the split's closed form)
+    -> terms      single scattering (Bernabei et al.; :func:`single_evaluator`) and the Voxel Number
+                  Map (Mochida et al.) where the plan runs them
+    -> compose    each term weighted by the planner's region, summed, refused if not finite
+                  (:func:`compose`)
+
+:func:`render_frame` runs the whole chain for one frame from scratch (the CLI's ``solve``); the add-on's
+runtime (``ops/runtime.py``) runs the same steps, keeping the solver, the last solution and the
+evaluators between frames and re-running only what a change needs.  Neither adds a term, a weight or
+a clamp of its own: a frame's answer is this module's.
+
+bpy-free: views are ``None`` (along the normals), ``("PERSP", eye)`` or ``("ORTHO", towards_viewer)``
+in object space; lengths in object units, coefficients per mm with ``bake.mm_per_unit``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import TranslucencyError
+
+CHANNELS_OFF = (False, False, False)
+
+
+@dataclass(frozen=True)
+class MeshMapping:
+    """How values at the finest surface nodes reach the vertices a frame is written to.
+
+    ``same``: those vertices are the baked mesh's (the first ``len(idx)`` rows of ``bake.mesh_vertices``),
+    so the bake's own map serves; otherwise (a modifier changed the vertex count) a map to other
+    ``positions`` and ``normals``, whose ``digest`` keys what is cached per vertex set.
+    """
+
+    same: bool
+    idx: np.ndarray
+    w: np.ndarray
+    positions: np.ndarray | None = None
+    normals: np.ndarray | None = None
+    digest: str | None = None
+
+
+def bake_mapping(bake, n: int | None = None) -> MeshMapping:
+    """The bake's own map onto its first ``n`` mesh vertices (default: all of them, cavity walls included)."""
+    idx, w = bake.vertex_map
+    n = len(idx) if n is None else int(n)
+    return MeshMapping(True, np.asarray(idx)[:n], np.asarray(w)[:n])
+
+
+def n_outer_vertices(bake) -> int:
+    """Vertices of the outer mesh: a bake with inner parts continues ``mesh_vertices`` with the cavity walls."""
+    info = getattr(bake, "composite", None)
+    return len(bake.mesh_vertices) if info is None else int(info.n_outer_vertices)
+
+
+def outer_mesh(bake) -> tuple:
+    """``(V, F, N)`` of the outer mesh of a bake (the whole baked mesh when it has no inner parts)."""
+    n = n_outer_vertices(bake)
+    V, F, N = bake.mesh_vertices, np.asarray(bake.mesh_faces), bake.mesh_normals
+    if n == len(V):
+        return V, F, N
+    return V[:n], F[np.all(F < n, axis=1)], N[:n]
+
+
+def view_directions(view, positions) -> np.ndarray | None:
+    """Unit vectors from each point towards the viewer (None: along the normal)."""
+    if view is None:
+        return None
+    kind, value = view
+    positions = np.asarray(positions, dtype=np.float64)
+    if kind == "ORTHO":
+        return np.broadcast_to(np.asarray(value, dtype=np.float64), positions.shape).copy()
+    d = np.asarray(value, dtype=np.float64)[None, :] - positions
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
+
+
+# ------------------------------------------------------------------ plan -> passes
+
+
+def pass_overrides(*, multiple: bool = True, single: bool = True, has_single: bool = False,
+                   voxel_number_map: bool = True, has_voxel_number_map: bool = False,
+                   all_passes: bool = False) -> dict:
+    """The planner's overrides from an object's switches (the panel's, or the CLI's flags).
+
+    A term that is off, or single scattering that is not baked, is forced off; with Pass Planning
+    "All Passes" every term that is on (and baked) is forced on, on every channel.
+    """
+    out = {}
+    if not multiple:
+        out["multiple"] = False
+    elif all_passes:
+        out["multiple"] = True
+    if not (single and has_single):
+        out["single"] = False
+    elif all_passes:
+        out["single"] = True
+    if not voxel_number_map:
+        out["voxel_number_map"] = False
+    elif all_passes and has_voxel_number_map:
+        out["voxel_number_map"] = True
+    return out
+
+
+@dataclass(frozen=True)
+class FramePasses:
+    """What runs this frame, from the plan: the passes and the diffusion's channels.
+
+    ``single_channels``: where the diffusion solve adds the first-scatter split's closed-form single
+    scattering (the split), so the terms add up without counting a path twice.
+    """
+
+    use_ms: bool
+    use_ss: bool
+    use_vnm: bool
+    ms_channels: tuple = CHANNELS_OFF
+    single_channels: tuple = CHANNELS_OFF
+
+
+def passes_for(plan, bake, want_ms: bool = True) -> FramePasses:
+    """The passes ``plan`` runs on ``bake`` (single scattering and the map only where baked)."""
+    vnm = plan.voxel_number_map
+    return FramePasses(
+        use_ms=bool(want_ms and plan.run and plan.multiple.runs),
+        use_ss=bool(plan.run and plan.single.runs and bake.single_scattering is not None),
+        use_vnm=bool(plan.run and vnm is not None and vnm.runs and bake.voxel_number_map is not None),
+        ms_channels=plan.multiple.channels if plan.multiple is not None else CHANNELS_OFF,
+        single_channels=plan.multiple.split if plan.multiple is not None else CHANNELS_OFF)
+
+
+# ------------------------------------------------------------------ the passes
+
+
+def diffuse(solver, bake, lights, environment, passes: FramePasses, *, tol: float, occluders=None,
+            warm_start=None, shadows: bool = True) -> tuple:
+    """One multiple-scattering solve of the frame: ``(result, bounce)``.
+
+    With the split on ``passes.single_channels``; with the interreflection bounce when the bake has
+    sky visibility (``DiffusionSolver.solve_interreflected``: the bounce comes from a first solve of
+    the same frame, never an earlier one, so a frame depends only on its own inputs); through
+    ``cavity.solve_with_cavities`` (the wall exchange, GMRES around the same solver) when the bake has
+    cavities, without the bounce.  ``bounce`` is None where none was solved.
+    """
+    lights = list(lights)
+    exchange = getattr(getattr(bake, "composite", None), "exchange", None)
+    if exchange is not None:
+        from .cavity import solve_with_cavities
+
+        result, _info = solve_with_cavities(solver, exchange, lights, environment, tol=tol, warm_start=warm_start,
+                                            shadows=shadows, occluders=occluders, channels=passes.ms_channels)
+        return result, None
+    if solver.sky is None:
+        return solver.solve(lights, environment, warm_start=warm_start, shadows=shadows, occluders=occluders,
+                            channels=passes.ms_channels, single=passes.single_channels), None
+    return solver.solve_interreflected(lights, environment, warm_start=warm_start, shadows=shadows,
+                                       occluders=occluders, channels=passes.ms_channels,
+                                       single=passes.single_channels)
+
+
+def multiple_radiance(solver, result, bake, mapping: MeshMapping, view) -> np.ndarray:
+    """(n, 3) outgoing radiance of the diffusion (and the split's closed form) at the mapping's vertices.
+
+    The baked mesh's own vertex map, or one to other vertices (``mapping.same`` False); either way the
+    solver's ``radiance_at`` (corrected eqs. 4 / 7).
+    """
+    if mapping.same:  # a bake with cavities continues with their walls: the mapping's vertices are the first rows
+        dirs = view_directions(view, np.asarray(bake.mesh_vertices))
+        return np.asarray(solver.vertex_radiance(result, dirs))[: len(mapping.idx)]
+    return np.asarray(solver.radiance_at(result, mapping.idx, mapping.w, mapping.normals,
+                                         view_directions(view, mapping.positions)))
+
+
+def single_evaluator(bake, order: int, mapping: MeshMapping, integrator=None):
+    """Single scattering's frame evaluator (Bernabei et al. eq. 3) for the mapping's vertices of the outer mesh.
+
+    ``order``: the SH order used (at most the baked one); ``integrator``: where its view rays run (default
+    numpy).
+    """
+    from .single_scattering import FrameEvaluator
+
+    data = bake.single_scattering
+    data_o = data if order == data.order else data.with_order(order)
+    V, F, N = outer_mesh(bake)
+    if mapping.same:
+        return FrameEvaluator(data_o, V, F, N, integrator=integrator)
+    return FrameEvaluator(data_o, V, F, points=mapping.positions, point_normals=mapping.normals, integrator=integrator)
+
+
+@dataclass
+class FrameTerms:
+    """A frame's radiance, W/(m^2 sr) per vertex: the total and each term as it entered it (weighted)."""
+
+    total: np.ndarray
+    multiple: np.ndarray
+    single: np.ndarray | None = None
+    voxel_number_map: np.ndarray | None = None
+
+
+def _rows(rgb, n: int) -> np.ndarray:
+    """A term's (n, 3) rows: one evaluated on the outer mesh only is 0 on the cavity walls after it."""
+    rgb = np.asarray(rgb, dtype=np.float64)
+    if len(rgb) == n:
+        return rgb
+    out = np.zeros((n, 3))
+    out[: len(rgb)] = rgb[:n]
+    return out
+
+
+def compose(plan, mapping: MeshMapping | None, name: str, multiple=None, single=None, voxel_number_map=None,
+            n: int | None = None) -> FrameTerms:
+    """The frame's radiance: each term weighted by the planner's region (``Plan.vertex_weights``) and summed.
+
+    ``multiple`` None: diffusion did not run (zeros).  A term with NaN or Inf is refused, never written.
+    ``mapping`` may be None only when no term ran; ``n`` is then the vertex count (zeros).
+    """
+    n = len(mapping.idx) if mapping is not None else int(n)
+    terms = {}
+    for kind, rgb, what in (("multiple", multiple, "the solve"), ("single", single, "single scattering"),
+                            ("voxel_number_map", voxel_number_map, "the Voxel Number Map")):
+        if rgb is None:
+            terms[kind] = None
+            continue
+        rgb = _rows(rgb, n)
+        if not np.all(np.isfinite(rgb)):
+            raise TranslucencyError(f"'{name}': {what} produced NaN or Inf radiance; check the material")
+        # diffusion is weighted only where the planner gives it a region; the other terms always (their
+        # channels and region)
+        if kind != "multiple" or (plan.multiple is not None and plan.multiple.weights is not None):
+            rgb = rgb * plan.vertex_weights(kind, mapping.idx, mapping.w)
+        terms[kind] = rgb
+    ms = terms["multiple"] if terms["multiple"] is not None else np.zeros((n, 3))
+    total = ms + sum(t for t in (terms["single"], terms["voxel_number_map"]) if t is not None)
+    return FrameTerms(total, ms, terms["single"], terms["voxel_number_map"])
+
+
+# ------------------------------------------------------------------ one frame from scratch
+
+
+@dataclass
+class FrameResult:
+    """:func:`render_frame`'s answer: the terms, the diffusion's solution and what each step cost."""
+
+    terms: FrameTerms
+    result: object = None  # the diffusion's SolveResult (None when it did not run)
+    bounce: object = None
+    seconds: dict = field(default_factory=dict)
+    single_evaluator: object = None
+
+
+def render_frame(bake, plan, passes: FramePasses, mapping: MeshMapping, *, solver=None, lights=(), environment=None,
+                 view=None, ss_view=None, eta: float = 1.3, tol: float = 1e-5, occluders=None, shadows: bool = True,
+                 warm_start=None, ss_order: int | None = None, ss_evaluator=None, voxel_number_map=None,
+                 name: str = "object") -> FrameResult:
+    """Every pass ``passes`` turns on, for one frame, composed (see the module docstring).
+
+    ``solver``: the object's diffusion solver (needed when ``passes.use_ms``); ``ss_view``: single
+    scattering's view (default ``view``); ``ss_evaluator``: a :func:`single_evaluator` to reuse;
+    ``voxel_number_map``: a callable returning the map's radiance at the mapping's vertices (the caller
+    owns its evaluator and backend).
+    """
+    seconds = {}
+    result = bounce = ms = ss = vnm = None
+    t0 = time.perf_counter()
+    if passes.use_ms:
+        if solver is None:
+            raise TranslucencyError(f"'{name}': the plan runs diffusion but no solver was given")
+        result, bounce = diffuse(solver, bake, lights, environment, passes, tol=tol, occluders=occluders,
+                                 warm_start=warm_start, shadows=shadows)
+        ms = multiple_radiance(solver, result, bake, mapping, view)
+    seconds["diffusion"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    if passes.use_ss:
+        if ss_evaluator is None:
+            order = bake.single_scattering.order if ss_order is None else min(int(ss_order),
+                                                                               bake.single_scattering.order)
+            ss_evaluator = single_evaluator(bake, order, mapping)
+        ss = ss_evaluator.radiance(list(lights), environment, float(eta), bake.mm_per_unit,
+                                   view if ss_view is None else ss_view)
+    seconds["single_scattering"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    if passes.use_vnm:
+        vnm = voxel_number_map()
+    seconds["voxel_number_map"] = time.perf_counter() - t2
+    terms = compose(plan, mapping, name, ms, ss, vnm)
+    seconds["total"] = time.perf_counter() - t0
+    return FrameResult(terms, result, bounce, seconds, ss_evaluator)
