@@ -69,13 +69,15 @@ def pose_solver_for(bake):
 def solve_bounds(solver, result, radiance=None, label="") -> list[Bound]:
     """The maximum principle, out <= in and the balance on every level; the radiance finite and >= 0."""
     L = solver.vertex_radiance(result) if radiance is None else radiance
-    mp = ratio = balance = 0.0
+    mp = ratio = balance = low = 0.0
     for i in range(len(solver.bake.levels)):
         phi, q = result.phi[i], result.q[i]
         if phi is None or q is None:
             continue
         g = (4.0 * q / (1.0 - solver.fdr)).max(axis=0)
-        mp = max(mp, float((phi.max(axis=0) / np.where(g > 0, g, np.inf)).max()))
+        gg = np.where(g > 0, g, np.inf)
+        mp = max(mp, float((phi.max(axis=0) / gg).max()))
+        low = max(low, float(-(phi.min(axis=0) / gg).min()))  # phi >= 0 to a relative EPS, as cases.py
         pb = solver.power_balance(result, level=i)
         raw = solver.power_balance(result, level=i, clamp=False)
         p_in = np.where(pb["in"] > 0, pb["in"], np.inf)
@@ -84,7 +86,8 @@ def solve_bounds(solver, result, radiance=None, label="") -> list[Bound]:
     return ([Bound(f"{label}out / in power", ratio, 1.0 + EPS), Bound(f"{label}max phi / max 4q/(1-F_dr)", mp, 1.0 + EPS),
              Bound(f"{label}|in - out - absorbed| / in", balance, EPS)]
             + finite_nonnegative(f"{label}radiance", L)
-            + [b for p in result.phi if p is not None for b in finite_nonnegative(f"{label}phi", p)])
+            + [finite_nonnegative(f"{label}phi", p)[0] for p in result.phi if p is not None]
+            + [Bound(f"{label}-min phi / max 4q/(1-F_dr)", low, EPS)])
 
 
 def rel_diff(a, b) -> float:

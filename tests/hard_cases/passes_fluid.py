@@ -58,14 +58,16 @@ def frame_bounds(res) -> list[Bound]:
     # (the table row shows the first four bounds: the energy and maximum-principle ones go first)
     phi, q, fdr = res.solve.phi[0], res.solve.q[0], res.diffusion.fdr
     g = (4.0 * q / (1.0 - fdr)).max(axis=0)
-    mp = float((phi.max(axis=0) / np.where(g > 0, g, np.inf)).max())
+    gg = np.where(g > 0, g, np.inf)
+    mp = float((phi.max(axis=0) / gg).max())
+    low = float(max(-(phi.min(axis=0) / gg).min(), 0.0))  # phi >= 0 to a relative EPS, as cases.py
     pb = res.diffusion.power_balance(res.solve)
     raw = res.diffusion.power_balance(res.solve, clamp=False)
     p_in = np.where(pb["in"] > 0, pb["in"], np.inf)
     ratio = float((pb["out"] / p_in).max())
     balance = float((np.abs(raw["in"] - raw["out"] - raw["absorbed"]) / p_in).max())
     return [Bound("out / in power", ratio, 1.0 + EPS), Bound("max phi / max 4q/(1-F_dr)", mp, 1.0 + EPS),
-            Bound("|in - out - absorbed| / in", balance, EPS)] + out
+            Bound("|in - out - absorbed| / in", balance, EPS), Bound("-min phi / max 4q/(1-F_dr)", low, EPS)] + out[:3]
 
 
 def zero_frame(res, warning: str) -> list[Bound]:

@@ -76,14 +76,20 @@ def split_solve(mat, lights=SUN, environment=ENV, single=(True, True, True), vie
 def solve_bounds(solver, res, L, label="") -> list[Bound]:
     """(out + single) / incident, the maximum principle on the diffusion's source, finite and >= 0."""
     pb = solver.power_balance(res)
+    if "incident" not in pb:  # no channel split (the planner's choice or the caller's): diffusion alone
+        pb.update(incident=pb["in"], single=np.zeros(3))
     inc = np.where(pb["incident"] > 0, pb["incident"], np.inf)
     ratio = float(((pb["out"] + pb["single"]) / inc).max())
     phi, q = res.phi[-1], res.q[-1]
     g = (4.0 * q / (1.0 - solver.fdr)).max(axis=0)
-    mp = float((phi.max(axis=0) / np.where(g > 0, g, np.inf)).max())
+    gg = np.where(g > 0, g, np.inf)
+    mp = float((phi.max(axis=0) / gg).max())
+    # phi >= 0 as cases.py holds it: an iterate stopped at the tolerance may dip below 0 by a relative MP_EPS
+    low = float(max(-(phi.min(axis=0) / gg).min(), 0.0))
     return ([Bound(f"{label}(out + single) / incident", ratio, 1.0 + EPS),
              Bound(f"{label}max phi / max 4q/(1-F_dr)", mp, 1.0 + EPS)]
-            + finite_nonnegative(f"{label}radiance", L) + finite_nonnegative(f"{label}phi", phi))
+            + finite_nonnegative(f"{label}radiance", L) + finite_nonnegative(f"{label}phi", phi)[:1]
+            + [Bound(f"{label}-min phi / max 4q/(1-F_dr)", low, EPS)])
 
 
 # -- cases --------------------------------------------------------------------------------------------
