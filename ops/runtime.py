@@ -374,8 +374,8 @@ def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous):
     """One multiple-scattering solve of the frame: the engine's :func:`~translucency_addon.frame.diffuse`
     (the split, the interreflection bounce, the cavity exchange), warm-started from ``previous``."""
     passes = FramePasses(frame.use_ms, frame.use_ss, frame.use_vnm, frame.ms_channels, frame.single_channels)
-    result, bounce = diffuse(solver, st.bake, frame.lights, frame.environment, passes, tol=frame.tolerance,
-                             occluders=frame.occluders, warm_start=previous, shadows=True)
+    result, bounce, _cavity = diffuse(solver, st.bake, frame.lights, frame.environment, passes, tol=frame.tolerance,
+                                      occluders=frame.occluders, warm_start=previous, shadows=True)
     if bounce is not None:
         st.bounce = bounce
     return result

@@ -112,7 +112,7 @@ def test_opaque_part_absorbs_in_the_diffusion(cli_bake):
 
 def test_cli_solve_reports_the_pass_and_can_leave_it_out(cli_bake):
     d, bake = cli_bake
-    args = ["solve", str(d / "c.npz"), "--material", "skin1", "--sun=-1,0,0:1000"]
+    args = ["solve", str(d / "c.npz"), "--material", "skin1", "--sun=-1,0,0:1000", "--pass-planning", "all"]
     assert cli.main(args + ["-o", str(d / "on.npy"), "--stats", str(d / "on.json")]) == 0
     assert cli.main(args + ["-o", str(d / "off.npy"), "--stats", str(d / "off.json"), "--no-voxel-number-map"]) == 0
     on, off = json.loads((d / "on.json").read_text()), json.loads((d / "off.json").read_text())

@@ -326,8 +326,14 @@ def test_cli_solve_writes_radiance_and_stats(tmp_path):
     r = subprocess.run([sys.executable, "-m", "translucency_addon", "solve", c, "-o", str(out), "--env", "1,1,1",
                         "--tol", "1e-8"], capture_output=True, text=True, env=env)
     assert r.returncode == 0, r.stderr
+    # the CLI runs the add-on's recipe: the planner's first-scatter split in the diffusion solve
+    from translucency_addon.planner import plan_object
+
+    plan = plan_object(b, MARBLE, [], ENV1)
+    assert any(plan.multiple.split), "marble under a uniform world: the split is on"
     s = DiffusionSolver(b, MARBLE, options=SolveOptions(tol=1e-8))
-    np.testing.assert_allclose(np.load(out), s.vertex_radiance(s.solve([], ENV1)), rtol=1e-4)
+    np.testing.assert_allclose(np.load(out), s.vertex_radiance(s.solve([], ENV1, single=plan.multiple.split)),
+                               rtol=1e-4)
     # bad material is a clear error, not a traceback
     r = subprocess.run([sys.executable, "-m", "translucency_addon", "solve", c, "-o", str(out),
                         "--sigma-a", "nan,0,0", "--sigma-s", "1,1,1"], capture_output=True, text=True, env=env)

@@ -218,6 +218,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "and order; Wang et al. sec. 6.4) instead of re-baking; radiance at the posed vertices")
     s.add_argument("--no-voxel-number-map", action="store_true",
                    help="leave out the Voxel Number Map term even when the cache holds it")
+    s.add_argument("--pass-planning", choices=["auto", "all"], default="auto",
+                   help="auto: the planner runs each pass where it adds light (as the add-on's Pass Planning "
+                        "'Automatic', the default); all: every term that is on and baked runs on every channel "
+                        "('All Passes')")
 
     _fluid_parser(sub)
 
@@ -480,47 +484,65 @@ def cmd_solve(a) -> int:
         if bake.single_scattering is not None and not a.no_single_scattering:
             print("warning: single scattering is baked in the rest pose and not deformed; left out", file=sys.stderr)
         bake = pose.bake
-    outer_material, cavity_info = material, None
-    if bake.composite is not None:  # inner parts: per-node media and the cavity exchange (composite_bake, cavity)
-        from .composite_bake import diffusion_material
+    # The frame: the engine's recipe (translucency_addon.frame), as the add-on runs it -- the planner with the
+    # switches as overrides, the split, the bounce or the cavity exchange, single scattering and the Voxel
+    # Number Map where the plan runs them, each weighted by the planner's region.
+    from .frame import bake_mapping, pass_overrides, passes_for, render_frame
+    from .planner import describe_plan, plan_object
 
-        material, field_values = diffusion_material(material, bake.composite, field_values)
-    solver = DiffusionSolver(bake, material, field_values, SolveOptions(solver=a.solver, tol=a.tol))
-    t1 = time.perf_counter()
-    if bake.composite is not None and bake.composite.exchange is not None:
-        from .cavity import solve_with_cavities
+    outer_material = material
+    has_ss = bake.single_scattering is not None and not a.deformed  # baked in the rest pose: not deformed
+    overrides = pass_overrides(single=not a.no_single_scattering, has_single=has_ss,
+                               voxel_number_map=not a.no_voxel_number_map,
+                               has_voxel_number_map=bake.voxel_number_map is not None,
+                               all_passes=a.pass_planning == "all")
+    name = os.path.splitext(os.path.basename(a.cache))[0]
+    plan = plan_object(bake, outer_material, lights, env, field_values=field_values, has_single_scattering=has_ss,
+                       overrides=overrides, name=name)
+    passes = passes_for(plan, bake)
+    solver = None
+    if passes.use_ms:
+        solver_material, solver_field = material, field_values
+        if bake.composite is not None:  # inner parts: per-node media (composite_bake)
+            from .composite_bake import diffusion_material
 
-        result, cavity_info = solve_with_cavities(solver, bake.composite.exchange, lights, env,
-                                                  shadows=not a.no_shadows)
-    else:
-        result, _ = solver.solve_interreflected(lights, env, shadows=not a.no_shadows)  # = solve() without sky
-    view_dirs = None
-    if a.camera is not None:
-        d = np.asarray(a.camera, dtype=np.float64)[None, :] - np.asarray(bake.mesh_vertices)
-        view_dirs = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
-    L = solver.vertex_radiance(result, view_dirs)
-    t_diff = time.perf_counter()
-    ss_stats = _solve_single_scattering(a, bake, outer_material, spec, lights, env)
-    L_ss = None
-    if ss_stats is not None:
-        L_ss = ss_stats.pop("radiance")
-        L = L + L_ss
-    vnm_stats = {"enabled": False, "reason": "turned off (--no-voxel-number-map)" if a.no_voxel_number_map
-                 else "the cache holds no Voxel Number Map (bake with --voxel-number-map)"}
-    if bake.voxel_number_map is not None and not a.no_voxel_number_map:
+            solver_material, solver_field = diffusion_material(material, bake.composite, field_values)
+        solver = DiffusionSolver(bake, solver_material, solver_field, SolveOptions(solver=a.solver, tol=a.tol))
+    view = ("PERSP", tuple(a.camera)) if a.camera is not None else None
+    ss_stats = _single_scattering_stats(a, bake, outer_material, spec) if passes.use_ss else None
+    vnm_stats = {"enabled": False, "reason": (
+        "turned off (--no-voxel-number-map)" if a.no_voxel_number_map
+        else "the cache holds no Voxel Number Map (bake with --voxel-number-map)" if bake.voxel_number_map is None
+        else "the planner leaves it out: " + _why(plan, plan.voxel_number_map))}
+
+    def voxel_number_map():
         from .composite_bake import solve_voxel_number_map
 
-        view = ("PERSP", tuple(a.camera)) if a.camera is not None else None
-        L_vnm, vnm_stats = solve_voxel_number_map(bake, outer_material, lights, env, view, shadows=not a.no_shadows)
-        L = L + L_vnm
+        L_vnm, stats_vnm = solve_voxel_number_map(bake, outer_material, lights, env, view, shadows=not a.no_shadows)
+        vnm_stats.clear()
+        vnm_stats.update(stats_vnm)
+        return L_vnm
+
+    t1 = time.perf_counter()
+    frame = render_frame(bake, plan, passes, bake_mapping(bake), solver=solver, lights=lights, environment=env,
+                         view=view, eta=outer_material.eta, tol=a.tol, shadows=not a.no_shadows,
+                         voxel_number_map=voxel_number_map, name=name)
+    result, cavity_info, L = frame.result, frame.cavity_exchange, frame.terms.total
+    L_ss = frame.terms.single
+    if ss_stats is not None:
+        ss_stats["seconds"] = {**frame.single_evaluator.seconds, "total": frame.seconds["single_scattering"]}
+        ss_stats["radiance_mean"] = L_ss.mean(axis=0).tolist()
+    t_diff = t1 + frame.seconds["diffusion"]
     t2 = time.perf_counter()
     stats = {
         "levels": [{"n_inner": lv.n_inner, "n_surface": lv.n_surface} for lv in bake.levels],
         "solver": a.solver,
-        "scheme": result.scheme,
-        "sweeps": [ls.iterations for ls in result.level_solves],
-        "final_relative_residual": result.residual.tolist(),
-        "seconds": {"load": t_load, "setup": t1 - t0 - t_load, **result.seconds, "diffusion": t_diff - t1,
+        "plan": describe_plan(plan),
+        "scheme": result.scheme if result is not None else None,
+        "sweeps": [ls.iterations for ls in result.level_solves] if result is not None else [],
+        "final_relative_residual": result.residual.tolist() if result is not None else [0.0],
+        "seconds": {"load": t_load, "setup": t1 - t0 - t_load, **(result.seconds if result is not None else {}),
+                    "diffusion": t_diff - t1,
                     "single_scattering": 0.0 if ss_stats is None else ss_stats["seconds"]["total"],
                     "voxel_number_map": vnm_stats["seconds"]["total"] if vnm_stats["enabled"] else 0.0,
                     "total": t2 - t0},
@@ -529,15 +551,17 @@ def cmd_solve(a) -> int:
         "single_scattering": ss_stats if ss_stats is not None else {
             "enabled": False,
             "reason": "turned off (--no-single-scattering)" if a.no_single_scattering
-            else "the cache holds no single-scattering data (bake with --single-scattering)"},
+            else "the cache holds no single-scattering data (bake with --single-scattering)"
+            if bake.single_scattering is None else "baked in the rest pose, not deformed" if a.deformed
+            else "the planner leaves it out: " + _why(plan, plan.single)},
         "radiance_mean": L.mean(axis=0).tolist(),
         "n_vertices": int(len(L)),
         "deformation": deformation,
     }
     L32 = L.astype(np.float32)
     writers = {a.output: lambda fh: np.save(fh, L32)}
-    if L_ss is not None and a.ss_output:
-        L_ss32 = L_ss.astype(np.float32)
+    if a.ss_output:  # the term as it entered the frame (zeros where the planner left it out)
+        L_ss32 = (L_ss if L_ss is not None else np.zeros_like(L)).astype(np.float32)
         writers[a.ss_output] = lambda fh: np.save(fh, L_ss32)
     if a.stats:
         text = json.dumps(stats, indent=2)
@@ -554,27 +578,25 @@ def cmd_solve(a) -> int:
     return 0
 
 
-def _solve_single_scattering(a, bake, material, spec, lights, env):
-    """The single-scattering term at the bake's vertices and its statistics, or None (absent / turned off)."""
-    data = bake.single_scattering
-    if data is None or a.no_single_scattering:
-        return None
-    from .single_scattering import FrameEvaluator, fingerprint_field, stale_message, staleness
+def _why(plan, decision) -> str:
+    """Why the plan leaves a pass out: its channels' reasons, or the plan's own when it runs nothing."""
+    if decision is None or not plan.run:
+        return plan.reason
+    return "; ".join(decision.reasons)
 
+
+def _single_scattering_stats(a, bake, material, spec) -> dict:
+    """What the --stats file says of the single-scattering term (its radiance comes from the frame); a bake
+    whose optical depth no longer matches the material, field or scale is used as it is, with a warning."""
+    from .single_scattering import fingerprint_field, stale_message, staleness
+
+    data = bake.single_scattering
     reasons = staleness(data, material=material, field_fp=fingerprint_field(spec, material),
                         mm_per_unit=bake.mm_per_unit)
     if reasons:
         print(f"warning: {stale_message(reasons)} (bake again with --single-scattering)", file=sys.stderr)
-    t0 = time.perf_counter()
-    ev = FrameEvaluator(data, bake.mesh_vertices, bake.mesh_faces, bake.mesh_normals)
-    view = ("PERSP", tuple(a.camera)) if a.camera is not None else None
-    L = ev.radiance(lights, env, material.eta, bake.mm_per_unit, view)
-    seconds = dict(ev.seconds)
-    seconds["setup"] = time.perf_counter() - t0 - seconds["total"]
-    seconds["total"] = time.perf_counter() - t0
     return {"enabled": True, "backend": "CPU (numpy)", "n_samples": data.n_samples, "n_dirs": data.n_dirs,
-            "sh_order": data.order, "view": "camera" if view is not None else "normal", "stale": reasons,
-            "seconds": seconds, "radiance_mean": L.mean(axis=0).tolist(), "radiance": L}  # popped by the caller
+            "sh_order": data.order, "view": "camera" if a.camera is not None else "normal", "stale": reasons}
 
 
 def cmd_plan(a) -> int:

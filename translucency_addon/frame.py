@@ -143,28 +143,30 @@ def passes_for(plan, bake, want_ms: bool = True) -> FramePasses:
 
 def diffuse(solver, bake, lights, environment, passes: FramePasses, *, tol: float, occluders=None,
             warm_start=None, shadows: bool = True) -> tuple:
-    """One multiple-scattering solve of the frame: ``(result, bounce)``.
+    """One multiple-scattering solve of the frame: ``(result, bounce, cavity_exchange)``.
 
     With the split on ``passes.single_channels``; with the interreflection bounce when the bake has
     sky visibility (``DiffusionSolver.solve_interreflected``: the bounce comes from a first solve of
     the same frame, never an earlier one, so a frame depends only on its own inputs); through
     ``cavity.solve_with_cavities`` (the wall exchange, GMRES around the same solver) when the bake has
-    cavities, without the bounce.  ``bounce`` is None where none was solved.
+    cavities, without the bounce.  ``bounce`` is None where none was solved; ``cavity_exchange`` is
+    the exchange's report (its GMRES residual and iterations), None without cavities.
     """
     lights = list(lights)
     exchange = getattr(getattr(bake, "composite", None), "exchange", None)
     if exchange is not None:
         from .cavity import solve_with_cavities
 
-        result, _info = solve_with_cavities(solver, exchange, lights, environment, tol=tol, warm_start=warm_start,
-                                            shadows=shadows, occluders=occluders, channels=passes.ms_channels)
-        return result, None
+        result, info = solve_with_cavities(solver, exchange, lights, environment, tol=tol, warm_start=warm_start,
+                                           shadows=shadows, occluders=occluders, channels=passes.ms_channels)
+        return result, None, info
     if solver.sky is None:
         return solver.solve(lights, environment, warm_start=warm_start, shadows=shadows, occluders=occluders,
-                            channels=passes.ms_channels, single=passes.single_channels), None
-    return solver.solve_interreflected(lights, environment, warm_start=warm_start, shadows=shadows,
-                                       occluders=occluders, channels=passes.ms_channels,
-                                       single=passes.single_channels)
+                            channels=passes.ms_channels, single=passes.single_channels), None, None
+    result, bounce = solver.solve_interreflected(lights, environment, warm_start=warm_start, shadows=shadows,
+                                                 occluders=occluders, channels=passes.ms_channels,
+                                                 single=passes.single_channels)
+    return result, bounce, None
 
 
 def multiple_radiance(solver, result, bake, mapping: MeshMapping, view) -> np.ndarray:
@@ -253,6 +255,7 @@ class FrameResult:
     terms: FrameTerms
     result: object = None  # the diffusion's SolveResult (None when it did not run)
     bounce: object = None
+    cavity_exchange: dict | None = None
     seconds: dict = field(default_factory=dict)
     single_evaluator: object = None
 
@@ -269,13 +272,13 @@ def render_frame(bake, plan, passes: FramePasses, mapping: MeshMapping, *, solve
     owns its evaluator and backend).
     """
     seconds = {}
-    result = bounce = ms = ss = vnm = None
+    result = bounce = cavity = ms = ss = vnm = None
     t0 = time.perf_counter()
     if passes.use_ms:
         if solver is None:
             raise TranslucencyError(f"'{name}': the plan runs diffusion but no solver was given")
-        result, bounce = diffuse(solver, bake, lights, environment, passes, tol=tol, occluders=occluders,
-                                 warm_start=warm_start, shadows=shadows)
+        result, bounce, cavity = diffuse(solver, bake, lights, environment, passes, tol=tol, occluders=occluders,
+                                         warm_start=warm_start, shadows=shadows)
         ms = multiple_radiance(solver, result, bake, mapping, view)
     seconds["diffusion"] = time.perf_counter() - t0
     t1 = time.perf_counter()
@@ -293,4 +296,4 @@ def render_frame(bake, plan, passes: FramePasses, mapping: MeshMapping, *, solve
     seconds["voxel_number_map"] = time.perf_counter() - t2
     terms = compose(plan, mapping, name, ms, ss, vnm)
     seconds["total"] = time.perf_counter() - t0
-    return FrameResult(terms, result, bounce, seconds, ss_evaluator)
+    return FrameResult(terms, result, bounce, cavity, seconds, ss_evaluator)
