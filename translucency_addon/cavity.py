@@ -217,6 +217,23 @@ def exchange_power(solver, result, exchange: CavityExchange) -> dict:
     return {"out": (1.0 - solver.fdr) * (a @ jp), "back": a @ q_cav}
 
 
+def hollow_lights(solver, lights) -> list:
+    """The point, spot and area lights inside a cavity: inside the outer mesh (its faces come first in the
+    bake's mesh, ``CompositeObject.diffusion_mesh``) but not inside the medium (``DiffusionSolver.lights_inside``,
+    whose ray parity counts the cavity's wall too)."""
+    from .raycast import TriangleBVH, inside_mesh
+
+    cand = [light for light in lights or () if light.kind != "sun"]
+    n_outer = getattr(getattr(solver.bake, "composite", None), "n_outer_vertices", None)
+    if not cand or n_outer is None:
+        return []
+    V, F = np.asarray(solver.bake.mesh_vertices), np.asarray(solver.bake.mesh_faces)
+    outer = inside_mesh(TriangleBVH(V[:n_outer], F[np.all(F < n_outer, axis=1)]),
+                        np.array([light.position for light in cand], dtype=np.float64))
+    in_medium = {id(light) for light in solver.lights_inside(cand)}
+    return [light for light, o in zip(cand, outer) if o and id(light) not in in_medium]
+
+
 def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), environment=None, *, tol: float = 1e-4,
                         max_solves: int = 40, warm_start=None, **kw):
     """Solve with the cavity exchange: ``(SolveResult, info)`` (see the module docstring).
@@ -246,6 +263,17 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
     usable = solver.can_warm_start(warm_start) or solver.options.levels == "finest"
     levels_needed = [len(solver.bake.levels) - 1] if usable else None
     q = exchange.dark_walls(solver.incident(lights, environment, levels=levels_needed, **light_kw))
+    inner = hollow_lights(solver, lights)
+    if inner:
+        # A light inside a hollow shines on its wall from the air, as an outside light on the outer surface:
+        # eq. 3's q on the wall nodes (the shadow rays, against the bake's mesh, keep it in its own hollow).
+        # dark_walls above removed it with the outside light, so such a light added nothing, without a word.
+        said = list(solver.warnings)
+        q_in = solver.incident(inner, None, levels=levels_needed, **light_kw)
+        solver.warnings = said
+        for i, w in enumerate(exchange.level_walls or ()):
+            if q[i] is not None and q_in[i] is not None and len(w):
+                q[i][w] += q_in[i][w]
     first = solver.solve(q=q, warm_start=warm_start, **kw)
     first.warnings = list(solver.warnings) + list(first.warnings)
     nodes = exchange.nodes
