@@ -7,8 +7,9 @@ around the diffusion solver (``solve_with_cavities``).  The bounds every solved 
 
 * the vertex radiance finite and >= 0;
 * the exchange converged: GMRES's code 0 and the exchange's residual (``info["residual"]``) <= ``TOL_EXCHANGE``;
-* the hollow neither creates nor loses light: ``|out - back| / out`` of ``exchange_power`` <= ``EXCHANGE_EPS``
-  (closed, non-absorbing air returns into the wall what left it);
+* the hollow neither creates nor loses light: ``|out - back|`` of ``exchange_power`` over the gross power through
+  the wall (``sum a |J+|``: the net J+ changes sign where diffusion fails) <= ``EXCHANGE_EPS`` (closed,
+  non-absorbing air returns into the wall what left it; the form factors' reciprocity, ``build_cavity_exchange``);
 * energy over the outer surface: ``out <= in`` (the light that entered from outside -- through the outer
   surface, or into the wall from a light inside the hollow), and ``in = out + absorbed`` to ``BALANCE_EPS``
   (unclamped J+, ``DiffusionSolver.power_balance``'s absorption): nothing vanishes into the hollow;
@@ -77,10 +78,10 @@ def baked(kind: str):
     return bake_composite(comp, SETTINGS), comp
 
 
-def measure(bake, medium, lights, *, env=None) -> Outcome:
+def measure(bake, medium, lights, *, env=None, eta=None) -> Outcome:
     """Solve with the exchange and return the bounds of the module docstring."""
     ex = bake.composite.exchange
-    material = Material(medium)
+    material = Material(medium) if eta is None else Material(medium, None, eta)
     solver = DiffusionSolver(bake, material, None, SolveOptions(tol=SOLVE_TOL))
     res, info = solve_with_cavities(solver, ex, lights, env, tol=SOLVE_TOL)
     lv = bake.finest
@@ -101,14 +102,16 @@ def measure(bake, medium, lights, *, env=None) -> Outcome:
         ratio = np.where(p_in > 0, p_out / p_in, np.where(np.abs(p_out) > 0, np.inf, 0.0))
         bal = np.where(p_in > 0, np.abs(p_in - p_out - p_abs) / p_in, np.where(np.abs(p_out) + np.abs(p_abs) > 0,
                                                                                np.inf, 0.0))
-        hollow = np.where(p["out"] > 0, np.abs(p["out"] - p["back"]) / p["out"], np.abs(p["back"]))
+        # relative to the gross power through the wall: the net J+ may change sign where diffusion fails
+        gross = (1.0 - solver.fdr) * (a[ex.nodes] @ np.abs(jp[ex.nodes]))
+        hollow = np.where(gross > 0, np.abs(p["out"] - p["back"]) / gross, np.abs(p["back"]))
     g = (4.0 * q / (1.0 - solver.fdr)).max(axis=0)
     phi_max = res.phi[-1].max(axis=0)
     mp = float(np.max(np.where(g > 0, phi_max / np.where(g > 0, g, 1.0), np.where(phi_max > 0, np.inf, 0.0))))
     bounds = finite_nonnegative("radiance", L) + [
         Bound("GMRES code", float(abs(info.get("gmres_code") or 0)), 0.0),
         Bound("exchange residual", float(info["residual"]), TOL_EXCHANGE),
-        Bound("hollow |out - back| / out", float(np.max(hollow)), EXCHANGE_EPS),
+        Bound("hollow |out - back| / gross", float(np.max(hollow)), EXCHANGE_EPS),
         Bound("out / in power (outer surface)", float(np.max(ratio)), 1.0 + OUT_IN_EPS),
         Bound("|in - out - absorbed| / in", float(np.max(bal)), BALANCE_EPS),
         Bound("max phi / max 4q/(1-F_dr)", mp, 1.0 + MP_EPS),
