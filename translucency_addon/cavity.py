@@ -193,6 +193,23 @@ def build_cavity_exchange(bake, composite, progress=None) -> CavityExchange:
             vis = ~bvh.occluded(P[s] + eps * N[s], u, R - 2.0 * eps)
             s, t, R, cs, ct = s[vis], t[vis], R[vis], cs[vis], ct[vis]
         K[s, t] = cs * ct * A[t] / (np.pi * R ** 2)
+        # Reciprocity: the power s sends to t, a_s K_st, must equal what t sends to s, or the hollow creates or
+        # destroys light (3 % for a wall lit unevenly, found by the fuzz; row normalisation alone keeps only
+        # sum_t K_st = 1).  The discrete form factors obey it only roughly, so the exchanged power G = A K is
+        # symmetrised and balanced (symmetric Sinkhorn, G -> D G D) until every row sums to its node's area:
+        # K = A^-1 D G D then has unit rows and A K symmetric, so sum_s a_s K_st = a_t (power out = back).
+        G = A[sel, None] * K[np.ix_(sel, sel)]
+        G = 0.5 * (G + G.T)
+        a_sel = A[sel]
+        d = np.ones(len(sel))
+        for _ in range(500):
+            r = d * (G @ d)
+            d_new = np.sqrt(np.divide(d * a_sel, G @ d, out=d * d, where=r > 0))
+            done = np.max(np.abs(d_new - d) / d) < 1e-13
+            d = d_new
+            if done:
+                break
+        K[np.ix_(sel, sel)] = d[:, None] * G * d[None, :] / a_sel[:, None]
         rows = K[sel].sum(axis=1)
         K[sel] /= np.where(rows > 0, rows, 1.0)[:, None]
         if progress is not None:
@@ -215,6 +232,23 @@ def exchange_power(solver, result, exchange: CavityExchange) -> dict:
     jp = wall_partial_current(solver, result, exchange.nodes)
     q_cav = exchange.operator(solver.eta) @ jp
     return {"out": (1.0 - solver.fdr) * (a @ jp), "back": a @ q_cav}
+
+
+def hollow_lights(solver, lights) -> list:
+    """The point, spot and area lights inside a cavity: inside the outer mesh (its faces come first in the
+    bake's mesh, ``CompositeObject.diffusion_mesh``) but not inside the medium (``DiffusionSolver.lights_inside``,
+    whose ray parity counts the cavity's wall too)."""
+    from .raycast import TriangleBVH, inside_mesh
+
+    cand = [light for light in lights or () if light.kind != "sun"]
+    n_outer = getattr(getattr(solver.bake, "composite", None), "n_outer_vertices", None)
+    if not cand or n_outer is None:
+        return []
+    V, F = np.asarray(solver.bake.mesh_vertices), np.asarray(solver.bake.mesh_faces)
+    outer = inside_mesh(TriangleBVH(V[:n_outer], F[np.all(F < n_outer, axis=1)]),
+                        np.array([light.position for light in cand], dtype=np.float64))
+    in_medium = {id(light) for light in solver.lights_inside(cand)}
+    return [light for light, o in zip(cand, outer) if o and id(light) not in in_medium]
 
 
 def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), environment=None, *, tol: float = 1e-4,
@@ -246,6 +280,17 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
     usable = solver.can_warm_start(warm_start) or solver.options.levels == "finest"
     levels_needed = [len(solver.bake.levels) - 1] if usable else None
     q = exchange.dark_walls(solver.incident(lights, environment, levels=levels_needed, **light_kw))
+    inner = hollow_lights(solver, lights)
+    if inner:
+        # A light inside a hollow shines on its wall from the air, as an outside light on the outer surface:
+        # eq. 3's q on the wall nodes (the shadow rays, against the bake's mesh, keep it in its own hollow).
+        # dark_walls above removed it with the outside light, so such a light added nothing, without a word.
+        said = list(solver.warnings)
+        q_in = solver.incident(inner, None, levels=levels_needed, **light_kw)
+        solver.warnings = said
+        for i, w in enumerate(exchange.level_walls or ()):
+            if q[i] is not None and q_in[i] is not None and len(w):
+                q[i][w] += q_in[i][w]
     first = solver.solve(q=q, warm_start=warm_start, **kw)
     first.warnings = list(solver.warnings) + list(first.warnings)
     nodes = exchange.nodes

@@ -55,7 +55,10 @@ class VNMSettings:
         if self.quality not in QUALITY_SURFACE_VOXELS:
             raise MeshError(f"unknown quality {self.quality!r}; choose one of {', '.join(QUALITY_SURFACE_VOXELS)}")
         if self.resolution != "auto":
-            resolution_for(self.resolution)
+            try:
+                resolution_for(self.resolution)
+            except (TypeError, ValueError) as exc:  # a refusal by name, as every other setting's (was a ValueError)
+                raise MeshError(f"Voxel Number Map: {exc}") from None
         if not 0.05 <= float(self.step) <= 1.0:
             raise MeshError(f"the chord step must be in [0.05, 1] voxels, got {self.step}")
         if int(self.max_surface_voxels) < 16:
@@ -189,8 +192,10 @@ def budget_message(n: int, C: int, limit: int) -> str:
             f"({lutmod.lut_bytes(limit, C) / 2**20:.0f} MiB + {lutmod.kernel_bytes(limit) / 2**20:.0f} MiB)")
 
 
-def choose_resolution(V, F, settings: VNMSettings):
-    """``(resolution, surface-voxel count, warnings)`` for the outer mesh (counts only; no voxelisation)."""
+def choose_resolution(V, F, settings: VNMSettings, media: int = 2):
+    """``(resolution, surface-voxel count, warnings)`` for the outer mesh (counts only; no voxelisation).
+
+    ``media``: the object's component media, for the LUT size a refusal states (it said 2 whatever the object)."""
     s = settings
     warnings = []
     ext = float(np.ptp(np.asarray(V), axis=0).max())
@@ -204,7 +209,7 @@ def choose_resolution(V, F, settings: VNMSettings):
         n = count(res)
         if n > s.max_surface_voxels:
             fit = int(res * np.sqrt(s.max_surface_voxels / n))
-            raise MeshError(f"Voxel Number Map at resolution {res}: {budget_message(n, 2, s.max_surface_voxels)}; "
+            raise MeshError(f"Voxel Number Map at resolution {res}: {budget_message(n, media, s.max_surface_voxels)}; "
                             f"lower the resolution to about {fit} or use 'auto'")
         return res, n, warnings
     from ..meshio import triangle_areas
@@ -224,7 +229,7 @@ def choose_resolution(V, F, settings: VNMSettings):
         warnings.append(f"coarsened to resolution {res} ({n:,} surface voxels) to stay within the budget of "
                         f"{s.max_surface_voxels:,} surface voxels")
     if n > s.max_surface_voxels:
-        raise MeshError(f"Voxel Number Map: {budget_message(n, 2, s.max_surface_voxels)} even at resolution 8")
+        raise MeshError(f"Voxel Number Map: {budget_message(n, media, s.max_surface_voxels)} even at resolution 8")
     return res, n, warnings
 
 
@@ -263,7 +268,8 @@ def bake_voxel_number_map(composite, settings: VNMSettings | None = None, *, mm_
     V, F = composite.V, composite.F
     t0 = time.perf_counter()
     stage("resolution")
-    res, n_est, warnings = choose_resolution(V, F, s)
+    media = (2 if composite.material.heterogeneous else 1) + len(composite.media_parts)  # the LUT's components
+    res, n_est, warnings = choose_resolution(V, F, s, media)
     times["resolution"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
