@@ -315,14 +315,19 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
     jp0 = wall_partial_current(solver, first, nodes)
     b = op @ jp0
 
-    def matvec(x):
-        x = x.reshape(m, 3)
-        # J+ of the response includes the -2 v / (2 (1 + F_dr)) of its own q (result.q holds it)
-        return (x - op @ wall_partial_current(solver, response(x), nodes)).ravel()
+    # Each channel scaled by its own largest source: the channels do not couple, and one GMRES over the
+    # stacked vector with a single scale met its tolerance on the brightest channel only -- a channel lit
+    # 1e7 times more weakly was left at 4.8x its input power (the inner-parts fuzz).
+    scale = np.abs(b).max(axis=0)
+    scale = np.where(scale > 1e-300, scale, 1.0)
 
-    scale = max(float(np.abs(b).max()), 1e-300)
+    def matvec(x):
+        x = x.reshape(m, 3) * scale
+        # J+ of the response includes the -2 v / (2 (1 + F_dr)) of its own q (result.q holds it)
+        return ((x - op @ wall_partial_current(solver, response(x), nodes)) / scale).ravel()
+
     A = spla.LinearOperator((3 * m, 3 * m), matvec=matvec, dtype=np.float64)
-    x, code = spla.gmres(A, b.ravel() / scale, rtol=tol, atol=0.0, restart=max_solves, maxiter=1)
+    x, code = spla.gmres(A, (b / scale).ravel(), rtol=tol, atol=0.0, restart=max_solves, maxiter=1)
     q_cav = x.reshape(m, 3) * scale
     resp = response(q_cav)
     phi = list(first.phi)
