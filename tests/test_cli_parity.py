@@ -120,3 +120,86 @@ def test_the_cli_renders_what_the_addon_renders(blender, addon, cache_dir, memo_
     assert mean > 0
     diff = float(np.abs(cli - ours).max()) / mean
     assert diff <= 1e-5, f"{scene_name}: the CLI differs from the add-on by {diff:.2e} of the mean\n{' '.join(cmd)}"
+
+
+def test_a_deformed_pose_renders_the_same_through_the_cli(blender, addon, cache_dir, memo_bakes, tmp_path):
+    """An armature pose solved on the baked graph (no re-bake) by the add-on's frame handler, and the CLI's
+    ``solve --deformed POSED.obj`` of the add-on's cache with the same evaluated mesh: the same radiance."""
+    from test_ops_deformation import baked_bar, evaluated, key_bend
+
+    from translucency.ops import state
+    from translucency.ops.frame import gather
+    from translucency.translucency_addon.meshio import save_obj
+
+    obj, rig = baked_bar()
+    key_bend(rig, 10, 60.0)
+    scene = bpy.context.scene
+    scene.frame_set(10)  # the frame handler solves the pose
+    ours = radiance(obj)
+    st = state.get_state(obj)
+    assert st.pose is not None
+    V, F = evaluated(obj)
+    posed = tmp_path / "posed.obj"
+    save_obj(posed, V, F)
+    frame = gather(obj, scene, bpy.context.evaluated_depsgraph_get(), st, False)
+    out = tmp_path / "cli.npy"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "translucency_addon", "solve", bpy.path.abspath(obj.translucency.cache_filepath),
+           "-o", str(out), "--material", obj.translucency.material_preset.lower(), "--deformed", str(posed),
+           *_cli_options(frame)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    cli = np.load(out)[: len(ours)]
+    diff = float(np.abs(cli - ours).max()) / float(np.abs(ours).mean())
+    assert diff <= 1e-5, f"the CLI differs from the add-on on the pose by {diff:.2e} of the mean\n{' '.join(cmd)}"
+
+
+def _cli_material(obj) -> list[str]:
+    s = obj.translucency
+    if s.material_preset != 'CUSTOM':
+        return ["--material", s.material_preset.lower()]
+    return ["--sigma-a", ",".join(repr(float(x)) for x in s.sigma_a),
+            "--sigma-s", ",".join(repr(float(x)) for x in s.sigma_s), "--eta", repr(float(s.eta))]
+
+
+def _addon_then_cli(obj, tmp_path, use_camera=False):
+    """The add-on's radiance of ``obj`` (solved as F12 does) and the CLI's on its cache with the same inputs."""
+    from translucency.ops import runtime, state
+    from translucency.ops.frame import gather
+
+    scene = bpy.context.scene
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    runtime.solve_object(obj, scene, depsgraph, use_camera=use_camera, force=True)
+    ours = radiance(obj)
+    frame = gather(obj, scene, depsgraph, state.get_state(obj), use_camera)
+    out = tmp_path / "cli.npy"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "translucency_addon", "solve", bpy.path.abspath(obj.translucency.cache_filepath),
+           "-o", str(out), *_cli_material(obj), *_cli_options(frame)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    return ours, np.load(out)[: len(ours)], frame, cmd
+
+
+@pytest.mark.parametrize("scene_name", ["cube with a cavity", "bottle of wine"])
+def test_inner_parts_render_the_same_through_the_cli(blender, addon, cache_dir, memo_bakes, tmp_path, scene_name):
+    """Inner parts: the marble cube with a cavity (the cavity exchange) and the glass bottle of wine (the planner
+    hands it to the Voxel Number Map), through the add-on and through the CLI on the add-on's cache."""
+    from test_ops_inner_parts import bake_op, bottle_scene, cube_scene
+
+    obj = cube_scene()[0] if scene_name == "cube with a cavity" else bottle_scene()[0]
+    bpy.context.scene.translucency.tolerance = 1e-8
+    assert bake_op(obj) == {'FINISHED'}
+    ours, cli, frame, cmd = _addon_then_cli(obj, tmp_path)
+    if scene_name == "cube with a cavity":
+        assert frame.use_ms and st_exchange(obj)
+    else:
+        assert frame.use_vnm and not frame.use_ms
+    diff = float(np.abs(cli - ours).max()) / float(np.abs(ours).mean())
+    assert diff <= 1e-5, f"{scene_name}: the CLI differs from the add-on by {diff:.2e} of the mean\n{' '.join(cmd)}"
+
+
+def st_exchange(obj) -> bool:
+    from translucency.ops import state
+
+    return state.get_state(obj).bake.composite.exchange is not None
