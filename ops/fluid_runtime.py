@@ -301,17 +301,11 @@ def _similar_radius(st: state.FluidObjectState, frame: FluidInputs) -> bool:
 
 
 def _radiance(frame: FluidInputs, result) -> np.ndarray:
-    """(n, 3) radiance at the target's points: the solve's, the planner's channels only; 0 when nothing ran."""
-    from ..translucency_addon.errors import TranslucencyError
+    """(n, 3) radiance at the target's points: the engine's :func:`~translucency_addon.frame.fluid_radiance`
+    (the solve's, the planner's channels only; 0 when nothing ran), as the CLI's ``fluid`` writes it."""
+    from ..translucency_addon.frame import fluid_radiance
 
-    n = len(frame.output.positions)
-    if result is None:
-        return np.zeros((n, 3))
-    rgb = result.point_radiance if frame.use_points else result.vertex_radiance
-    rgb = np.asarray(rgb, dtype=np.float64) * frame.plan.channel_mask("multiple")
-    if not np.all(np.isfinite(rgb)):
-        raise TranslucencyError("the fluid's solve produced NaN or Inf radiance; check the material")
-    return rgb
+    return fluid_radiance(result, frame.plan, frame.use_points, len(frame.output.positions))
 
 
 def _towards_the_view(frame: FluidInputs, result) -> np.ndarray:

@@ -203,3 +203,36 @@ def st_exchange(obj) -> bool:
     from translucency.ops import state
 
     return state.get_state(obj).bake.composite.exchange is not None
+
+
+def test_a_particle_fluid_renders_the_same_through_the_cli(blender, addon, tmp_path):
+    """A point cloud that is its own Fluid source (Kang & Kim's Voronoi-fluid cells every frame, no bake), solved
+    by the add-on, and the CLI's ``fluid`` on the same particles with the same radius, scale, lights and World."""
+    from test_ops_fluid import as_fluid, blob, point_cloud, sun
+
+    from translucency.ops import fluid_runtime, state
+
+    P = blob()
+    obj = as_fluid(point_cloud("Milk", P))
+    bpy.context.scene.unit_settings.scale_length = 0.01  # 1 unit = 10 mm
+    bpy.context.scene.translucency.tolerance = 1e-8
+    sun()
+    activate(obj)
+    assert bpy.ops.translucency.solve() == {'FINISHED'}
+    ours = radiance(obj)
+    frame = fluid_runtime.gather(obj, bpy.context.scene, bpy.context.evaluated_depsgraph_get(),
+                                 state.fluid_state(obj), False)
+    assert frame.use_points and frame.view is None
+    points = tmp_path / "points.npy"
+    np.save(points, np.asarray(frame.particles.points, dtype=np.float64))
+    out = tmp_path / "phi.npz"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "translucency_addon", "fluid", str(points), "-o", str(out),
+           "--radius", repr(float(frame.radius)), "--material", obj.translucency.material_preset.lower(),
+           *_cli_options(frame)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    with np.load(out) as z:
+        cli = np.asarray(z["point_radiance"], dtype=np.float64)
+    diff = float(np.abs(cli - ours).max()) / float(np.abs(ours).mean())
+    assert diff <= 1e-5, f"the CLI's fluid differs from the add-on's by {diff:.2e} of the mean\n{' '.join(cmd)}"

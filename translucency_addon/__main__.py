@@ -251,7 +251,9 @@ def _fluid_parser(sub) -> None:
     f.add_argument("points", help="(N, 3) or (F, N, 3) float array (.npy, numpy.save) of particle positions, "
                                   "object units; NaN rows are absent particles")
     f.add_argument("-o", "--output", required=True,
-                   help="per-cell phi, V, surface flag and radiance (.npz, in an existing, writable folder)")
+                   help="per-cell phi, V, surface flag and radiance along the normal; without --surface also "
+                        "point_radiance, what the add-on writes onto a point cloud (.npz, in an existing, writable "
+                        "folder)")
     f.add_argument("--radius", type=_radius, required=True,
                    help="particle radius, object units, a finite number > 0 (about the particle spacing)")
     f.add_argument("--mm-per-unit", type=_mm_per_unit, required=True,
@@ -262,6 +264,9 @@ def _fluid_parser(sub) -> None:
                    help="sun DX,DY,DZ:E -- direction (not 0,0,0) and irradiance in W/m^2, >= 0 (repeatable)")
     f.add_argument("--point", type=_point, action="append", default=[],
                    help="point light X,Y,Z:W -- position (object units) and power in W, >= 0 (repeatable)")
+    f.add_argument("--camera", type=_camera, default=None,
+                   help="perspective camera position X,Y,Z (object units): view-dependent radiance toward it "
+                        "(default: along the normals)")
     f.add_argument("--surface", default=None,
                    help="surface mesh (a readable .obj, object units) to carry radiance onto")
     f.add_argument("--surface-out", default=None,

@@ -297,3 +297,20 @@ def render_frame(bake, plan, passes: FramePasses, mapping: MeshMapping, *, solve
     terms = compose(plan, mapping, name, ms, ss, vnm)
     seconds["total"] = time.perf_counter() - t0
     return FrameResult(terms, result, bounce, cavity, seconds, ss_evaluator)
+
+
+# ------------------------------------------------------------------ a particle fluid's frame
+
+
+def fluid_radiance(result, plan, on_points: bool, n: int) -> np.ndarray:
+    """(n, 3) radiance of a particle fluid's frame (Kang & Kim 2013) where it is written: at the particles
+    (``on_points``: a point cloud that is its own source; ``FluidResult.point_radiance``) or at the surface
+    mesh's vertices (``vertex_radiance``), the planner's channels only (``planner.plan_fluid``); zeros when
+    nothing ran (``result`` None).  NaN or Inf is refused, never written."""
+    if result is None:
+        return np.zeros((n, 3))
+    rgb = result.point_radiance if on_points else result.vertex_radiance
+    rgb = np.asarray(rgb, dtype=np.float64) * plan.channel_mask("multiple")
+    if not np.all(np.isfinite(rgb)):
+        raise TranslucencyError("the fluid's solve produced NaN or Inf radiance; check the material")
+    return rgb

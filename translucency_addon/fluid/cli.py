@@ -102,8 +102,12 @@ def run_fluid(a, material, lights, environment, field_spec=None) -> int:
     if material.heterogeneous:
         spec = field_spec(frames[np.isfinite(frames).all(axis=2)])
     ids = np.arange(frames.shape[1])
-    outs, vertex, stats = [], [], []
+    outs, vertex, points_out, stats = [], [], [], []
     state = None
+    from ..frame import fluid_radiance, view_directions
+    from ..planner import plan_fluid
+
+    view = ("PERSP", tuple(a.camera)) if getattr(a, "camera", None) is not None else None
     t0 = time.perf_counter()
     for k, pts in enumerate(frames):
         fv = None
@@ -115,8 +119,10 @@ def run_fluid(a, material, lights, environment, field_spec=None) -> int:
             res = _absent_frame(len(pts), None if surface is None else len(surface[0]))
         else:
             try:
+                at = surface[0] if surface is not None else pts
                 res = solver.solve(pts, ids=ids, field_values=fv, lights=lights, environment=environment,
-                                   surface=surface, shadows=not a.no_shadows, warm_start=state)
+                                   surface=surface, shadows=not a.no_shadows, warm_start=state,
+                                   view_dirs=view_directions(view, at) if view is not None else None)
             except RadiusError as exc:
                 raise ParticleError(f"{a.points}, frame {k}: " + exc.describe(
                     lambda x: f"{x:.4g} units", "use --radius {value} (the particle spacing)")) from None
@@ -124,8 +130,15 @@ def run_fluid(a, material, lights, environment, field_spec=None) -> int:
                 raise ParticleError(f"{a.points}, frame {k}: {exc}") from None
         state = res.state if res.state is not None else state
         outs.append(res)
-        if surface is not None:
-            vertex.append(res.vertex_radiance)
+        # what the add-on writes, through the same engine function: the planner's channels (plan_fluid)
+        plan = None
+        if count[k]:
+            ok = np.isfinite(pts).all(axis=1)
+            plan = plan_fluid(pts[ok], a.radius, a.mm_per_unit, material, list(lights), environment,
+                              field_values=None if fv is None else fv[ok])
+        n_out = len(surface[0]) if surface is not None else len(pts)
+        written = fluid_radiance(res if plan is not None else None, plan, surface is None, n_out)
+        (vertex if surface is not None else points_out).append(written)
         st = {"frame": k, **res.stats}
         stats.append(st)
         s = st["seconds"]
@@ -141,6 +154,9 @@ def run_fluid(a, material, lights, environment, field_spec=None) -> int:
 
     arrays = dict(phi=stack("phi").astype(np.float32), volume=stack("volume").astype(np.float32),
                   surface=stack("surface"), radiance=stack("cell_radiance").astype(np.float32))
+    if surface is None:  # the radiance the add-on writes onto a point cloud that is its own source
+        Lp = np.stack(points_out)
+        arrays["point_radiance"] = (Lp[0] if single else Lp).astype(np.float32)
     writers = {a.output: lambda fh: np.savez(fh, **arrays)}
     if a.surface_out:
         L = np.stack(vertex)
