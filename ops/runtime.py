@@ -67,7 +67,7 @@ import bpy
 import numpy as np
 
 from . import attributes, backend, cache_files, deformation, fluid_runtime, inner_parts, state, status
-from ..translucency_addon.frame import FramePasses, compose, diffuse, multiple_radiance, single_evaluator
+from ..translucency_addon.frame import FramePasses, diffuse, multiple_radiance, render_frame, single_evaluator
 from .frame import FrameInputs, gather
 
 
@@ -166,18 +166,25 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     previous_sig = st.deformation.solve_sig if deformed else _previous(st, solver)[1]
     if _up_to_date(obj, st, frame, previous_sig, solve_sig, view_sig, force):
         return None
-    if frame.use_ms and deformed:
-        rgb, pose_solver, solved, seconds, result = deformation.diffuse(st, frame, scene.frame_current, solve_sig,
-                                                                        force)
-        ms = Diffusion(rgb, pose_solver, solved, seconds, result, backend=st.frame_backend)
-    elif frame.use_ms:
-        ms = _diffuse(st, frame, solver, solve_sig, force)
-    else:
-        ms = Diffusion(None, None, False, 0.0)
-    # The frame's answer is the engine's composition (translucency_addon.frame.compose), as the CLI's.
-    terms = compose(frame.plan, frame.mapping, frame.name, ms.rgb,
-                    _single_scatter(st, frame) if frame.use_ss else None,
-                    inner_parts.vnm_radiance(st, frame) if frame.use_vnm else None, n=frame.n_vertices)
+    ms = Diffusion(None, None, False, 0.0)
+
+    def multiple():  # this object's diffusion step: its solver, last solution and GPU retry (or the pose's)
+        nonlocal ms
+        if deformed:
+            rgb, pose_solver, solved, seconds, result = deformation.diffuse(st, frame, scene.frame_current,
+                                                                            solve_sig, force)
+            ms = Diffusion(rgb, pose_solver, solved, seconds, result, backend=st.frame_backend)
+        else:
+            ms = _diffuse(st, frame, solver, solve_sig, force)
+        return ms.rgb
+
+    # The frame is the engine's (translucency_addon.frame.render_frame), as the CLI's: which terms run, in
+    # what order, weighted and summed there; this object's steps keep their state between frames.
+    rendered = render_frame(st.bake, frame.plan, _passes(frame), frame.mapping, multiple=multiple,
+                            single=lambda: _single_scatter(st, frame),
+                            voxel_number_map=lambda: inner_parts.vnm_radiance(st, frame), n=frame.n_vertices,
+                            name=frame.name)
+    terms = rendered.terms
     ms.rgb = terms.multiple
     ss_rgb = terms.single
     _write(obj, frame, terms.total, ss_rgb)
@@ -370,12 +377,16 @@ def _retry_on_the_cpu(st: state.ObjectState, frame: FrameInputs, where):
     return st.solver
 
 
+def _passes(frame: FrameInputs) -> FramePasses:
+    return FramePasses(frame.use_ms, frame.use_ss, frame.use_vnm, frame.ms_channels, frame.single_channels)
+
+
 def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous):
     """One multiple-scattering solve of the frame: the engine's :func:`~translucency_addon.frame.diffuse`
     (the split, the interreflection bounce, the cavity exchange), warm-started from ``previous``."""
-    passes = FramePasses(frame.use_ms, frame.use_ss, frame.use_vnm, frame.ms_channels, frame.single_channels)
-    result, bounce, _cavity = diffuse(solver, st.bake, frame.lights, frame.environment, passes, tol=frame.tolerance,
-                                      occluders=frame.occluders, warm_start=previous, shadows=True)
+    result, bounce, _cavity = diffuse(solver, st.bake, frame.lights, frame.environment, _passes(frame),
+                                      tol=frame.tolerance, occluders=frame.occluders, warm_start=previous,
+                                      shadows=True)
     if bounce is not None:
         st.bounce = bounce
     return result

@@ -260,43 +260,60 @@ class FrameResult:
     single_evaluator: object = None
 
 
-def render_frame(bake, plan, passes: FramePasses, mapping: MeshMapping, *, solver=None, lights=(), environment=None,
-                 view=None, ss_view=None, eta: float = 1.3, tol: float = 1e-5, occluders=None, shadows: bool = True,
-                 warm_start=None, ss_order: int | None = None, ss_evaluator=None, voxel_number_map=None,
+def render_frame(bake, plan, passes: FramePasses, mapping: MeshMapping | None, *, solver=None, lights=(),
+                 environment=None, view=None, ss_view=None, eta: float = 1.3, tol: float = 1e-5, occluders=None,
+                 shadows: bool = True, warm_start=None, ss_order: int | None = None, ss_evaluator=None,
+                 multiple=None, single=None, voxel_number_map=None, n: int | None = None,
                  name: str = "object") -> FrameResult:
     """Every pass ``passes`` turns on, for one frame, composed (see the module docstring).
 
-    ``solver``: the object's diffusion solver (needed when ``passes.use_ms``); ``ss_view``: single
-    scattering's view (default ``view``); ``ss_evaluator``: a :func:`single_evaluator` to reuse;
-    ``voxel_number_map``: a callable returning the map's radiance at the mapping's vertices (the caller
-    owns its evaluator and backend).
+    Each term comes from a step the caller may supply, a callable returning its radiance at the mapping's
+    vertices: ``multiple`` (default: :func:`diffuse` on ``solver`` from ``warm_start``, then
+    :func:`multiple_radiance` towards ``view``), ``single`` (default: ``ss_evaluator`` or a new
+    :func:`single_evaluator`, towards ``ss_view``, default ``view``) and ``voxel_number_map`` (no default: the
+    caller owns the map's evaluator and backend).  The add-on's runtime supplies its own steps (they keep the
+    solver, the last solution and the evaluators between frames, and retry a GPU failure on the CPU); the
+    CLI takes the defaults.  Either way which terms run, in what order, and how they are weighted and
+    summed is decided here.  ``n``: the vertex count when no pass runs (``mapping`` None).
     """
     seconds = {}
-    result = bounce = cavity = ms = ss = vnm = None
-    t0 = time.perf_counter()
-    if passes.use_ms:
+    found = {"result": None, "bounce": None, "cavity": None}
+    ms = ss = vnm = None
+
+    def default_multiple():
         if solver is None:
             raise TranslucencyError(f"'{name}': the plan runs diffusion but no solver was given")
-        result, bounce, cavity = diffuse(solver, bake, lights, environment, passes, tol=tol, occluders=occluders,
-                                         warm_start=warm_start, shadows=shadows)
-        ms = multiple_radiance(solver, result, bake, mapping, view)
-    seconds["diffusion"] = time.perf_counter() - t0
-    t1 = time.perf_counter()
-    if passes.use_ss:
+        found["result"], found["bounce"], found["cavity"] = diffuse(
+            solver, bake, lights, environment, passes, tol=tol, occluders=occluders, warm_start=warm_start,
+            shadows=shadows)
+        return multiple_radiance(solver, found["result"], bake, mapping, view)
+
+    def default_single():
+        nonlocal ss_evaluator
         if ss_evaluator is None:
             order = bake.single_scattering.order if ss_order is None else min(int(ss_order),
                                                                                bake.single_scattering.order)
             ss_evaluator = single_evaluator(bake, order, mapping)
-        ss = ss_evaluator.radiance(list(lights), environment, float(eta), bake.mm_per_unit,
-                                   view if ss_view is None else ss_view)
+        return ss_evaluator.radiance(list(lights), environment, float(eta), bake.mm_per_unit,
+                                     view if ss_view is None else ss_view)
+
+    t0 = time.perf_counter()
+    if passes.use_ms:
+        ms = (multiple or default_multiple)()
+    seconds["diffusion"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    if passes.use_ss:
+        ss = (single or default_single)()
     seconds["single_scattering"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     if passes.use_vnm:
+        if voxel_number_map is None:
+            raise TranslucencyError(f"'{name}': the plan runs the Voxel Number Map but no evaluator was given")
         vnm = voxel_number_map()
     seconds["voxel_number_map"] = time.perf_counter() - t2
-    terms = compose(plan, mapping, name, ms, ss, vnm)
+    terms = compose(plan, mapping, name, ms, ss, vnm, n=n)
     seconds["total"] = time.perf_counter() - t0
-    return FrameResult(terms, result, bounce, cavity, seconds, ss_evaluator)
+    return FrameResult(terms, found["result"], found["bounce"], found["cavity"], seconds, ss_evaluator)
 
 
 # ------------------------------------------------------------------ a particle fluid's frame
