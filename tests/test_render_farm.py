@@ -75,6 +75,20 @@ _WORKER = textwrap.dedent(r"""
 """)
 
 
+def _render_and_bake(scene, obj, render_pass_module) -> None:
+    """The farm shots' render settings (Cycles on the CPU, 1 sample, a fixed seed, a multilayer EXR of SIZE
+    pixels), then, on frame 1, the object's bake and its render pass."""
+    scene.render.engine = 'CYCLES'
+    scene.cycles.device, scene.cycles.samples, scene.cycles.use_denoising, scene.cycles.seed = 'CPU', 1, False, 0
+    scene.render.resolution_x = scene.render.resolution_y = SIZE
+    scene.render.resolution_percentage = 100
+    render_pass_module.configure_output(scene.render.image_settings, 'OPEN_EXR_MULTILAYER')
+    scene.frame_set(1)
+    activate(obj)
+    assert bpy.ops.translucency.bake(base_triangles=200) == {'FINISHED'}, obj.translucency.status.bake_status
+    assert bpy.ops.translucency.add_to_material() == {'FINISHED'}
+
+
 def _shot(tmp_path, render_pass_module):
     """The animated scene, baked and saved as ``tmp_path/src/shot.blend`` with its cache folder next to it."""
     src = tmp_path / "src"
@@ -96,15 +110,7 @@ def _shot(tmp_path, render_pass_module):
     cam.location = (0.0, -6.0, 0.0)
     cam.rotation_euler = (np.pi / 2, 0.0, 0.0)
     scene.camera = cam
-    scene.render.engine = 'CYCLES'
-    scene.cycles.device, scene.cycles.samples, scene.cycles.use_denoising, scene.cycles.seed = 'CPU', 1, False, 0
-    scene.render.resolution_x = scene.render.resolution_y = SIZE
-    scene.render.resolution_percentage = 100
-    render_pass_module.configure_output(scene.render.image_settings, 'OPEN_EXR_MULTILAYER')
-    scene.frame_set(1)
-    activate(obj)
-    assert bpy.ops.translucency.bake(base_triangles=200) == {'FINISHED'}, obj.translucency.status.bake_status
-    assert bpy.ops.translucency.add_to_material() == {'FINISHED'}
+    _render_and_bake(scene, obj, render_pass_module)
     assert obj.translucency.cache_filepath.startswith("//translucency_cache/"), obj.translucency.cache_filepath
     bpy.ops.wm.save_mainfile()
     return src
@@ -386,15 +392,7 @@ def _posed_shot(tmp_path, render_pass_module):
     cam.location, cam.rotation_euler = (0.0, -10.0, 1.0), (np.pi / 2, 0.0, 0.0)
     scene.collection.objects.link(cam)
     scene.camera = cam
-    scene.render.engine = 'CYCLES'
-    scene.cycles.device, scene.cycles.samples, scene.cycles.use_denoising, scene.cycles.seed = 'CPU', 1, False, 0
-    scene.render.resolution_x = scene.render.resolution_y = SIZE
-    scene.render.resolution_percentage = 100
-    render_pass_module.configure_output(scene.render.image_settings, 'OPEN_EXR_MULTILAYER')
-    scene.frame_set(1)
-    activate(obj)
-    assert bpy.ops.translucency.bake(base_triangles=200) == {'FINISHED'}, obj.translucency.status.bake_status
-    assert bpy.ops.translucency.add_to_material() == {'FINISHED'}
+    _render_and_bake(scene, obj, render_pass_module)
     scene.frame_set(9)  # the .blend is saved holding frame 9's radiance (what a fresh worker would find)
     bpy.ops.wm.save_mainfile()
     return src
