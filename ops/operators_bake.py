@@ -50,6 +50,7 @@ import threading
 import time
 
 import bpy
+import numpy as np
 from bpy.props import BoolProperty, IntProperty
 
 from . import attributes, cache_files, inner_parts, runtime, scene_inputs, state, status
@@ -93,6 +94,7 @@ class BakeJob:
         self.ss = ss
         self.base_bake = base_bake
         self.composite = composite
+        self.needs_ss = ""  # why single scattering is baked although its switch is off ('' when it is on or not needed)
         self.ss_seconds = 0.0
         self.V, self.F = V, F
         self.settings = settings
@@ -243,6 +245,9 @@ class BakeJob:
         warnings = status.set_bake_status(obj, bake, graph_seconds=graph_seconds, ss_seconds=self.ss_seconds,
                                           notes=self.notes)
         s.enabled = True
+        turned_on = bool(self.needs_ss) and bake.single_scattering is not None
+        if turned_on:  # baked because the material needs it: the switch follows, or the plan leaves it out
+            s.use_single_scattering = True
         state.install_state(obj, bake, self.final_path)
         ss = bake.single_scattering
         done = s.status
@@ -255,6 +260,10 @@ class BakeJob:
             messages = [('INFO', f"Baked '{obj.name}' in {self.seconds:.1f} s: {done.bake_stats}"
                          + (f"; single scattering: {done.ss_bake_stats}" if ss is not None else ""))]
         messages += [('WARNING', f"'{obj.name}': {w}") for w in warnings]
+        if turned_on:
+            messages.append(('INFO', f"'{obj.name}': Single Scattering was off; it is baked and turned on because "
+                                     f"{self.needs_ss} (without it those channels would render black); turn it "
+                                     "off in the Translucency panel to leave it out"))
         if s.packed_cache:  # the packed copy follows the bake
             name, size = cache_files.pack_cache(obj)
             messages.append(('INFO', f"'{obj.name}': the new cache is packed into the .blend ({size / 2**20:.1f} MiB)"))
@@ -320,14 +329,28 @@ def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
     settings.resolved()  # raises MeshError for impossible settings
     composite = inner_parts.bake_inputs(obj, depsgraph, V, F, settings) if inner_parts.listed(obj) else None
     key = composite.key if composite is not None else bake_mod.mesh_key(V, F, settings)
-    ss = _ss_inputs(obj, depsgraph, V, key, mm, parts=composite is not None) if s.use_single_scattering else None
+    needs_ss = "" if s.use_single_scattering or composite is not None else _single_scattering_needed(s, V, mm)
+    ss = (_ss_inputs(obj, depsgraph, V, key, mm, parts=composite is not None)
+          if s.use_single_scattering or needs_ss else None)
     if ss is not None:
         key = ss.key
     directory, note = cache_files.cache_directory(scene)
     _check_writable(directory)
     final = os.path.join(directory, cache_files.cache_file_name(obj.name, key))
     notes = [w for w in (scale_warning, note) if w]
-    return BakeJob(obj.name, V, F, settings, final, notes, ss=ss, composite=composite)
+    job = BakeJob(obj.name, V, F, settings, final, notes, ss=ss, composite=composite)
+    job.needs_ss = needs_ss
+    return job
+
+
+def _single_scattering_needed(settings, V, mm: float) -> str:
+    """Why the object's material needs single scattering although its switch is off ('' when it does not):
+    the engine's :func:`~translucency_addon.frame.single_scattering_needed` on the material and the
+    object's smallest extent (an object with inner parts hands such media to the Voxel Number Map)."""
+    from ..translucency_addon.frame import single_scattering_needed
+
+    thickness = float(np.min(np.ptp(np.asarray(V, dtype=np.float64), axis=0))) * mm
+    return single_scattering_needed(scene_inputs.build_material(settings), thickness)
 
 
 def prepare_ss_job(context, obj) -> BakeJob:

@@ -342,3 +342,29 @@ def test_render_evaluates_single_scattering_toward_the_camera(blender, cache_dir
     scene.translucency.solver_backend = 'CPU'
     runtime.solve_object(obj, scene, use_camera=True, force=True)
     np.testing.assert_allclose(ss_radiance(obj), seen[0], rtol=1e-4, atol=1e-6 * seen[0].max())
+
+
+def test_a_dark_medium_bakes_single_scattering_by_default(blender, cache_dir, memo_bakes, capfd):
+    """Issue 30's new user: a dark medium (reduced albedo 0.2) with default settings rendered black -- the
+    planner hands it to single scattering, which was not baked.  The bake now knows: it bakes single
+    scattering too, turns the switch on and says why, so the first solve returns light.  A medium where
+    diffusion holds (marble) is baked as before, without it."""
+    from translucency.ops import state
+
+    add_light('SUN', location=(0.0, 0.0, 5.0), energy=3.0)
+    dark = sphere(name="Ink")
+    s = dark.translucency
+    s.material_preset = 'CUSTOM'
+    s.sigma_a, s.sigma_s, s.eta = (0.8, 0.8, 0.8), (0.2, 0.2, 0.2), 1.3
+    s.ss_quality, s.ss_directions, s.ss_samples = 'DRAFT', '32', 300
+    assert not s.use_single_scattering  # the default
+    assert bake(dark) == {'FINISHED'}
+    out = capfd.readouterr().out
+    assert state.get_state(dark).bake.single_scattering is not None and s.use_single_scattering
+    assert "Single Scattering was off; it is baked and turned on because" in out and "0.20" in out, out[-2000:]
+    L = radiance(dark)
+    assert L.max() > 0 and L.mean() > 1e-3 * L.max(), "a dark medium under a sun must not render black"
+
+    marble = sphere(name="Marble", location=(4.0, 0.0, 0.0))
+    assert bake(marble) == {'FINISHED'}
+    assert state.get_state(marble).bake.single_scattering is None and not marble.translucency.use_single_scattering
