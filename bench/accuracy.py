@@ -45,7 +45,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -57,7 +56,7 @@ if str(ROOT) not in sys.path:
 import numpy as np  # noqa: E402
 
 from bench import accuracy_scenes as scenes  # noqa: E402
-from bench.accuracy_core import ALL_TERMS, SUPERSAMPLE, Evaluator, solve  # noqa: E402
+from bench.accuracy_core import ALL_TERMS, SUPERSAMPLE, Evaluator, Render, solve  # noqa: E402
 from bench.reference.metrics import relative_rms  # noqa: E402
 
 DOCS = ROOT / "docs"
@@ -281,7 +280,7 @@ class Bench:
             from bench.gpu_solve import init_gpu
 
             renderer = init_gpu()
-        except Exception as ex:  # noqa: BLE001
+        except Exception as ex:  # noqa: BLE001 - no Blender or no GPU: the section is skipped, with the reason
             self.notes.append(f"GPU section skipped: {type(ex).__name__}: {ex}")
             self.log(self.notes[-1])
             return
@@ -292,7 +291,7 @@ class Bench:
                                ("gpu16", f"GPU fp16 ({renderer.split('(')[0].strip()})")):
             try:
                 r = self.ev.run(sc, dict(quality=base), dict(solver="fast", tol=USER_TOL), backend=backend)
-            except Exception as ex:  # noqa: BLE001
+            except Exception as ex:  # noqa: BLE001 - a failed GPU run is a noted row, not a crashed bench
                 self.notes.append(f"{label} failed: {type(ex).__name__}: {ex}")
                 self.log(self.notes[-1])
                 continue
@@ -403,7 +402,7 @@ class Bench:
             self.log(self.notes[-1])
             return
         with np.load(out, allow_pickle=False) as z:
-            img, mask, L_ops = z["image"], z["mask"], z["vertex"]
+            img, mask = z["image"], z["mask"]
             meta = json.loads(str(z["meta"]))
         sc = self.scenes[name]
         quality = meta["quality"]

@@ -44,7 +44,6 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import inner_parts_scenes as S  # noqa: E402
-from bench.accuracy_core import rotate  # noqa: E402
 from bench.reference.metrics import relative_rms  # noqa: E402
 from bench.reference.raster import rasterize  # noqa: E402
 from bench.reference.scene import Camera, RefPart, RefScene, sky_environment  # noqa: E402

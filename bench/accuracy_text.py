@@ -307,7 +307,7 @@ def findings_scenes(b):
                    "mean(ours)/mean(reference) - 1): " + "; ".join(lines) + ".")
     sc = {n: s for n, s in b.scenes.items()}
     low = []
-    for n, s in sc.items():
+    for _n, s in sc.items():
         m = s.material
         for med in (m.medium_a, m.medium_b):
             if med is None:
@@ -438,7 +438,7 @@ def findings_solver(b):
     kr = {r["solver"]: r for r in getattr(b, "kappa_rows", [])}
     if "paper" in kr and "fast" in kr:
         p, f = kr["paper"], kr["fast"]
-        out.append(f"Under a sharp jump in kappa (marble veined with ketchup) the paper's scheme "
+        out.append("Under a sharp jump in kappa (marble veined with ketchup) the paper's scheme "
                    + ("**diverges**" if p["diverged"] else "does not diverge here")
                    + f" (residual {p['residual']:.1e} after {p['iterations']} iterations), as its rows lose "
                    f"diagonal dominance; ours converges ({f['residual']:.1e} after {f['iterations']}), as its "

@@ -111,7 +111,7 @@ def run_one(n: int, frames: int) -> dict:
     rng = np.random.default_rng(1)
     rows, state = [], None
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    for k in range(frames + 1):
+    for _ in range(frames + 1):
         P = rest + rng.uniform(-0.1, 0.1, rest.shape)
         t, c = time.perf_counter(), time.process_time()
         res = fs.solve(P, lights=lights, environment=env, surface=(V, F), warm_start=state)

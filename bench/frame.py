@@ -153,7 +153,7 @@ def profile_worker(root: str, quality: str, out: str) -> None:
 
         def pick(kind, fname, func):
             tot = 0.0
-            for (f, _, fn), (_, _, tt, ct, callers) in st.items():
+            for (f, _, fn), (_, _, tt, ct, _callers) in st.items():
                 if (fn == func or fn.endswith(f".{func}>")) and (fname is None or f.endswith(fname)):
                     tot += tt if kind == "tt" else ct
             return 1e3 * tot
@@ -248,7 +248,6 @@ def frame_section(baseline: Path | None, qualities) -> tuple[str, list]:
                          f"- / {ours['warm_sweeps']} | - |")
             continue
         diff = float(np.abs(base["L"] - ours["L"]).max() / np.abs(base["L"]).max())
-        bs = base["parts_sweeps"]
         lines.append(f"| {q} | {ours['nodes']:,} | {base['first_ms']:,.0f} / {ours['first_ms']:,.0f} "
                      f"({base['first_wall_ms']:,.0f} / {ours['first_wall_ms']:,.0f}) | "
                      f"{base['first_ms'] / ours['first_ms']:.2f}x | {base['warm_ms']:,.0f} / {ours['warm_ms']:,.0f} "
@@ -370,9 +369,9 @@ def scaling_section(sizes, tol: float) -> str:
         k = 10
 
         def ours():
-            op.sub_a(R, D)
+            op.sub_a(R, D)  # noqa: F821 - called in this iteration, before the del at its end
             X.__iadd__(D)
-            np.multiply(R, op.inv_diag, out=T)
+            np.multiply(R, op.inv_diag, out=T)  # noqa: F821 - called in this iteration, before the del at its end
             T.__imul__(0.3)
             D.__imul__(0.5)
             D.__iadd__(T)
@@ -381,7 +380,7 @@ def scaling_section(sizes, tol: float) -> str:
 
         def node_major():
             nonlocal xx, rr, dd
-            xx, rr, dd = kernels.chebyshev_update(xx, rr, dd, system.apply(dd), system.diag, 0.5, 0.3)
+            xx, rr, dd = kernels.chebyshev_update(xx, rr, dd, system.apply(dd), system.diag, 0.5, 0.3)  # noqa: F821 - called in this iteration, before the del at its end
 
         times = {}
         for name, f in (("ours", ours), ("node", node_major)) * 3:

@@ -75,7 +75,7 @@ def _load_or_bake(V, F, settings, path):
     return bk, seconds
 
 
-def get_bake(name: str, cache_dir: Path | None, _memo={}):
+def get_bake(name: str, cache_dir: Path | None, _memo={}):  # noqa: B006 - the bakes memoised per process
     """'bunny': quality "preview"; 'synthetic': the same bake with one more nested 1-to-8
     refinement level, its base surface scaled so that the finest level has about 500k nodes."""
     from dataclasses import replace
@@ -212,7 +212,6 @@ def node_updates(bake, res) -> int:
 # ------------------------------------------------------------------ one graph
 def bench_graph(name: str, args) -> dict:
     import gpu_shaders
-    from gpu_shaders.solver import GPUDiffusionSolver
     from translucency_addon import diffusion, lights, materials, spectral
 
     bk, bake_s = get_bake(name, args.cache_dir)

@@ -112,9 +112,7 @@ def main(argv=None):
     out.append(head)
 
     bvh = TriangleBVH(V, F)
-    t = time.perf_counter()
     volume = voxelise(V, F, mat, None, resolution=args.quality, mm_per_unit=mm, bvh=bvh)
-    t_vox = time.perf_counter() - t
     h_mm = volume.h * mm
     mfp = 1.0 / float(volume.sigma_t[volume.medium].max())
     line = (f"\nvoxels {volume.shape} (h = {h_mm:.2f} mm, {int(volume.medium.sum())} in the medium); marble mean free path "
@@ -169,7 +167,7 @@ def main(argv=None):
         assert np.array_equal(np.where(hit[1] >= 0, hit[0], 0.0), rays_by[name].t_exit)
     rows = []
     light_counts = (1, 2) if args.quick else (1, 2, 4, 8)
-    for ns, data in (datas.items() if "frame" in sections else ()):
+    for _ns, data in (datas.items() if "frame" in sections else ()):
         for nl in light_counts:
             lights = lights_around(center, 1.5 * size, nl)
             for name, rays in rays_by.items():

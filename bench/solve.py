@@ -84,8 +84,8 @@ def bench_quality(V, F, quality, tol, frames=5, paper_cap=200_000):
 
 def table(rows, tol) -> str:
     lines = [
-        f"| quality | N_s/N_i finest | paper sweeps per level | paper s | ours sweeps per level | ours s | "
-        f"finest sweep ratio | frame: sweeps | frame: solve ms | frame: light pass ms |",
+        "| quality | N_s/N_i finest | paper sweeps per level | paper s | ours sweeps per level | ours s | "
+        "finest sweep ratio | frame: sweeps | frame: solve ms | frame: light pass ms |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:

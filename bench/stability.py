@@ -106,7 +106,7 @@ def reject_rows(rej) -> list[dict]:
         ok = re.search(rej.match, str(ex)) is not None
         why = f"{type(ex).__name__}: {ex}"
         status = "pass" if ok else "FAIL"
-    except Exception as ex:  # noqa: BLE001
+    except Exception as ex:  # noqa: BLE001 - any other error is the failure this row reports
         status, why = "FAIL", f"wrong error {type(ex).__name__}: {ex}"
     else:
         status, why = "FAIL", "accepted (no error)"
@@ -177,7 +177,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         try:
             items = hc.CASES[cid]()
-        except Exception as ex:  # noqa: BLE001
+        except Exception as ex:  # noqa: BLE001 - a case that cannot be built is a failed row, not a crashed bench
             rows.append({"case": cid, "solver": "build", "sweeps": [], "residual": np.nan, "flux_ratio": np.nan,
                          "power_ratio": np.nan, "status": "FAIL", "why": f"{type(ex).__name__}: {ex}"})
             print(" | ".join(fmt(rows[-1])), flush=True)

@@ -97,7 +97,7 @@ def available() -> tuple[bool, str]:
         with warnings.catch_warnings():  # deprecated (always true) in Blender 5.0, meaningful before
             warnings.simplefilter("ignore", DeprecationWarning)
             supported = gpu.capabilities.compute_shader_support_get()
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - a driver or backend failure means: no usable GPU here
         return False, f"cannot query GPU capabilities ({type(exc).__name__}: {exc})"
     if not supported:
         return False, f"the GPU backend ({renderer}) has no compute shader support"

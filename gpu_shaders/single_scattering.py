@@ -153,7 +153,7 @@ def _max_texture_size() -> int:
 
     try:
         return int(gpu.capabilities.max_texture_size_get())
-    except Exception:  # noqa: BLE001
+    except Exception:  # noqa: BLE001 - no GPU context or a driver failure: assume the common limit
         return 16384
 
 

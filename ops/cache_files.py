@@ -340,7 +340,7 @@ def update_staleness(obj, st: ObjectState, depsgraph) -> str:
             st.stale_message, st.pose = _staleness(obj, depsgraph, graph_key(st.bake), st.bake.settings,
                                                    (len(st.bake.mesh_vertices), st.bake.mesh_faces),
                                                    (st.bake.stats or {}).get(inner_parts.RECORD))
-        except Exception as ex:  # noqa: BLE001
+        except Exception as ex:  # noqa: BLE001 - a staleness check must not break the frame: it is reported as stale
             st.stale_message = f"could not compare the mesh with the bake ({type(ex).__name__}: {ex})"
             st.pose = None
         if st.stale_message:

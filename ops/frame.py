@@ -205,7 +205,7 @@ def _ss_staleness(obj, st: ObjectState, settings, depsgraph, material, field_sig
     data = st.bake.single_scattering
     try:
         want = scene_inputs.ss_settings(settings)
-    except Exception as ex:  # noqa: BLE001
+    except Exception as ex:  # noqa: BLE001 - an invalid or unreadable panel setting is the reason shown, not a crash
         return str(ex)
     field_fp = None
     if material.heterogeneous:

@@ -422,7 +422,7 @@ class _ModalBake:
         obj = context.active_object
         try:
             job = self._prepare(context, obj)
-        except Exception as ex:  # noqa: BLE001
+        except Exception as ex:  # noqa: BLE001 - reported to the user
             self.report({'ERROR'}, _error_text(obj.name if obj else "?", ex))
             return {'CANCELLED'}
         self._job = job
@@ -473,7 +473,7 @@ class _ModalBake:
             return {'CANCELLED'}
         try:
             messages = job.commit(context)
-        except Exception as ex:  # noqa: BLE001
+        except Exception as ex:  # noqa: BLE001 - reported to the user, the job's files cleaned up
             job.cleanup()
             self.report({'ERROR'}, _error_text(job.obj_name, ex))
             return {'CANCELLED'}

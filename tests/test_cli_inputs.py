@@ -110,7 +110,7 @@ def test_every_bad_input_is_one_line_exit_2_and_writes_nothing(files, tmp_path):
 
 
 def test_refusals_name_the_option_and_the_file(files, tmp_path):
-    s, p = files / "s.npz", files / "p.npy"
+    s = files / "s.npz"
     line = refused(cli("plan", s, "--mm-per-unit", "-3"))
     assert "--mm-per-unit" in line and "-3" in line and "> 0" in line
     line = refused(cli("solve", s, "-o", tmp_path / "new" / "L.npy"))

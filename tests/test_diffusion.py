@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bakes import baked, mesh
+from bakes import baked
 from translucency_addon import cache, fresnel, kernels, primitives
 from translucency_addon.bake import BakeSettings, bake_mesh
 from translucency_addon.diffusion import DiffusionSolver, SolveOptions
@@ -223,7 +223,6 @@ def test_energy_and_maximum_principle(material):
         pb = s.power_balance(r, level=level)
         assert np.all(pb["out"] <= pb["in"] * (1 + 1e-9)), (material, level, pb)
         np.testing.assert_allclose(s.power_balance(r, level, clamp=False)["out"] + pb["absorbed"], pb["in"], rtol=1e-8)
-        lv = b.levels[level]
         g = 4.0 * r.q[level] / (1.0 - s.fdr)  # the Robin condition's boundary source
         assert np.all(r.phi[level] <= g.max(axis=0) * (1 + 1e-9))
         assert np.all(r.phi[level] >= -1e-12 * g.max())

@@ -71,7 +71,9 @@ def test_downsample_keeps_power_and_stays_in_bands():
     img = (rng.random((512, 1024, 4)) ** 8 * 100).astype(np.float32)
     small = em.downsample(img, max_width=128, band_rows=5)
     assert small.shape == (64, 128, 3) and small.dtype == np.float32
-    power = lambda m: np.sum(m[..., :3] * em.equirect_solid_angles(*m.shape[:2])[:, None, None], axis=(0, 1))
+    def power(m):
+        return np.sum(m[..., :3] * em.equirect_solid_angles(*m.shape[:2])[:, None, None], axis=(0, 1))
+
     np.testing.assert_allclose(power(small), power(img), rtol=1e-5)
     assert em.downsample(img[:, :100], max_width=128).shape == (512, 100, 3)
 

@@ -336,7 +336,7 @@ def test_refused_poses_keep_the_last_valid_frame(blender, addon, cache_dir, memo
     assert state.get_state(obj).deformation.report.worst_stretch < 2.5, state.get_state(obj).deformation.describe()
 
     def refused(words):
-        st = state.get_state(obj)
+        state.get_state(obj)
         np.testing.assert_array_equal(radiance(obj), valid)  # nothing written
         message = state.ERRORS["Bar"]
         assert words in message and "the object keeps frame 20's radiance, nothing was written" in message, message

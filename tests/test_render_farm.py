@@ -429,7 +429,7 @@ def _assert_same_everywhere(runs, frame, policy, reason):
         assert sorted(image) == sorted(first)
         for channel in first:  # bit for bit
             assert np.array_equal(image[channel], first[channel]), (label, first_label, channel)
-    for label, (_rc, log, _out) in runs.items():
+    for _label, (_rc, log, _out) in runs.items():
         assert f"frame {frame}: " in log and "renders WITHOUT its Translucency pass" in log and reason in log, log
     aov = [c for c in first if ".Translucency." in c and c[-1] in "RGB"]
     assert aov and all(first[c].max() == 0.0 for c in aov), "the pass of a refused frame is not empty"

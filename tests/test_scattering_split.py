@@ -151,7 +151,7 @@ def test_directions_of_single_plus_multiple_against_a_random_walk(eta, alpha):
 def test_split_conserves_and_limits():
     split = HalfSpaceSplit(ETA)
     a = np.linspace(0.0, 1.0, 1001)
-    s, m, M, B = split.single_escape(a), split.source_factor(a), split.multiple_escape(a), split.boundary_escape(a)
+    s, m, M, _ = split.single_escape(a), split.source_factor(a), split.multiple_escape(a), split.boundary_escape(a)
     assert np.all(s >= 0) and np.all(m >= 0) and np.all(s + m <= 1.0 + 1e-12)  # never more light than entered
     assert np.all(s + M <= 1.0 + 1e-9)
     assert s[-1] + M[-1] == pytest.approx(1.0, abs=1e-6)  # no absorption: everything leaves, once

@@ -152,7 +152,7 @@ def test_the_world_is_evaluated_once_per_change(blender):
 
 
 def test_sky_texture_world_is_baked_by_cycles_and_solves_in_f12(render_pass, tmp_path):
-    from translucency.ops import scene_inputs, state, world
+    from translucency.ops import scene_inputs, world
 
     world.clear_cache()
     w = sky_world(elevation=30.0, rotation=60.0)

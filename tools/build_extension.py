@@ -201,7 +201,7 @@ def wheel_requirements(path: Path) -> list[str]:
             name, _, marker = req.partition(";")
             if "extra" in marker:
                 continue
-            needed.append(normalise(re.split(r"[\s<>=!~\[(]", name.strip(), 1)[0]))
+            needed.append(normalise(re.split(r"[\s<>=!~\[(]", name.strip(), maxsplit=1)[0]))
     return needed
 
 

@@ -98,7 +98,7 @@ def _floats(text: str, n: int, what: str) -> tuple:
     try:
         vals = tuple(float(x) for x in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{what}: expected {n} comma-separated numbers, got {text!r}")
+        raise argparse.ArgumentTypeError(f"{what}: expected {n} comma-separated numbers, got {text!r}") from None
     if len(vals) != n:
         raise argparse.ArgumentTypeError(f"{what}: expected {n} comma-separated numbers, got {text!r}")
     if not all(np.isfinite(vals)):
@@ -118,7 +118,7 @@ def _sun(text):
     try:
         d, e = text.split(":")
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--sun: expected DX,DY,DZ:E, got {text!r}")
+        raise argparse.ArgumentTypeError(f"--sun: expected DX,DY,DZ:E, got {text!r}") from None
     return _floats(d, 3, "--sun direction"), _floats(e, 1, "--sun irradiance")[0]
 
 
@@ -126,7 +126,7 @@ def _point(text):
     try:
         p, w = text.split(":")
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--point: expected X,Y,Z:W, got {text!r}")
+        raise argparse.ArgumentTypeError(f"--point: expected X,Y,Z:W, got {text!r}") from None
     return _floats(p, 3, "--point position"), _floats(w, 1, "--point power")[0]
 
 

@@ -134,7 +134,7 @@ def write_files(writers: dict) -> list[str]:
             os.chmod(tmp, mode)
         for tmp, path in done:
             os.replace(tmp, path)
-    except BaseException:
+    except BaseException:  # any failure, Ctrl-C too: remove the temporary files, then re-raise
         for tmp, _ in done:
             if os.path.exists(tmp):
                 os.remove(tmp)

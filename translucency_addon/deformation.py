@@ -421,7 +421,6 @@ class DeformationRig:
 
     def _deform_level(self, rig: LevelRig, lv: GraphLevel, D, geo, normals):
         """One level at the pose: tet vertices, node positions, links, faces, volumes, normals."""
-        F = self.F
         TV0 = lv.tet_vertices
         u = np.zeros_like(TV0)
         u[rig.boundary] = rig.boundary_attach.displacement(D, self.geo, geo)

@@ -20,7 +20,7 @@ each group filled into r x r blocks (r = 32) breadth-first over connectivity
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 

@@ -87,7 +87,6 @@ def lanczos_lower(system: LevelSystem, steps: int = 40, seed: int = 0) -> np.nda
     rng = np.random.default_rng(seed)
     n = system.n
     steps = int(min(steps, n))
-    dinv_sqrt = 1.0 / np.sqrt(system.diag)
     nc = system.diag.shape[1]
     noise = rng.standard_normal((n, nc))
     smooth = np.sqrt(system.diag)

@@ -632,7 +632,7 @@ def check(run: Run, *, strict: bool = True) -> tuple[dict, list[str]]:
     power_ratio = 0.0
     min_ratio = 0.0
     balance_err = 0.0
-    for i, lv in enumerate(scn.bake.levels):
+    for i, _lv in enumerate(scn.bake.levels):
         phi, q = run.phi[i], r.q[i]
         if phi is None or q is None:
             continue

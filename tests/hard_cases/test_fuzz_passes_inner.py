@@ -17,7 +17,6 @@ Hypothesis, derandomised, shrinking off (as ``test_fuzz.py``):
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 

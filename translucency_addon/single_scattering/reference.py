@@ -166,7 +166,7 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
         contrib = np.concatenate(weight) * np.exp(-ts)
         incoming = np.zeros((P, 3))
         k = 0
-        for light in lights or ():
+        for _ in lights or ():
             incoming += contrib[k : k + P]
             k += P
         if has_env:
