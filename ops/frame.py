@@ -24,7 +24,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..translucency_addon.frame import MeshMapping, pass_overrides, passes_for
 from . import inner_parts, scene_inputs
 from .state import COUNTERS, FRAME_EPOCH, GEOMETRY_EPOCH, ObjectState
 
@@ -63,7 +62,7 @@ class FrameInputs:
     single_channels: tuple  # the channels in which the diffusion solve adds closed-form single scattering (split)
     occluders: object  # other objects' triangles in object space (None without, or when diffusion is off)
     occ_sig: tuple | None
-    mapping: MeshMapping | None  # None when no pass runs
+    mapping: object  # translucency_addon.frame.MeshMapping; None when no pass runs
     ss_stale: str  # why the baked single scattering no longer matches ('' when it does)
     warnings: tuple  # scale, world, stale bake, stale single scattering
 
@@ -110,6 +109,8 @@ def gather(obj, scene, depsgraph, st: ObjectState, use_camera: bool) -> FrameInp
     plan = make_plan(obj.name, st, settings, material, lights, environment, mm, in_view)
 
     has_ss = st.bake.single_scattering is not None
+    from ..translucency_addon.frame import passes_for  # engine imports stay lazy: the add-on registers without it
+
     passes = passes_for(plan, st.bake, want_ms)  # the engine's rule (translucency_addon.frame), as the CLI's
     use_ms, use_ss, use_vnm = passes.use_ms, passes.use_ss, passes.use_vnm
     want_ss = bool(settings.use_single_scattering)
@@ -163,6 +164,7 @@ def make_plan(name: str, st: ObjectState, settings, material, lights, environmen
     The object's switches become overrides: a term that is off is forced off;
     with Pass Planning "All" every enabled term runs on every channel.
     """
+    from ..translucency_addon.frame import pass_overrides
     from ..translucency_addon.planner import plan_object
 
     has_ss = st.bake.single_scattering is not None
@@ -230,13 +232,15 @@ def _original_normals(mesh, V) -> np.ndarray:
     return scene_inputs.mesh_normals(V, F)
 
 
-def mesh_mapping(obj, st: ObjectState) -> MeshMapping:
+def mesh_mapping(obj, st: ObjectState):
     """The finest surface nodes that carry values to ``obj.data``'s vertices (read once per frame).
 
     The baked (evaluated) mesh's own vertex map when ``obj.data`` has its vertex count (the outer mesh's,
     for a bake with inner parts); otherwise
     a map to ``obj.data``'s vertices (a modifier changed the count), cached in ``st`` until they move.
     """
+    from ..translucency_addon.frame import MeshMapping
+
     bake = st.bake
     n = inner_parts.n_outer_vertices(bake)  # a bake with cavities continues with their walls
     if len(obj.data.vertices) == n:

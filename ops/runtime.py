@@ -67,7 +67,6 @@ import bpy
 import numpy as np
 
 from . import attributes, backend, cache_files, deformation, fluid_runtime, inner_parts, state, status
-from ..translucency_addon.frame import FramePasses, diffuse, multiple_radiance, render_frame, single_evaluator
 from .frame import FrameInputs, gather
 
 
@@ -180,6 +179,8 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
 
     # The frame is the engine's (translucency_addon.frame.render_frame), as the CLI's: which terms run, in
     # what order, weighted and summed there; this object's steps keep their state between frames.
+    from ..translucency_addon.frame import render_frame
+
     rendered = render_frame(st.bake, frame.plan, _passes(frame), frame.mapping, multiple=multiple,
                             single=lambda: _single_scatter(st, frame),
                             voxel_number_map=lambda: inner_parts.vnm_radiance(st, frame), n=frame.n_vertices,
@@ -377,13 +378,17 @@ def _retry_on_the_cpu(st: state.ObjectState, frame: FrameInputs, where):
     return st.solver
 
 
-def _passes(frame: FrameInputs) -> FramePasses:
+def _passes(frame: FrameInputs):
+    from ..translucency_addon.frame import FramePasses
+
     return FramePasses(frame.use_ms, frame.use_ss, frame.use_vnm, frame.ms_channels, frame.single_channels)
 
 
 def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous):
     """One multiple-scattering solve of the frame: the engine's :func:`~translucency_addon.frame.diffuse`
     (the split, the interreflection bounce, the cavity exchange), warm-started from ``previous``."""
+    from ..translucency_addon.frame import diffuse
+
     result, bounce, _cavity = diffuse(solver, st.bake, frame.lights, frame.environment, _passes(frame),
                                       tol=frame.tolerance, occluders=frame.occluders, warm_start=previous,
                                       shadows=True)
@@ -395,6 +400,8 @@ def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous):
 def radiance_for_mesh(st: state.ObjectState, solver, result, frame: FrameInputs) -> np.ndarray:
     """(n_vertices, 3) outgoing radiance for the original mesh's vertices (the engine's
     :func:`~translucency_addon.frame.multiple_radiance`)."""
+    from ..translucency_addon.frame import multiple_radiance
+
     return multiple_radiance(solver, result, st.bake, frame.mapping, frame.view)
 
 
@@ -411,6 +418,8 @@ def _single_scatter(st: state.ObjectState, frame: FrameInputs) -> np.ndarray:
             st.ss = None
         data_o = data if frame.ss_order == data.order else data.with_order(frame.ss_order)
         integrator, name, message = backend.make_integrator(data_o, frame.prefer, off_main=frame.off_main)
+        from ..translucency_addon.frame import single_evaluator
+
         ev = single_evaluator(bake, frame.ss_order, m, integrator=integrator)
         st.ss, st.ss_key, st.ss_backend_message = ev, key, message
         state.log(f"'{frame.name}': single scattering on the {name}" + (f" ({message})" if message else ""),
