@@ -24,6 +24,13 @@ from conftest import ROOT
 from test_ops_bake import activate, add_light, bake, cache_dir, memo_bakes, radiance, sphere  # noqa: F401
 
 
+@pytest.fixture(autouse=True)
+def _cpu_backend(blender):
+    """The recipe is compared on the CPU, in fp64, whether or not this process has a GPU context (the GPU's fp32
+    solve agrees with the CPU to its own tolerance: test_gpu_solver, the hard cases, and the GPU test below)."""
+    bpy.context.scene.translucency.solver_backend = 'CPU'
+
+
 def _camera(location=(0.0, -6.0, 1.5)):
     data = bpy.data.cameras.new("Cam")
     cam = bpy.data.objects.new("Cam", data)
@@ -236,3 +243,32 @@ def test_a_particle_fluid_renders_the_same_through_the_cli(blender, addon, tmp_p
         cli = np.asarray(z["point_radiance"], dtype=np.float64)
     diff = float(np.abs(cli - ours).max()) / float(np.abs(ours).mean())
     assert diff <= 1e-5, f"the CLI's fluid differs from the add-on's by {diff:.2e} of the mean\n{' '.join(cmd)}"
+
+
+@pytest.mark.gpu
+def test_the_gpu_backend_renders_only_the_planners_channels(blender, addon, cache_dir, memo_bakes):
+    """Ketchup under a sun: the planner runs diffusion in red only (green and blue: reduced albedo 0.07 and 0.02,
+    handed to single scattering).  The GPU solver solves every channel; its diffusion must not reach the channels
+    the planner turned off.  It did: green and blue came out 4.5x and 13x the CPU's (the single scattering alone)."""
+    from translucency.ops import runtime, state
+
+    obj = sphere(name="Ball")
+    obj.translucency.material_preset = 'KETCHUP'
+    obj.translucency.use_single_scattering = True
+    obj.translucency.ss_samples = 300
+    _world((0.2, 0.2, 0.2))
+    add_light('SUN', location=(0.0, 0.0, 5.0), energy=3.0, rotation=(0.3, 0.2, 0.0))
+    bpy.context.scene.translucency.tolerance = 1e-6
+    activate(obj)
+    assert bake(obj) == {'FINISHED'}
+    out = {}
+    for backend in ('CPU', 'GPU'):
+        bpy.context.scene.translucency.solver_backend = backend
+        runtime.solve_object(obj, bpy.context.scene, bpy.context.evaluated_depsgraph_get(), force=True)
+        out[backend] = radiance(obj).copy()
+        assert state.get_state(obj).backend == backend
+    plan = state.get_state(obj).plan
+    assert plan.multiple.channels == (True, False, False) and plan.single.channels[1:] == (True, True)
+    cpu, gpu = out['CPU'], out['GPU']
+    err = np.abs(gpu - cpu).max(axis=0) / np.abs(cpu).mean(axis=0)
+    assert np.all(err < 1e-3), f"GPU vs CPU per channel, of the channel's mean: {err}"
