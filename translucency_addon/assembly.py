@@ -22,7 +22,7 @@ The module docstring of :mod:`.diffusion` derives both and says why ours.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -53,6 +53,11 @@ class LevelSystem:
     boundary_diag: np.ndarray | None = None  # (n_surface, 3) a_s/(2A), the boundary exchange term
     lam_max: np.ndarray | None = None  # (3,) upper bound of eig(D^-1 A)
     lam_min: np.ndarray | None = None  # (3,) estimate of the smallest eigenvalue
+    # What is derived from the system once and reused, owned here: "off_csr" (the off-diagonal part per
+    # channel, :meth:`apply`), "sweep_ops" (:meth:`sweep_operator` per dtype), "subsets" (:meth:`subset`),
+    # "rcm" and "sweep_pattern" (``sweeps``, the graph's, shared by channel subsets), "deflation"
+    # (``spectral.deflation``), "absorption_w" (``iterative``'s energy check).
+    cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def n(self) -> int:
@@ -64,7 +69,7 @@ class LevelSystem:
         Same operation as ``kernels.apply_matrix`` on the packed layout (a
         test checks they agree to rounding); CSR is ~3x faster in numpy.
         """
-        csr = self.__dict__.get("_off_csr")
+        csr = self.cache.get("off_csr")
         if csr is None:
             from scipy.sparse import csr_matrix
 
@@ -74,7 +79,7 @@ class LevelSystem:
             m = cols >= 0
             csr = [csr_matrix((self.off[:, :, c].ravel()[m], (rows[m], cols[m])), shape=(n, n))
                    for c in range(self.off.shape[2])]
-            self.__dict__["_off_csr"] = csr
+            self.cache["off_csr"] = csr
         out = self.diag * x
         for c in range(x.shape[1]):
             out[:, c] -= csr[c] @ x[:, c]
@@ -82,7 +87,7 @@ class LevelSystem:
 
     def sweep_operator(self, dtype=np.float64):
         """The level laid out for fast CPU Chebyshev sweeps (:class:`.sweeps.SweepOperator`), cached per dtype."""
-        ops = self.__dict__.setdefault("_sweep_ops", {})
+        ops = self.cache.setdefault("sweep_ops", {})
         key = np.dtype(dtype).str
         if key not in ops:
             from .sweeps import SweepOperator
@@ -95,7 +100,7 @@ class LevelSystem:
         cols = tuple(int(c) for c in cols)
         if cols == (0, 1, 2):
             return self
-        cache = self.__dict__.setdefault("_subsets", {})
+        cache = self.cache.setdefault("subsets", {})
         if cols not in cache:
             self.apply(np.zeros((self.n, 3)))  # builds the CSR blocks once
             idx = list(cols)
@@ -103,10 +108,10 @@ class LevelSystem:
                               diag=self.diag[:, idx], b_scale=self.b_scale[:, idx], sigma_a=self.sigma_a[:, idx],
                               mm_per_unit=self.mm_per_unit,
                               boundary_diag=None if self.boundary_diag is None else self.boundary_diag[:, idx])
-            sub.__dict__["_off_csr"] = [self.__dict__["_off_csr"][c] for c in idx]
-            for k in ("_rcm", "_sweep_pattern"):  # the graph's, shared by every channel subset
-                if k in self.__dict__:
-                    sub.__dict__[k] = self.__dict__[k]
+            sub.cache["off_csr"] = [self.cache["off_csr"][c] for c in idx]
+            for k in ("rcm", "sweep_pattern"):  # the graph's, shared by every channel subset
+                if k in self.cache:
+                    sub.cache[k] = self.cache[k]
             if self.lam_max is not None:
                 sub.lam_max, sub.lam_min = self.lam_max[idx], self.lam_min[idx]
             cache[cols] = sub

@@ -46,7 +46,7 @@ the finest level only (coarser levels only warm-start it).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -64,6 +64,7 @@ class CavityExchange:
     K: np.ndarray  # (m, m) float32 form factors, rows normalised per cavity
     names: tuple = ()
     level_walls: list | None = None  # per level, the wall's surface-node indices (no outside light reaches them)
+    operators: dict = field(default_factory=dict, compare=False, repr=False)  # :meth:`operator`, per eta (the last)
 
     @property
     def m(self) -> int:
@@ -72,7 +73,7 @@ class CavityExchange:
     def operator(self, eta: float) -> np.ndarray:
         """``(1 - F_dr,ext)(1 - F_dr) (I - F_dr,ext K)^-1 K``: J+ on the wall -> q on the wall (eq. 1)."""
         key = float(eta)
-        cache = self.__dict__.setdefault("_ops", {})
+        cache = self.operators
         op = cache.get(key)
         if op is None:
             fe = diffuse_reflectance_external(eta)

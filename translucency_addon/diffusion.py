@@ -198,6 +198,10 @@ class DiffusionSolver:
             raise TranslucencyError(f"unknown solver {self.options.solver!r}; choose one of {', '.join(SOLVERS)}")
         self._shadow_bvh = bake.surface_bvh  # None: built on the first shadow ray
         self.warnings: list[str] = []  # of the latest light pass (incident)
+        # What this solver derives once and reuses, owned here: "inside" (whether a light position lies
+        # inside the mesh, :meth:`lights_inside`), "bounce_G" and "bounced" (``interreflection``: the
+        # bounce operator per eta and the block system per material, eta and split).
+        self.cache: dict = {}
         self.set_material(material, field_values)
 
     # -- material ------------------------------------------------------------
@@ -312,7 +316,7 @@ class DiffusionSolver:
             return []
         from .raycast import inside_mesh
 
-        cache = self.__dict__.setdefault("_inside_cache", {})
+        cache = self.cache.setdefault("inside", {})
         keys = [tuple(float(x) for x in light.position) for light in cand]
         todo = sorted({k for k in keys if k not in cache})
         if todo:

@@ -106,7 +106,7 @@ def bounce_operator(solver):
     against ~2M).
     """
     key = ("G", float(solver.eta))
-    cache = solver.__dict__.setdefault("_bounce_G", {})
+    cache = solver.cache.setdefault("bounce_G", {})
     if key not in cache:
         bake = solver.bake
         fine = len(bake.levels) - 1
@@ -253,7 +253,7 @@ def bounced_system(solver, cols, single=(False, False, False)) -> BouncedSystem:
     from .single_scattering.closed_form import half_space_split
 
     base = solver.systems[-1].subset(cols)
-    cache = solver.__dict__.setdefault("_bounced", {})
+    cache = solver.cache.setdefault("bounced", {})
     on = np.array([bool(single[c]) for c in cols])
     key = (id(base), tuple(cols), float(solver.eta), tuple(on))
     if key not in cache:

@@ -267,11 +267,11 @@ def energy_imbalance(system: LevelSystem, q: np.ndarray, x: np.ndarray, fdr: flo
     if system.scheme != "fv" or system.boundary_diag is None:
         return 0.0
     ni = system.level.n_inner
-    w = system.__dict__.get("_absorption_w")
+    w = system.cache.get("absorption_w")
     if w is None:  # absorption_weights() for this system's channels (a subset may hold fewer than 3)
         w = system.apply(np.ones((system.n, system.diag.shape[1])))
         w[ni:] -= system.boundary_diag
-        system.__dict__["_absorption_w"] = w
+        system.cache["absorption_w"] = w
     a = system.level.area * system.mm_per_unit**2
     p_in = a @ q
     jp = kernels.partial_current(x[ni:], q, fdr)

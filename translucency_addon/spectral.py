@@ -223,7 +223,7 @@ def deflation(system: LevelSystem, safety: float = 0.8, gap: float | None = None
     if system.scheme != "fv":
         return None
     gap = DEFLATION_GAP if gap is None else gap
-    cache = system.__dict__.get("_deflation", False)
+    cache = system.cache.get("deflation", False)
     if cache is not False:
         return cache
     lam_min, _ = spectral_bounds(system)
@@ -241,7 +241,7 @@ def deflation(system: LevelSystem, safety: float = 0.8, gap: float | None = None
         # bound is already within ``gap`` of rho cannot pass the test, whatever Lanczos finds.
         upper = linear_rayleigh_bound(system, labels, dsum)
         if not np.any(gap * rho < upper):
-            system.__dict__["_deflation"] = None
+            system.cache["deflation"] = None
             return None
         # Lanczos on P M P, M = D^-1/2 A D^-1/2, P projecting out u_k = D^1/2 1_k / |.| (disjoint supports).
         sq = np.sqrt(system.diag)
@@ -262,6 +262,6 @@ def deflation(system: LevelSystem, safety: float = 0.8, gap: float | None = None
             if mask.any():
                 out = Deflation(labels=labels, a1=a1, E=np.where(E > 0, E, 1.0), mask=mask,
                                 lam_min=np.where(mask, np.minimum(safety * lam2, 0.5 * system.lam_max), lam_min))
-    system.__dict__["_deflation"] = out
+    system.cache["deflation"] = out
     return out
 

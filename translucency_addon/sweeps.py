@@ -47,7 +47,7 @@ def rcm_order(system) -> np.ndarray:
 
     Inner nodes first, then surface nodes, so the surface is the slice ``[n_inner:]`` in this order too.
     """
-    perm = system.__dict__.get("_rcm")
+    perm = system.cache.get("rcm")
     if perm is None:
         from scipy.sparse.csgraph import reverse_cuthill_mckee
 
@@ -62,7 +62,7 @@ def rcm_order(system) -> np.ndarray:
         # bounce) then act on one contiguous slice.
         ni = system.level.n_inner
         perm = np.concatenate([perm[perm < ni], perm[perm >= ni]])
-        system.__dict__["_rcm"] = perm
+        system.cache["rcm"] = perm
     return perm
 
 
@@ -79,7 +79,7 @@ def sweep_pattern(system):
     Duplicate links (two slots naming the same neighbour) stay separate entries, which the product
     sums as the COO conversion did.
     """
-    pat = system.__dict__.get("_sweep_pattern")
+    pat = system.cache.get("sweep_pattern")
     if pat is None:
         perm = rcm_order(system)
         inv = np.empty_like(perm)
@@ -95,7 +95,7 @@ def sweep_pattern(system):
         indptr = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
         pat = (indptr, cols[order], src[order])
-        system.__dict__["_sweep_pattern"] = pat
+        system.cache["sweep_pattern"] = pat
     return pat
 
 
