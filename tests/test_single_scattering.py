@@ -190,7 +190,7 @@ def test_gaussian_ray_integral_matches_quadrature(sphere):
         x = o[k] + (t * t1[k])[:, None] * d[k]
         dist = np.linalg.norm(x - b[k], axis=1)
         f = data.weight[i[k]] * np.exp(-data.alpha[i[k]] * dist**2) * (dist < data.support[i[k]])
-        quad = np.trapz(f, t * t1[k])
+        quad = np.trapezoid(f, t * t1[k])
         got = g[sel].sum() if sel.any() else 0.0
         assert got == pytest.approx(quad, rel=2e-3, abs=1e-6 * data.weight[i[k]] * data.sigma[i[k]])
 
