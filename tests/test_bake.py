@@ -313,3 +313,34 @@ def test_relaxed_inner_nodes_stay_inside_the_volume():
         return d.std() / d.mean()
 
     assert spread(lv) < spread(plain)
+
+
+@pytest.mark.parametrize("compressed", [True, False])
+def test_damaged_bytes_anywhere_are_a_corrupt_cache(tmp_path, compressed):
+    """Flipped bytes are said as a corrupt cache wherever they land, in every member's ``.npy``
+    header included: numpy parses a header before the zip's CRC is checked, and a damaged
+    header raised the tokenizer's ``TokenError`` through the add-on (a CI run's corrupt-bytes
+    case, whose flips depend on the bake's bytes).  Every member, stored or deflated, is hit."""
+    import zipfile
+
+    bake = baked("spot")
+    path = cache.save_bake(tmp_path / "spot.npz", bake)
+    if not compressed:
+        np.savez(path, **cache.bake_to_arrays(bake))
+    data = open(path, "rb").read()
+    with zipfile.ZipFile(path) as zf:
+        infos = zf.infolist()
+    bad_path = tmp_path / "bad.npz"
+    for info in infos:
+        # the member's data starts after its local header (30 bytes, name, extra field)
+        n_name = int.from_bytes(data[info.header_offset + 26: info.header_offset + 28], "little")
+        n_extra = int.from_bytes(data[info.header_offset + 28: info.header_offset + 30], "little")
+        start = info.header_offset + 30 + n_name + n_extra
+        for offset in (0, 3, 11, 40, 70):  # the magic, the header's length, its dict literal
+            if offset >= info.compress_size:
+                continue
+            bad = bytearray(data)
+            bad[start + offset] ^= 0x5A
+            bad_path.write_bytes(bytes(bad))
+            with pytest.raises(CacheError, match="corrupt or truncated"):
+                cache.load_bake(bad_path)

@@ -265,3 +265,18 @@ def test_ss_output_without_single_scattering_is_refused_before_the_solve(files, 
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "--ss-output" in err[0] and fact in err[0], err
     assert os.listdir(tmp_path) == []
+
+
+def test_a_damaged_npy_header_is_one_line_naming_the_file(tmp_path):
+    """Damaged bytes in the header's dict literal reach numpy's header parser, which raises the
+    tokenizer's errors (``TokenError``, ``SyntaxError``), not ``ValueError``."""
+    from translucency_addon.errors import ParticleError
+    from translucency_addon.fluid.cli import load_frames
+
+    path = tmp_path / "pts.npy"
+    np.save(path, _lattice())
+    good = path.read_bytes()
+    for where, byte in ((12, b"'"), (20, b"("), (30, b"{")):
+        path.write_bytes(good[:where] + byte + good[where + 1:])
+        with pytest.raises(ParticleError, match="pts.npy is not a readable .npy array"):
+            load_frames(str(path))

@@ -16,6 +16,7 @@ Errors (missing, truncated, corrupt, wrong version, stale key) raise
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import tempfile
@@ -154,7 +155,7 @@ def read_mesh_topology(path) -> tuple[int, np.ndarray]:
     with _open(path) as z:
         _meta(z, path)
         try:
-            return int(z["mesh/V"].shape[0]), np.asarray(z["mesh/F"], dtype=np.int64)
+            return int(_member(z, "mesh/V", path).shape[0]), np.asarray(_member(z, "mesh/F", path), dtype=np.int64)
         except (KeyError, zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as exc:
             raise CacheError(f"bake cache {path!r} is corrupt or truncated: {exc}") from exc
 
@@ -178,9 +179,28 @@ def _open(path):
         raise CacheError(f"bake cache {path!r} is corrupt or truncated: {exc}") from exc
 
 
+def _member(z, key: str, path) -> np.ndarray:
+    """One array of an open cache, its CRC checked before a byte of it is parsed.
+
+    ``NpzFile[key]`` parses the ``.npy`` header while it streams the member and checks the zip's
+    CRC only at the end, so flipped bytes in a header surface as whatever the header parser
+    raises (``tokenize.TokenError``, ``SyntaxError``, a huge allocation) instead of a CRC error.
+    Reading the whole member first (``ZipFile.read`` verifies the CRC) turns every damaged byte
+    into ``BadZipFile``, said as a corrupt cache.  ``KeyError`` (no such member) passes through.
+    """
+    name = key if key.endswith(".npy") else key + ".npy"
+    if name not in z.zip.namelist():
+        raise KeyError(key)
+    try:
+        raw = z.zip.read(name)
+        return np.lib.format.read_array(io.BytesIO(raw), allow_pickle=False)
+    except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as exc:
+        raise CacheError(f"bake cache {os.fspath(path)!r} is corrupt or truncated: {exc}") from exc
+
+
 def _meta(z, path) -> dict:
     try:
-        meta = _read_json(z["meta"])
+        meta = _read_json(_member(z, "meta", path))
     except KeyError as exc:
         raise CacheError(f"{path!r} is not a Translucency bake cache (no metadata)") from exc
     except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, UnicodeDecodeError) as exc:
@@ -207,10 +227,7 @@ def load_bake(path, expected_key: str | None = None) -> Bake:
                 f"bake cache {os.fspath(path)!r} is stale: the mesh or the bake settings changed since it was "
                 "written; re-bake the object"
             )
-        try:
-            arrays = {k: z[k] for k in z.files}
-        except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as exc:
-            raise CacheError(f"bake cache {os.fspath(path)!r} is corrupt or truncated: {exc}") from exc
+        arrays = {k: _member(z, k, path) for k in z.files}
     try:
         n = int(meta["n_levels"])
         levels = [GraphLevel.from_arrays(arrays, f"L{i}/", stats=meta["level_stats"][i]) for i in range(n)]

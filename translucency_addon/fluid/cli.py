@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+import tokenize
 
 import numpy as np
 
@@ -48,7 +49,8 @@ def load_frames(path: str) -> tuple[np.ndarray, bool]:
         raise ParticleError(f"{path} is not a NumPy .npy file; it should hold {WHAT}")
     try:
         P = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
+    except (OSError, ValueError, EOFError, SyntaxError, tokenize.TokenError) as exc:
+        # a damaged header reaches numpy's header parser: it raises what the tokenizer raises
         raise ParticleError(f"{path} is not a readable .npy array ({exc}); it should hold {WHAT}") from None
     shape = P.shape
     if P.ndim not in (2, 3) or P.shape[-1] != 3 or not np.issubdtype(P.dtype, np.number) \
