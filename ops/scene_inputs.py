@@ -564,24 +564,6 @@ def _has_groups(mesh) -> bool:
     return any(len(v.groups) for v in mesh.vertices)
 
 
-def interpolate_to_nodes(positions: np.ndarray, values: np.ndarray, nodes: np.ndarray, k: int = 4):
-    """Shepard (inverse-square-distance) interpolation of vertex values onto nodes."""
-    from scipy.spatial import cKDTree
-
-    if len(positions) == 0:
-        return np.zeros(len(nodes))
-    k = min(k, len(positions))
-    dist, idx = cKDTree(positions).query(nodes, k=k)
-    if k == 1:
-        return np.clip(values[idx], 0.0, 1.0)
-    w = 1.0 / np.maximum(dist * dist, 1e-24)
-    exact = dist[:, 0] <= 1e-12
-    w[exact] = 0.0
-    w[exact, 0] = 1.0
-    out = (w * values[idx]).sum(axis=1) / w.sum(axis=1)
-    return np.clip(np.nan_to_num(out, nan=0.0), 0.0, 1.0)
-
-
 def field_signature(obj, settings, depsgraph, vertex_group_epoch=0, rest=None):
     """A hashable key of the field's inputs (``None`` for a homogeneous material).
 
@@ -621,8 +603,10 @@ def sample_field(obj, settings, node_positions, depsgraph, rest=None) -> list[np
             raise MaterialError(f"'{obj.name}': Heterogeneous is on but no texture is chosen for the field")
         scale = float(settings.field_scale)
         return [evaluate_texture(tex, np.asarray(p) * scale) for p in node_positions]
+    from ..translucency_addon.fields import vertex_field_at_nodes
+
     positions, values = mesh_field(obj, settings, depsgraph, rest)
-    return [interpolate_to_nodes(positions, values, np.asarray(p)) for p in node_positions]
+    return [vertex_field_at_nodes(positions, values, p) for p in node_positions]
 
 
 # ------------------------------------------------------------------ view

@@ -280,3 +280,28 @@ def test_a_damaged_npy_header_is_one_line_naming_the_file(tmp_path):
         path.write_bytes(good[:where] + byte + good[where + 1:])
         with pytest.raises(ParticleError, match="pts.npy is not a readable .npy array"):
             load_frames(str(path))
+
+
+def test_field_values_are_checked_before_the_solve(files, tmp_path):
+    """--field-values (the add-on's attribute or vertex-group field, exported): one weight in [0, 1] per
+    vertex of the baked mesh; every other file, and the option without a second medium, is one line."""
+    n = len(cache.load_bake(files / "s.npz").mesh_vertices)
+    base = ["solve", files / "s.npz", "-o", tmp_path / "L.npy", "--env", "1,1,1"]
+    w = tmp_path / "w.npy"
+    cases = [
+        (np.full(n - 1, 0.5), f"holds a float64 array of shape ({n - 1},); it should hold one weight from 0 to 1 "
+                              f"per vertex of the baked mesh: shape ({n},)"),
+        (np.r_[np.full(n - 2, 0.5), 1.5, -2.0], f"2 of {n} weights lie outside [0, 1] (worst -2)"),
+        (np.r_[np.full(n - 1, 0.5), np.nan], f"1 of {n} weights are NaN or Inf"),
+    ]
+    for values, message in cases:
+        np.save(w, values)
+        line = refused(cli(*base, "--material", "marble", "--mix-with", "skin1", "--field-values", w))
+        assert message in line, line
+    np.save(w, np.full(n, 0.5))
+    assert "name the second with --mix-with" in refused(cli(*base, "--field-values", w))
+    line = refused(cli(*base, "--mix-with", "skin1", "--field-values", w, "--field", "marble:0.5"))
+    assert "--field-values and --field both give the mixing field" in line
+    assert not (tmp_path / "L.npy").exists()
+    out = cli(*base, "--material", "marble", "--mix-with", "skin1", "--field-values", w)
+    assert out.returncode == 0, out.stderr

@@ -83,7 +83,23 @@ SCENES = {
     "skin1, point light": dict(preset='SKIN1', world=None, lights=[('POINT', (3.0, -2.0, 2.0), 800.0)]),
     "ketchup, sun (single scattering replaces diffusion)": dict(
         preset='KETCHUP', world=(0.2, 0.2, 0.2), lights=[('SUN', (0.0, 0.0, 5.0), 3.0)], single=True),
+    "marble and skin1 mixed by a mesh attribute, sky and sun": dict(
+        preset='MARBLE', world=(0.3, 0.35, 0.4), lights=[('SUN', (0.0, 0.0, 5.0), 3.0)], mix_with='SKIN1'),
 }
+
+
+def _attribute_field(obj, second: str) -> np.ndarray:
+    """A heterogeneous material whose field is a float attribute (0 at the bottom, 1 at the top); the weights
+    per vertex, as the CLI's --field-values takes them."""
+    me = obj.data
+    co = np.empty(len(me.vertices) * 3)
+    me.vertices.foreach_get("co", co)
+    z = co.reshape(-1, 3)[:, 2]
+    weights = (z - z.min()) / (z.max() - z.min())
+    me.attributes.new("mix", 'FLOAT', 'POINT').data.foreach_set("value", weights.astype(np.float32))
+    s = obj.translucency
+    s.use_heterogeneity, s.second_preset, s.field_source, s.field_attribute = True, second, 'ATTRIBUTE', "mix"
+    return weights.astype(np.float32).astype(np.float64)
 
 
 @pytest.mark.parametrize("scene_name", list(SCENES))
@@ -97,6 +113,7 @@ def test_the_cli_renders_what_the_addon_renders(blender, addon, cache_dir, memo_
     if spec.get("single"):
         obj.translucency.use_single_scattering = True
         obj.translucency.ss_samples = 300
+    weights = _attribute_field(obj, spec["mix_with"]) if spec.get("mix_with") else None
     if spec["world"] is not None:
         _world(spec["world"])
     else:
@@ -120,6 +137,16 @@ def test_the_cli_renders_what_the_addon_renders(blender, addon, cache_dir, memo_
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     cmd = [sys.executable, "-m", "translucency_addon", "solve", cache, "-o", str(out),
            "--material", spec["preset"].lower(), *_cli_options(frame)]
+    if weights is not None:
+        from translucency_addon.cache import load_bake
+
+        baked = load_bake(cache).mesh_vertices
+        me = obj.data
+        co = np.empty(len(me.vertices) * 3)
+        me.vertices.foreach_get("co", co)
+        np.testing.assert_allclose(baked[: len(me.vertices)], co.reshape(-1, 3), atol=1e-6)  # the same vertices
+        np.save(tmp_path / "weights.npy", weights)
+        cmd += ["--mix-with", spec["mix_with"].lower(), "--field-values", str(tmp_path / "weights.npy")]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert proc.returncode == 0, proc.stderr
     cli = np.load(out)[: len(ours)]

@@ -30,6 +30,7 @@ Run ``python -m translucency_addon <command> --help`` for every option.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import sys
@@ -218,6 +219,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "and order; Wang et al. sec. 6.4) instead of re-baking; radiance at the posed vertices")
     s.add_argument("--no-voxel-number-map", action="store_true",
                    help="leave out the Voxel Number Map term even when the cache holds it")
+    s.add_argument("--field-values", default=None, metavar="WEIGHTS.npy",
+                   help="the mixing field as one weight from 0 to 1 per vertex of the baked mesh (numpy.save of an "
+                        "(N,) array; a mesh attribute or vertex group exported from Blender), instead of --field; "
+                        "needs --mix-with")
     s.add_argument("--pass-planning", choices=["auto", "all"], default="auto",
                    help="auto: the planner runs each pass where it adds light (as the add-on's Pass Planning "
                         "'Automatic', the default); all: every term that is on and baked runs on every channel "
@@ -454,7 +459,7 @@ def cmd_solve(a) -> int:
 
     from .cache import write_files
 
-    check_files([("CACHE", a.cache), ("--deformed", a.deformed)],
+    check_files([("CACHE", a.cache), ("--deformed", a.deformed), ("--field-values", a.field_values)],
                 [("-o", a.output), ("--stats", a.stats), ("--ss-output", a.ss_output)])
     material = material_from_args(a)
     lights, env = lights_from_args(a)
@@ -469,7 +474,17 @@ def cmd_solve(a) -> int:
     t_load = time.perf_counter() - t0
     field_values = None
     spec = None
-    if material.heterogeneous:
+    if a.field_values is not None and not material.heterogeneous:
+        raise TranslucencyError("--field-values mixes two media: name the second with --mix-with")
+    if a.field_values is not None and a.field is not None:
+        raise TranslucencyError("--field-values and --field both give the mixing field: use one")
+    if a.field_values is not None:
+        from .fields import load_vertex_field, vertex_field_at_nodes
+
+        weights = load_vertex_field(a.field_values, len(bake.mesh_vertices))
+        field_values = [vertex_field_at_nodes(bake.mesh_vertices, weights, lv.position) for lv in bake.levels]
+        spec = "vertex-values:" + hashlib.sha256(weights.tobytes()).hexdigest()[:32]
+    elif material.heterogeneous:
         spec = field_spec_from_args(a, bake.mesh_vertices)
         field_values = [evaluate_field(spec, lv.position) for lv in bake.levels]
     deformation = None

@@ -93,3 +93,58 @@ def evaluate_field(spec: FieldSpec, points) -> np.ndarray:
     # marble: veins where sin(x + turbulence) is near zero, like Blender's Marble (sharp)
     s = np.sin(np.pi * (q[:, spec.axis] + spec.turbulence * turbulence(q, 4, spec.seed)))
     return np.clip(1.0 - np.abs(s) ** 0.5, 0.0, 1.0)
+
+
+def vertex_field_at_nodes(positions, values, nodes, k: int = 4) -> np.ndarray:
+    """A field given at mesh vertices, carried to graph nodes: Shepard (inverse-square-distance)
+    interpolation over the ``k`` nearest vertices, clipped to [0, 1]; a node on a vertex takes its value.
+
+    The add-on's attribute and vertex-group fields (``ops.scene_inputs``) and the command line's
+    ``--field-values`` both go through here, so the two sample the same field at the same nodes.
+    """
+    from scipy.spatial import cKDTree
+
+    positions = np.asarray(positions, dtype=np.float64)
+    values = np.asarray(values, dtype=np.float64)
+    nodes = np.asarray(nodes, dtype=np.float64)
+    if len(positions) == 0:
+        return np.zeros(len(nodes))
+    k = min(k, len(positions))
+    dist, idx = cKDTree(positions).query(nodes, k=k)
+    if k == 1:
+        return np.clip(values[idx], 0.0, 1.0)
+    w = 1.0 / np.maximum(dist * dist, 1e-24)
+    exact = dist[:, 0] <= 1e-12
+    w[exact] = 0.0
+    w[exact, 0] = 1.0
+    out = (w * values[idx]).sum(axis=1) / w.sum(axis=1)
+    return np.clip(np.nan_to_num(out, nan=0.0), 0.0, 1.0)
+
+
+def load_vertex_field(path: str, n_vertices: int) -> np.ndarray:
+    """The per-vertex mixing weights in a ``.npy`` file (``numpy.save`` of an (n_vertices,) float array,
+    0 to 1, in the baked mesh's vertex order: a mesh attribute or vertex group exported from Blender).
+
+    Refused with one line naming the file: not a readable ``.npy`` (never unpickled), another shape,
+    NaN or Inf, or weights outside [0, 1] (the count and the worst value are said)."""
+    import tokenize
+
+    try:
+        values = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError, SyntaxError, tokenize.TokenError) as exc:
+        raise MaterialError(f"--field-values {path}: not a readable .npy array ({exc}); it should hold one "
+                            f"weight from 0 to 1 per vertex of the baked mesh ({n_vertices:,})") from None
+    numeric = np.issubdtype(values.dtype, np.floating) or np.issubdtype(values.dtype, np.integer)
+    if values.shape != (n_vertices,) or not numeric:
+        raise MaterialError(f"--field-values {path} holds a {values.dtype} array of shape {values.shape}; it "
+                            f"should hold one weight from 0 to 1 per vertex of the baked mesh: shape ({n_vertices},)")
+    values = values.astype(np.float64)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        raise MaterialError(f"--field-values {path}: {int(bad.sum()):,} of {n_vertices:,} weights are NaN or Inf")
+    out = (values < 0.0) | (values > 1.0)
+    if out.any():
+        worst = values[out][np.argmax(np.abs(values[out] - 0.5))]
+        raise MaterialError(f"--field-values {path}: {int(out.sum()):,} of {n_vertices:,} weights lie outside "
+                            f"[0, 1] (worst {worst:g}); the field mixes two media, 0 the first and 1 the second")
+    return values
