@@ -212,11 +212,13 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         m = max((float(np.abs(q[i]).max(initial=0.0)) for i in active if q[i] is not None), default=0.0)
         return pack.pow2_scale(m)
 
-    def solve_systems(self, q, active, warm_start=None):
-        """The GPU replacement of ``DiffusionSolver.solve_systems`` (same contract)."""
+    def solve_systems(self, q, active, warm_start=None, cols=(0, 1, 2)):
+        """The GPU replacement of ``DiffusionSolver.solve_systems`` (same contract).  Every channel is solved
+        whatever ``cols`` says (the kernels run on vec4s: three channels cost one); the driver zeroes the
+        channels the planner turned off."""
         opts = self.options
         if opts.solver == "direct":
-            return super().solve_systems(q, active, warm_start)
+            return super().solve_systems(q, active, warm_start, cols)
         self._ensure()
         n_lv = len(self.bake.levels)
         phi = [None] * n_lv

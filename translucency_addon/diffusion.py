@@ -162,7 +162,7 @@ class SolveResult:
     # channels in which the closed-form single scattering is added to the output.
     q_incident: list | None = None
     single: tuple = (False, False, False)
-    first_pass: np.ndarray | None = None  # finest phi without the bounce (interreflection.solve_bounced)
+    first_pass: np.ndarray | None = None  # finest phi without the bounce (solve(bounced=True))
 
     @property
     def iterations(self) -> int:
@@ -337,8 +337,8 @@ class DiffusionSolver:
         return warm_start is not None and warm_start.phi[-1] is not None
 
     def solve(self, lights=(), environment=None, *, q=None, warm_start=None, shadows=True,
-              occluders=None, channels=None, bounce=None, single=None) -> SolveResult:
-        """Solve every level coarse to fine (or only the finest, from ``warm_start``).
+              occluders=None, channels=None, bounce=None, single=None, bounced=False) -> SolveResult:
+        """Solve every level coarse to fine (or only the finest, from ``warm_start``): the one driver.
 
         ``q``: precomputed incident light per level (skips the light pass).
         ``bounce``: vertex radiance of a previous solve, the light the object
@@ -352,30 +352,56 @@ class DiffusionSolver:
         ``single``: (bool, bool, bool), the channels in which the first-scatter split runs
         (:meth:`split_source`; default ``options.single_scattering``): the diffusion solves for
         ``m(alpha) q`` and the output adds the closed-form single scattering of q.
+        ``bounced``: the finest level solves the object's light and its bounce at once, the block
+        system (1) of :mod:`.interreflection` (:func:`~.interreflection.solve_finest_bounced`, only
+        where :func:`~.interreflection.one_solve_applies`); the result's finest ``q`` then holds the
+        bounce and ``first_pass`` the phi0 of (1).  Everything else -- light pass, split, coarse
+        levels, channel mask, checks, timings -- is this driver's, for both.
         """
         t0 = time.perf_counter()
         opts = self.options
         n_lv = len(self.bake.levels)
+        fine = n_lv - 1
+        if bounced:
+            from .interreflection import one_solve_applies
+
+            why = one_solve_applies(self)
+            if why:
+                raise ValueError(f"the block solve of the bounce does not apply: {why}")
         usable = self.can_warm_start(warm_start)
         finest_only = opts.levels == "finest" or usable
-        active = [n_lv - 1] if finest_only else list(range(n_lv))
+        active = [fine] if finest_only else list(range(n_lv))
         warnings = []
         if q is None:
             q = self.incident(lights, environment, shadows=shadows, occluders=occluders, levels=active,
                               bounce=bounce)
             warnings = list(self.warnings)
+        q_light = q
         q, q_incident, single = self.split_source(q, single)
         t1 = time.perf_counter()
         mask = (True, True, True) if channels is None else tuple(bool(c) for c in channels)
-        self._channels = tuple(c for c in range(3) if mask[c])
-        if not self._channels:
+        cols = tuple(c for c in range(3) if mask[c])
+        first_pass = None
+        if not cols:
             phi = [None if p is None else np.zeros((lv.n_nodes, 3)) for p, lv in
                    zip([q[i] for i in range(n_lv)], self.bake.levels)]
             solves = [LevelSolve(0, np.zeros(3), [0.0], 0.0) for _ in active]
         else:
-            phi, solves = self.solve_systems(q, active, warm_start)
+            levels = active[:-1] if bounced else active
+            phi, solves = self.solve_systems(q, levels, warm_start, cols) if levels else ([None] * n_lv, [])
+            if bounced:
+                from .interreflection import solve_finest_bounced
+
+                step = solve_finest_bounced(self, q_light[fine], phi[fine - 1] if levels else None,
+                                            warm_start if usable else None, cols, single)
+                phi[fine], q = step.phi, list(q)
+                q[fine], first_pass = step.q, step.first_pass
+                if q_incident is not None:
+                    q_incident = list(q_incident)
+                    q_incident[fine] = step.q_incident
+                solves.append(step.info)
             warnings += [s.note for s in solves if getattr(s, "note", "")]
-            if len(self._channels) < 3:  # a backend that ignores the mask still honours it
+            if len(cols) < 3:  # a backend that ignores the mask still honours it
                 off = [c for c in range(3) if not mask[c]]
                 for p in phi:
                     if p is not None:
@@ -383,7 +409,7 @@ class DiffusionSolver:
         t2 = time.perf_counter()
         return SolveResult(phi=phi, q=q, level_solves=solves, scheme=self.systems[-1].scheme,
                            seconds={"lights": t1 - t0, "solve": t2 - t1, "total": t2 - t0}, warnings=warnings,
-                           q_incident=q_incident, single=single)
+                           q_incident=q_incident, single=single, first_pass=first_pass)
 
     # -- the first-scatter split -----------------------------------------------------------
     def split_source(self, q, single=None):
@@ -448,11 +474,11 @@ class DiffusionSolver:
         # The first-scatter split (``single=``, ``options.single_scattering``) is part of the block
         # system ((1') of :mod:`.interreflection`).
         if self.sky is not None and int(bounces) == 1 and bounce is None:
-            from .interreflection import one_solve_applies, solve_bounced
+            from .interreflection import one_solve_applies
 
-            why = one_solve_applies(self)
-            if not why:
-                return solve_bounced(self, lights, environment, warm_start=warm_start, **kw)
+            if not one_solve_applies(self):
+                res = self.solve(lights, environment, warm_start=warm_start, bounced=True, **kw)
+                return res, self.vertex_radiance(res)
         res = self.solve(lights, environment, warm_start=warm_start, bounce=bounce, **kw)
         L = self.vertex_radiance(res)
         if self.sky is None:
@@ -462,8 +488,9 @@ class DiffusionSolver:
             L = self.vertex_radiance(res)
         return res, L
 
-    def solve_systems(self, q, active, warm_start=None):
-        """Run the linear solves on the ``active`` levels, coarse to fine (eq. 10 between them).
+    def solve_systems(self, q, active, warm_start=None, cols=(0, 1, 2)):
+        """Run the linear solves on the ``active`` levels, coarse to fine (eq. 10 between them), in the
+        channels ``cols``.
 
         This is the part a GPU backend replaces (``gpu_shaders.solver``); the
         assembly, the light pass, the solution checks after each level
@@ -471,37 +498,47 @@ class DiffusionSolver:
         Returns ``(phi per level (None where inactive), [LevelSolve])``.
         """
         opts = self.options
-        n_lv = len(self.bake.levels)
         fn = SOLVER_FUNCTIONS[opts.solver]
-        cols = getattr(self, "_channels", (0, 1, 2))
-        phi = [None] * n_lv
+        cols = tuple(cols)
+        phi = [None] * len(self.bake.levels)
         solves = []
-        x = None
+        coarser = None
         for i in active:
             system = self.systems[i].subset(cols)
             b = system.rhs(q[i][:, cols])
-            if warm_start is not None and i == n_lv - 1 and warm_start.phi[-1] is not None:
-                x0 = np.array(warm_start.phi[-1][:, cols], dtype=np.float64)
-            elif x is not None:
-                idx, w = self.bake.shepard[i - 1]
-                x0 = kernels.shepard_upsample(idx, w, x)
-            else:
-                x0 = np.zeros((system.n, len(cols)))
+            x0 = self.initial_guess(i, cols, coarser, warm_start)
             # No light on this level in a channel: the (non-singular) system's answer is exactly 0.  A warm
             # start from a coarser level that did see light (a light grazing the surface) would otherwise
             # leave a small residue the relative stopping test (|b| = 0) accepts.
             x0[:, ~np.any(b != 0, axis=0)] = 0.0
-            tol = opts.tol if i == n_lv - 1 else (opts.coarse_tol or opts.tol)
-            x, info = fn(system, b, x0, tol, opts.max_iterations, opts.check_every)
+            x, info = fn(system, b, x0, self.level_tolerance(i), opts.max_iterations, opts.check_every)
             x, info = self.checked_level(i, system, q[i][:, cols], b, x, info)
-            full = np.zeros((system.n, 3))
-            full[:, cols] = x
-            phi[i] = full
-            res = np.zeros(3)
-            res[list(cols)] = info.residual
-            info.residual = res
+            phi[i] = coarser = kernels.in_channels(x, cols)
+            info.residual = kernels.in_channels(info.residual, cols)
             solves.append(info)
         return phi, solves
+
+    def initial_guess(self, level: int, cols, coarser=None, warm_start=None, previous=None) -> np.ndarray:
+        """Where a level's solve starts, in the channels ``cols``: the warm start's finest solution (or
+        ``previous``, a solution of the finest level given instead), else the next coarser level's solution
+        ``coarser`` ((n, 3), all channels) carried up by Shepard interpolation (eq. 10), else zero."""
+        n_lv = len(self.bake.levels)
+        cols = list(cols)
+        if level == n_lv - 1:
+            if previous is not None:
+                return np.array(np.asarray(previous)[:, cols], dtype=np.float64)
+            if warm_start is not None and warm_start.phi[-1] is not None:
+                return np.array(warm_start.phi[-1][:, cols], dtype=np.float64)
+        if coarser is not None and level > 0:
+            idx, w = self.bake.shepard[level - 1]
+            return kernels.shepard_upsample(idx, w, np.asarray(coarser)[:, cols])
+        return np.zeros((self.bake.levels[level].n_nodes, len(cols)))
+
+    def level_tolerance(self, level: int) -> float:
+        """The relative residual a level's solve stops at: ``options.tol`` on the finest level, the coarse
+        tolerance (default the same) below it."""
+        opts = self.options
+        return opts.tol if level == len(self.bake.levels) - 1 else (opts.coarse_tol or opts.tol)
 
     @property
     def guards_solutions(self) -> bool:

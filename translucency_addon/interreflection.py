@@ -78,7 +78,7 @@ keeps the two solves there, and says why in the result's note.
 
 from __future__ import annotations
 
-import time
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -273,7 +273,7 @@ def bounced_system(solver, cols, single=(False, False, False)) -> BouncedSystem:
 
 
 def one_solve_applies(solver) -> str:
-    """'' when :func:`solve_bounced` can run for this solver, else why not (for the result's note)."""
+    """'' when ``DiffusionSolver.solve(bounced=True)`` can run for this solver, else why not (for the result's note)."""
     from .diffusion import DiffusionSolver
 
     if solver.sky is None:
@@ -287,77 +287,47 @@ def one_solve_applies(solver) -> str:
     return ""
 
 
-def solve_bounced(solver, lights=(), environment=None, *, warm_start=None, shadows=True, occluders=None,
-                  channels=None, single=None):
-    """Light pass, coarse levels, then (1) on the finest level: ``(SolveResult, vertex radiance)``.
+@dataclass
+class FinestStep:
+    """What :func:`solve_finest_bounced` hands back to the driver (``DiffusionSolver.solve``), each (n, 3)
+    in every channel: phi1 of (1), the diffusion's source (``m q`` with the split), the light that entered
+    (the bounce included) and phi0, the pass without the bounce."""
 
-    ``warm_start``: a previous result; its finest ``phi`` (and ``first_pass``, the phi0 of (1),
-    when it has one) start the block system.  The result's ``q`` on the finest level is the direct
-    light plus the bounce, its ``phi`` is phi1 and ``first_pass`` phi0.
+    phi: np.ndarray
+    q: np.ndarray
+    q_incident: np.ndarray
+    first_pass: np.ndarray
+    info: LevelSolve
+
+
+def solve_finest_bounced(solver, q_light, coarser, warm_start, cols, single) -> FinestStep:
+    """The finest level of ``DiffusionSolver.solve(bounced=True)``: the block system (1) -- (1') in the
+    split's channels -- by Chebyshev, in the channels ``cols``.
+
+    ``q_light``: the finest level's entering light (before the split; (1') applies m itself);
+    ``coarser``: the next coarser level's solution, or None; ``warm_start``: a previous result the
+    driver can start from (its ``first_pass`` starts phi0, when it has one), or None.
     """
-    from .diffusion import SolveResult
-
-    t0 = time.perf_counter()
     opts = solver.options
-    levels = solver.bake.levels
-    n_lv, fine = len(levels), len(levels) - 1
-    usable = solver.can_warm_start(warm_start)
-    active = [fine] if (opts.levels == "finest" or usable) else list(range(n_lv))
-    q = solver.incident(lights, environment, shadows=shadows, occluders=occluders, levels=active)
-    warnings = list(solver.warnings)
-    t1 = time.perf_counter()
-    mask = (True, True, True) if channels is None else tuple(bool(c) for c in channels)
-    cols = tuple(c for c in range(3) if mask[c])
-    if not cols:
-        res = solver.solve(q=q, channels=mask, single=single)
-        return res, solver.vertex_radiance(res)
-    solver._channels = cols
-    q_src, q_incident, single = solver.split_source(q, single)  # (1'): the coarse levels solve for m q
-    phi, solves = solver.solve_systems(q_src, active[:-1]) if len(active) > 1 else ([None] * n_lv, [])
+    fine = len(solver.bake.levels) - 1
     system = bounced_system(solver, cols, single)
     base = system.base
-    qd = q[fine][:, cols]
+    qd = np.asarray(q_light)[:, list(cols)]
     B = system.rhs(qd)
-    C = len(cols)
-    if usable:
-        x1 = np.array(warm_start.phi[-1][:, cols], dtype=np.float64)
-        prev0 = getattr(warm_start, "first_pass", None)
-        x0 = x1.copy() if prev0 is None else np.array(prev0[:, cols], dtype=np.float64)
-    elif len(active) > 1:
-        idx, w = solver.bake.shepard[fine - 1]
-        x0 = kernels.shepard_upsample(idx, w, phi[fine - 1][:, cols])
-        x1 = x0.copy()
-    else:
-        x0 = np.zeros((base.n, C))
-        x1 = x0.copy()
+    x1 = solver.initial_guess(fine, cols, coarser, warm_start)
+    prev0 = getattr(warm_start, "first_pass", None) if warm_start is not None else None
+    x0 = x1.copy() if prev0 is None else solver.initial_guess(fine, cols, previous=prev0)
     X = np.hstack([x0, x1])
     X[:, ~np.any(B != 0, axis=0)] = 0.0  # no light in a channel: the answer is exactly 0 (solve_systems)
     x, info = solve_chebyshev(system, B, X, opts.tol, opts.max_iterations, opts.check_every)
+    C = len(cols)
     phi0, phi1 = x[:, :C], x[:, C:]
-    ni = base.level.n_inner
-    Bg, P = system.factors
-    q_tot = qd + system.bounce(phi0[ni:], qd)  # the light that entered, the bounce included
+    q_tot = qd + system.bounce(phi0[base.level.n_inner:], qd)  # the light that entered, the bounce included
     q_dif = system.source(q_tot)  # the diffusion's source (m q_tot with the split)
     info = LevelSolve(info.iterations, np.maximum(info.residual[:C], info.residual[C:]), info.history,
                       info.seconds, note="")
     phi1, info = solver.checked_level(fine, base, q_dif, base.rhs(q_dif), phi1, info)
-    full0, full1, qf, qi = (np.zeros((base.n, 3)), np.zeros((base.n, 3)), np.zeros((len(qd), 3)),
-                            np.zeros((len(qd), 3)))
-    full0[:, cols], full1[:, cols], qf[:, cols], qi[:, cols] = phi0, phi1, q_dif, q_tot
-    res3 = np.zeros(3)
-    res3[list(cols)] = info.residual
-    info.residual = res3
-    phi[fine] = full1
-    q = list(q_src)
-    q[fine] = qf
-    if q_incident is not None:
-        q_incident = list(q_incident)
-        q_incident[fine] = qi
-    solves.append(info)
-    if info.note:
-        warnings.append(info.note)
-    t2 = time.perf_counter()
-    result = SolveResult(phi=phi, q=q, level_solves=solves, scheme=base.scheme,
-                         seconds={"lights": t1 - t0, "solve": t2 - t1, "total": t2 - t0}, warnings=warnings,
-                         first_pass=full0, q_incident=q_incident, single=single)
-    return result, solver.vertex_radiance(result)
+    info.residual = kernels.in_channels(info.residual, cols)
+    full = kernels.in_channels
+    return FinestStep(phi=full(phi1, cols), q=full(q_dif, cols), q_incident=full(q_tot, cols),
+                      first_pass=full(phi0, cols), info=info)

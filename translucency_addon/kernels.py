@@ -98,3 +98,11 @@ def outgoing_partial_current(phi_s: np.ndarray, q: np.ndarray, fdr: float) -> np
     be negative and why).
     """
     return np.maximum(partial_current(phi_s, q, fdr), 0.0)
+
+
+def in_channels(x, cols) -> np.ndarray:
+    """``x`` (n, len(cols)) or (len(cols),) written into the channels ``cols`` of zeros with 3 channels."""
+    x = np.asarray(x)
+    full = np.zeros(x.shape[:-1] + (3,))
+    full[..., list(cols)] = x
+    return full
