@@ -31,25 +31,50 @@ EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 _TETWILD_LOCK = threading.Lock()
 
 
+# A tet whose quality (``tet_quality``) is at most this is flat: fTetWild works in exact arithmetic and
+# rounds its output to float64, which (rarely, and not every run: its threads change the mesh) leaves a
+# tet of zero volume; the QuadGraph has no well-defined face normal or volume there.  Even unoptimised
+# meshes' slivers stay above ~1e-6.
+FLAT_QUALITY = 1e-10
+TETWILD_TRIES = 3
+
+
 def tetrahedralize(V, F, *, edge_length: float, optimize: bool = True, opt_iterations: int = 3,
                    stop_energy: float = 50.0, epsilon: float = 1e-3):
-    """Run fTetWild (pytetwild) and return positively oriented ``(TV, TT)``.
+    """Run fTetWild (pytetwild) and return positively oriented ``(TV, TT)`` with no flat tet.
 
     ``edge_length`` is fTetWild's ideal edge length in object units.
     ``optimize=False`` skips fTetWild's mesh improvement: much faster, but
     it leaves slivers (median quality ~0.01-0.02), which the solver must
-    tolerate.
+    tolerate.  Output with a flat tet (quality <= ``FLAT_QUALITY``) is made
+    again with the edge length 1 % longer, up to ``TETWILD_TRIES`` times, then refused.
     """
     try:
         import pytetwild
     except ImportError as exc:  # pragma: no cover - depends on the install
         raise MeshError(f"the tetrahedralizer (pytetwild) is not available: {exc}") from exc
-    kw = dict(edge_length_abs=float(edge_length), optimize=bool(optimize), quiet=True, epsilon=float(epsilon))
-    if optimize:
-        kw.update(num_opt_iter=int(opt_iterations), stop_energy=float(stop_energy))
-    # fTetWild writes a debug file (__tracked_surface.stl) into the working
-    # directory; run it from a private temporary directory so nothing of the
-    # user's is littered (the lock serialises the process-wide chdir).
+    flat = 0
+    for attempt in range(TETWILD_TRIES):
+        length = float(edge_length) * (1.0 + 0.01 * attempt)
+        kw = dict(edge_length_abs=length, optimize=bool(optimize), quiet=True, epsilon=float(epsilon))
+        if optimize:
+            kw.update(num_opt_iter=int(opt_iterations), stop_energy=float(stop_energy))
+        TV, TT = _run_tetwild(pytetwild, V, F, kw)
+        if len(TT) == 0:
+            raise MeshError("the tetrahedralizer produced no tetrahedra: the mesh encloses no volume")
+        TT = orient(TV, TT)
+        flat = int(np.count_nonzero(tet_quality(TV, TT) <= FLAT_QUALITY))
+        if flat == 0:
+            return TV, TT
+    raise MeshError(f"the tetrahedralizer left {flat:,} flat tetrahedra (quality <= {FLAT_QUALITY:g}) in "
+                    f"{TETWILD_TRIES} tries at edge lengths {edge_length:.4g} to {length:.4g} object units; "
+                    "change the bake quality (another edge length) or remesh the object")
+
+
+def _run_tetwild(pytetwild, V, F, kw):
+    """fTetWild's ``(TV float64, TT int64)``.  It writes a debug file (__tracked_surface.stl) into the working
+    directory: run from a private temporary directory so nothing of the user's is littered (the lock
+    serialises the process-wide chdir)."""
     with _TETWILD_LOCK, tempfile.TemporaryDirectory(prefix="translucency-tetwild-") as tmp:
         cwd = os.getcwd()
         os.chdir(tmp)
@@ -58,11 +83,7 @@ def tetrahedralize(V, F, *, edge_length: float, optimize: bool = True, opt_itera
                                               np.ascontiguousarray(F, dtype=np.int32), **kw)
         finally:
             os.chdir(cwd)
-    TV = np.asarray(TV, dtype=np.float64)
-    TT = np.asarray(TT, dtype=np.int64)
-    if len(TT) == 0:
-        raise MeshError("the tetrahedralizer produced no tetrahedra: the mesh encloses no volume")
-    return TV, orient(TV, TT)
+    return np.asarray(TV, dtype=np.float64), np.asarray(TT, dtype=np.int64)
 
 
 def signed_volumes(TV, TT) -> np.ndarray:
