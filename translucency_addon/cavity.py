@@ -46,7 +46,7 @@ the finest level only (coarser levels only warm-start it).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -220,10 +220,20 @@ def build_cavity_exchange(bake, composite, progress=None) -> CavityExchange:
 
 
 def wall_partial_current(solver, result, nodes) -> np.ndarray:
-    """Unclamped J+ = (phi - 2 q) / (2 (1 + F_dr)) at the wall nodes (linear in the solution)."""
+    """What leaves the wall nodes into the hollow, as the in-medium current J+ of eq. 1 (linear in the
+    solution): the diffusion's unclamped J+ = (phi - 2 q) / (2 (1 + F_dr)), plus, in the first-scatter
+    split's channels, the light that leaves after one scattering, ``s(alpha) q_incident`` (closed_form's
+    s; an exitance, so divided by the 1 - F_dr that eq. 1 multiplies J+ by).  Without the second term
+    the split's share of the wall's light would vanish in the hollow."""
     lv = solver.bake.finest
     phi_s = result.phi[-1][lv.n_inner + nodes]
-    return partial_current(phi_s, result.q[-1][nodes], solver.fdr)
+    jp = partial_current(phi_s, result.q[-1][nodes], solver.fdr)
+    if result.q_incident is not None and any(result.single):
+        from .single_scattering.closed_form import half_space_split
+
+        s = half_space_split(solver.eta).single_escape(solver.surface_albedo[-1][nodes])
+        jp = jp + np.where(np.array(result.single), s, 0.0) * result.q_incident[-1][nodes] / (1.0 - solver.fdr)
+    return jp
 
 
 def exchange_power(solver, result, exchange: CavityExchange) -> dict:
@@ -270,8 +280,6 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
     Without an exchange (no cavity) this is one :meth:`DiffusionSolver.solve`.
     """
     import scipy.sparse.linalg as spla
-
-    from .diffusion import SolveResult
 
     t0 = time.perf_counter()
     if exchange is None or exchange.m == 0:
@@ -330,13 +338,7 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
     A = spla.LinearOperator((3 * m, 3 * m), matvec=matvec, dtype=np.float64)
     x, code = spla.gmres(A, (b / scale).ravel(), rtol=tol, atol=0.0, restart=max_solves, maxiter=1)
     q_cav = x.reshape(m, 3) * scale
-    resp = response(q_cav)
-    phi = list(first.phi)
-    phi[-1] = first.phi[-1] + resp.phi[-1]
-    q = list(first.q)
-    q[-1] = first.q[-1] + resp.q[-1]
-    final = SolveResult(phi=phi, q=q, level_solves=first.level_solves[:-1] + resp.level_solves[-1:],
-                        seconds=dict(first.seconds), scheme=first.scheme, warnings=list(first.warnings))
+    final = first.plus_finest(response(q_cav))
     rel = float(np.abs(op @ wall_partial_current(solver, final, nodes) - q_cav).max()
                 / max(float(np.abs(q_cav).max()), 1e-300))
     info = {"solves": state["solves"], "seconds": time.perf_counter() - t0, "residual": rel, "gmres_code": int(code),
@@ -351,8 +353,6 @@ def _follow(solver, exchange, first, q_cav, op, tol, max_solves, t0, kw):
     """Frame to frame: start from the previous frame's wall q and repeat ``q_cav = op J+(solve(q_ext + q_cav))``,
     each solve of the whole q warm-started from the last.  A small change of the lights needs a few cheap
     solves where GMRES would start over; the contraction per step is the wall's return ratio (< 1)."""
-    from .diffusion import SolveResult
-
     nodes = exchange.nodes
     q_ext = list(first.q)
     last, solves, change = first, 1, np.inf
@@ -368,8 +368,7 @@ def _follow(solver, exchange, first, q_cav, op, tol, max_solves, t0, kw):
         q_cav = new
         if change <= tol:
             break
-    final = SolveResult(phi=last.phi, q=last.q, level_solves=last.level_solves, seconds=dict(first.seconds),
-                        scheme=last.scheme, warnings=list(first.warnings))
+    final = replace(last, seconds=dict(first.seconds), warnings=list(first.warnings))
     info = {"solves": solves, "seconds": time.perf_counter() - t0, "residual": change, "gmres_code": None,
             "exchange_power": {k: v.tolist() for k, v in exchange_power(solver, final, exchange).items()},
             "wall_nodes": exchange.m, "mode": "followed the previous frame"}

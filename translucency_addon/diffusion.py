@@ -113,7 +113,7 @@ Import each part's names from its own module; this one defines only the driver.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -167,6 +167,27 @@ class SolveResult:
     @property
     def iterations(self) -> int:
         return int(sum(ls.iterations for ls in self.level_solves))
+
+    def plus_finest(self, response: "SolveResult") -> "SolveResult":
+        """The solution for this result's source plus ``response``'s on the finest level (diffusion is
+        linear in q): phi, the diffusion's source and the entering light added there; the coarse levels
+        (a warm start only), warnings and timings are this result's, the finest level's solve the
+        response's.  Every field is carried, so the split's output (``q_incident``, ``single``) holds for
+        the sum as for each part; both parts must come from the same solver and split."""
+        if tuple(response.single) != tuple(self.single):
+            raise ValueError(f"the split's channels differ: {self.single} and {response.single}")
+
+        def finest(a, b):
+            if a is None:
+                return None
+            out = list(a)
+            out[-1] = a[-1] + b[-1]
+            return out
+
+        return replace(self, phi=finest(self.phi, response.phi), q=finest(self.q, response.q),
+                       q_incident=finest(self.q_incident, response.q_incident),
+                       level_solves=self.level_solves[:-1] + response.level_solves[-1:],
+                       seconds=dict(self.seconds), warnings=list(self.warnings), first_pass=None)
 
     @property
     def residual(self) -> np.ndarray:

@@ -179,8 +179,8 @@ def diffuse(solver, bake, lights, environment, passes: FramePasses, *, tol: floa
     With the split on ``passes.single_channels``; with the interreflection bounce when the bake has
     sky visibility (``DiffusionSolver.solve_interreflected``: the bounce comes from a first solve of
     the same frame, never an earlier one, so a frame depends only on its own inputs); through
-    ``cavity.solve_with_cavities`` (the wall exchange, GMRES around the same solver) when the bake has
-    cavities, without the bounce.  ``bounce`` is None where none was solved; ``cavity_exchange`` is
+    ``cavity.solve_with_cavities`` (the wall exchange, GMRES around the same solver, the split carried
+    into the hollow) when the bake has cavities, without the bounce.  ``bounce`` is None where none was solved; ``cavity_exchange`` is
     the exchange's report (its GMRES residual and iterations), None without cavities.
     """
     lights = list(lights)
@@ -189,7 +189,8 @@ def diffuse(solver, bake, lights, environment, passes: FramePasses, *, tol: floa
         from .cavity import solve_with_cavities
 
         result, info = solve_with_cavities(solver, exchange, lights, environment, tol=tol, warm_start=warm_start,
-                                           shadows=shadows, occluders=occluders, channels=passes.ms_channels)
+                                           shadows=shadows, occluders=occluders, channels=passes.ms_channels,
+                                           single=passes.single_channels)
         return result, None, info
     if solver.sky is None:
         return solver.solve(lights, environment, warm_start=warm_start, shadows=shadows, occluders=occluders,

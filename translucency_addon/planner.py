@@ -201,8 +201,7 @@ class PlanInputs:
     ``surface``: (sigma_a, sigma_s') of the bulk (3,) and per surface node (n_surface, 3); ``ms_cost(channels)``:
     diffusion's ms per frame.  ``single_pass`` False: the object has no single-scattering pass at all (a particle
     fluid), so diffusion, its only pass, runs wherever it returns light.  ``has_pass``: a pass that can replace
-    diffusion is baked; ``ss_available``: and not turned off.  ``split_blocked``: why the first-scatter split
-    cannot run ("" where it can).  ``inner``: objects only (single scattering or the Voxel Number Map).
+    diffusion is baked; ``ss_available``: and not turned off.  ``inner``: objects only (single scattering or the Voxel Number Map).
     """
 
     name: str
@@ -216,7 +215,6 @@ class PlanInputs:
     single_pass: bool = True
     has_pass: bool = False
     ss_available: bool = False
-    split_blocked: str = ""
     inner: InnerParts | None = None
 
 
@@ -269,8 +267,6 @@ def plan_object(bake, material: Material, lights=(), environment: Environment | 
         ms_cost=lambda channels: 1e-4 * lv.n_nodes * sum(channels) / 3.0,  # ~0.1 us per node-channel sweep x ~50
         # "single scattering" below is the pass that replaces diffusion (single scattering or the map)
         has_pass=bool(has_single_scattering or has_voxel_number_map), ss_available=replacement is not None,
-        split_blocked=("the cavity exchange's solve does not carry the split yet (diffusion alone)"
-                       if getattr(getattr(bake, "composite", None), "exchange", None) is not None else ""),
         inner=inner)
     plan = _plan(inputs, lights, environment, overrides, override_reasons)
     if parts and plan.facts:
@@ -345,9 +341,9 @@ def _plan(o: PlanInputs, lights, environment, overrides: dict, override_reasons:
 
     ms = decide_diffusion(f, o.ss_available, o.single_pass)
     advice = [advice_text(ms.unbaked, f.thin_fraction, o.has_pass)] if ms.unbaked and o.single_pass else []
-    split_on = overrides.get("split") is not False and o.single_pass and not o.split_blocked
+    split_on = overrides.get("split") is not False and o.single_pass
     ms.split = decide_split(f, ms, split_on)
-    single = decide_single(f, ms, o.has_pass, o.ss_available, split_on, o.split_blocked) if o.single_pass else None
+    single = decide_single(f, ms, o.has_pass, o.ss_available, split_on) if o.single_pass else None
     vnm = None
     if o.inner is not None:
         i = o.inner

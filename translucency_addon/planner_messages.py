@@ -77,8 +77,6 @@ def _text(r: Reason) -> str:
         return (f"contained in the diffusion term, which splits it off in closed form (first-scatter "
                 f"split): single scattering brings {_pct(r.value(SS_SHARE))} and multiple scattering "
                 f"{_pct(r.value(MS_SHARE))} of the object's peak (half-space estimate)")
-    if w is Why.CONTAINED_BLOCKED:
-        return f"contained in the diffusion term; not split off: {r.note}"
     if w is Why.CONTAINED_SPLIT_OFF:
         return "contained in the diffusion term; not split off (turned off)"
     if w is Why.CONTAINED_NOT_SPLIT:

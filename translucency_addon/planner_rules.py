@@ -46,7 +46,6 @@ class Why(Enum):
     NEGLIGIBLE = "negligible"
     # single scattering where diffusion runs (the first-scatter split)
     SPLIT = "contained in diffusion, split off"
-    CONTAINED_BLOCKED = "contained in diffusion, the split cannot run"
     CONTAINED_SPLIT_OFF = "contained in diffusion, the split turned off"
     CONTAINED_NOT_SPLIT = "contained in diffusion, the split negligible"
     # the pass that replaces diffusion (single scattering or the Voxel Number Map)
@@ -305,19 +304,17 @@ def decide_split(f: ObjectFacts, diffusion: Decision, split_on: bool) -> tuple:
     """The first-scatter split runs in a channel where diffusion runs and its closed-form single scattering
     brings at least NEGLIGIBLE of the object's peak: s(alpha) E >= NEGLIGIBLE max_c (s + M)(alpha) E (the
     half-space's once-scattered and multiply-scattered returns, :func:`.single_scattering.closed_form.
-    half_space_split`).  ``split_on``: not turned off, not blocked, the object has single scattering at all."""
+    half_space_split`).  ``split_on``: not turned off, and the object has single scattering at all."""
     return tuple(bool(split_on and diffusion.channels[c] and f.ss_closed_form[c] >= NEGLIGIBLE * f.peak)
                  for c in range(3))
 
 
-def split_reason(f: ObjectFacts, c: int, split: tuple, split_on: bool, split_blocked: str) -> Reason:
+def split_reason(f: ObjectFacts, c: int, split: tuple, split_on: bool) -> Reason:
     """Single scattering where diffusion runs is contained in it: what the split does with it in channel c."""
     shares = (Measure(SS_SHARE, f.ss_closed_form[c] / f.peak, NEGLIGIBLE),
               Measure(MS_SHARE, f.ms_closed_form[c] / f.peak))
     if split[c]:
         return Reason(Why.SPLIT, c, shares)
-    if split_blocked:
-        return Reason(Why.CONTAINED_BLOCKED, c, note=split_blocked)
     if not split_on:
         return Reason(Why.CONTAINED_SPLIT_OFF, c)
     return Reason(Why.CONTAINED_NOT_SPLIT, c, shares[:1])
@@ -325,7 +322,7 @@ def split_reason(f: ObjectFacts, c: int, split: tuple, split_on: bool, split_blo
 
 # ----------------------------------------------------------------- single scattering (the replacement)
 def decide_single(f: ObjectFacts, diffusion: DiffusionDecision, has_pass: bool, ss_available: bool,
-                  split_on: bool, split_blocked: str) -> Decision:
+                  split_on: bool) -> Decision:
     """The pass that replaces diffusion runs in a channel only where diffusion is replaced, and only if it
     returns light: (1 - ln 2)/2 alpha min(1, sigma_t thin) E >= NEGLIGIBLE of the brightest estimate (it is
     contained in diffusion where diffusion runs: counted twice, 7.5 % off on the path-traced marble sphere).
@@ -336,7 +333,7 @@ def decide_single(f: ObjectFacts, diffusion: DiffusionDecision, has_pass: bool, 
     ms_ch, replaced = diffusion.channels, diffusion.replaced
     for c in range(3):
         bound.append(float(f.ss_estimate[c] / max(f.ms_estimate[c], 1e-300)) if ms_ch[c] else 0.0)
-        contained = split_reason(f, c, diffusion.split, split_on, split_blocked)
+        contained = split_reason(f, c, diffusion.split, split_on)
         runs = False
         if not has_pass:
             r = contained if ms_ch[c] and not replaced[c] and split_on else Reason(Why.NOT_BAKED, c)
