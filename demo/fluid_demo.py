@@ -281,7 +281,7 @@ def main(argv=None) -> int:
     bpy.context.view_layer.objects.active = milk
     milk.select_set(True)
     if bpy.ops.translucency.solve() != {'FINISHED'}:
-        raise SystemExit(f"demo: the Fluid solve failed: {state.ERRORS.get('Milk')}")
+        raise SystemExit(f"demo: the Fluid solve failed: {state.solve_error('Milk')}")
     if bpy.ops.translucency.add_to_material(use_emission=True) != {'FINISHED'}:
         raise SystemExit("demo: translucency.add_to_material failed")
 
@@ -289,9 +289,9 @@ def main(argv=None) -> int:
     try:
         for frame in args.frames:
             stats = demo.render_frame(rp, scene, frame, out)
-            st = state._FLUIDS["Milk"]
-            if state.ERRORS:
-                raise SystemExit(f"demo: frame {frame}: {state.ERRORS}")
+            st = state.fluid_state_of("Milk")
+            if state.solve_errors():
+                raise SystemExit(f"demo: frame {frame}: {state.solve_errors()}")
             demo.log(f"frame {frame}: {st.particles:,} particles -> {st.output}; the fluid frame took {st.seconds:.2f} s "
                      f"(cells {st.stages.get('cells', 0.0):.2f} s, {st.iterations} sweeps"
                      f"{', warm start' if st.warm_started else ''}); rendered in {stats['seconds']:.1f} s; the "

@@ -29,7 +29,7 @@ import threading
 import bpy
 import numpy as np
 
-from .state import COUNTERS, OWN_WRITES
+from . import state
 
 ATTRIBUTE_NAME = "translucency_radiance"
 SS_ATTRIBUTE_NAME = "translucency_radiance_ss"
@@ -66,8 +66,8 @@ def write_radiance(obj, rgb: np.ndarray, name: str = ATTRIBUTE_NAME) -> None:
     rgba = np.ones((n, 4), dtype=np.float32)
     rgba[:, :3] = np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0)
     attr.data.foreach_set("color", rgba.ravel())
-    OWN_WRITES.add(obj.name)
-    COUNTERS["writes"] += 1
+    state.mark_own_write(obj.name)
+    state.count("writes")
     mesh.update_tag()
 
 
@@ -188,7 +188,7 @@ def write_radiance_carried(obj, rgb: np.ndarray) -> None:
         mesh.clear_geometry()
         mesh.vertices.add(len(rgb))
     write_radiance(carrier, rgb)
-    OWN_WRITES.add(obj.name)
+    state.mark_own_write(obj.name)
 
 
 def remove_carrier(obj) -> bool:

@@ -30,7 +30,8 @@ import bpy
 import numpy as np
 
 from . import inner_parts, scene_inputs
-from .state import _FAILED, _LOCK, _STATES, CACHE_STATUS, COUNTERS, ObjectState, drop_state, get_state, log
+from . import state
+from .state import ObjectState, drop_state, get_state, log
 
 DEFAULT_CACHE_DIRECTORY = "//translucency_cache/"
 
@@ -193,7 +194,7 @@ def ensure_state(obj, retry: bool = False) -> ObjectState:
     from ..translucency_addon.cache import load_bake
     from ..translucency_addon.errors import CacheError
 
-    with _LOCK:
+    with state.lock():
         st = get_state(obj)
         if st is not None:
             return st
@@ -207,7 +208,7 @@ def ensure_state(obj, retry: bool = False) -> ObjectState:
         except OSError:
             mtime = None
         inputs = (path, settings.bake_key, mtime)
-        failed = _FAILED.get(obj.name)
+        failed = state.failed_load(obj.name)
         if failed is not None and failed[0] == inputs and not retry:
             raise CacheError(failed[1])
         try:
@@ -215,13 +216,10 @@ def ensure_state(obj, retry: bool = False) -> ObjectState:
                 raise CacheError(missing_message(obj, path))
             bake = load_bake(path, expected_key=settings.bake_key)
         except CacheError as ex:
-            _FAILED[obj.name] = (inputs, str(ex))
-            CACHE_STATUS[obj.name] = f"Cache problem: {ex}"
+            state.remember_failed_load(obj.name, inputs, str(ex))
             raise
-        COUNTERS["loads"] += 1
-        CACHE_STATUS.pop(obj.name, None)
-        st = ObjectState(name=obj.name, key=bake.key, cache_path=path, bake=bake)
-        _STATES[obj.name] = st
+        state.count("loads")
+        st = state.install_state(obj, bake, path)
         if found_note:
             log(f"'{obj.name}': {found_note}")
         log(f"loaded the bake of '{obj.name}' from {path}")

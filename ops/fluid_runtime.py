@@ -139,14 +139,13 @@ def solve_fluid(obj, scene=None, depsgraph=None, *, use_camera: bool = False, fo
     if obj.mode == 'EDIT':
         return None  # attribute writes are lost when leaving edit mode
     t0 = time.perf_counter()
-    with state._LOCK:
+    with state.lock():
         st = state.fluid_state(obj)
         frame = gather(obj, scene, depsgraph, st, use_camera)
-        state.PLANS.pop(obj.name, None)
+        state.set_plan(obj.name, frame.plan)
         if frame.plan is not None:
-            state.PLANS[obj.name] = frame.plan
             if not frame.plan.run and frame.plan.reason.startswith("outside the camera view"):
-                state.COUNTERS["planner_skips"] += 1
+                state.count("planner_skips")
                 return None
         solve_sig = _signature(frame)
         sig = (solve_sig, frame.view)
@@ -332,7 +331,7 @@ def _write(obj, frame: FluidInputs, rgb: np.ndarray) -> None:
 def _record(st: state.FluidObjectState, frame: FluidInputs, sig, result, seconds: float) -> None:
     """What the panel and the next frame read (runtime state, never saved)."""
     if frame.empty and not st.empty:
-        state.INFO.append(('WARNING', f"'{frame.name}': {frame.empty}; its radiance is 0"))
+        state.queue_info('WARNING', f"'{frame.name}': {frame.empty}; its radiance is 0")
         state.log(f"'{frame.name}': {frame.empty}; radiance 0", once_key=("fluid-empty", frame.name, frame.empty))
     st.sig, st.frame, st.empty = sig, frame.frame, frame.empty
     st.seconds = seconds
@@ -356,7 +355,7 @@ def _record(st: state.FluidObjectState, frame: FluidInputs, sig, result, seconds
         st.residual = float(max(stats.get("relative_residual", [0.0]) or [0.0]))
         warnings += list(result.warnings)
         st.solves += 1
-        state.COUNTERS["solves"] += 1
+        state.count("solves")
     st.warnings = tuple(warnings)
     for w in warnings:
         state.log(f"'{frame.name}': {w}", once_key=("fluid-warn", frame.name, w))

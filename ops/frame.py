@@ -25,7 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import inner_parts, scene_inputs
-from .state import COUNTERS, FRAME_EPOCH, GEOMETRY_EPOCH, ObjectState
+from . import state
+from .state import ObjectState
 
 NOT_BAKED_SS = ("Single Scattering is on but was not baked: press Bake Single Scattering "
                 "(or Bake, which bakes both)")
@@ -143,7 +144,7 @@ def gather(obj, scene, depsgraph, st: ObjectState, use_camera: bool) -> FrameInp
 
 def _field(obj, settings, depsgraph, st: ObjectState, want_ms: bool):
     """The field's signature; its values at every level's nodes are re-sampled into ``st`` when it changed."""
-    epoch = (GEOMETRY_EPOCH.get(obj.name, 0), GEOMETRY_EPOCH.get(FRAME_EPOCH, 0))
+    epoch = state.geometry_epoch(obj.name)
     rest = st.bake.mesh_vertices if st.pose is not None else None  # a pose: the field stays at rest
     field_sig = scene_inputs.field_signature(obj, settings, depsgraph, epoch, rest)
     changed = field_sig != st.field_sig or (field_sig is not None and st.field_values is None)
@@ -153,7 +154,7 @@ def _field(obj, settings, depsgraph, st: ObjectState, want_ms: bool):
         else:
             st.field_values = scene_inputs.sample_field(obj, settings, [lv.position for lv in st.bake.levels],
                                                         depsgraph, rest)
-            COUNTERS["field_samples"] += 1
+            state.count("field_samples")
         st.field_sig = field_sig
     return field_sig
 

@@ -85,7 +85,7 @@ def _mark(fn):
 def on_depsgraph_update_post(scene, depsgraph=None):
     if depsgraph is None or not hasattr(scene, "translucency") or not scene.translucency.live_update:
         return
-    own = state.OWN_WRITES
+    own = state.take_own_writes()
     updates = list(depsgraph.updates)
     # Some edits (a texture's settings) send an update with an empty list: check anyway.
     relevant = not updates
@@ -96,13 +96,12 @@ def on_depsgraph_update_post(scene, depsgraph=None):
             if orig.name in own and not update.is_updated_transform:
                 continue  # the geometry update our own attribute write caused
             if update.is_updated_geometry:
-                state.GEOMETRY_EPOCH[orig.name] = state.GEOMETRY_EPOCH.get(orig.name, 0) + 1
+                state.bump_geometry_epoch(orig.name)
             relevant = True
         elif isinstance(orig, bpy.types.Mesh):
             continue  # reported through its object (or one of ours)
         else:
             relevant = True  # lights, world, textures, scene settings, materials, collections ...
-    own.clear()
     if relevant and (state.baked_objects(scene) or state.fluid_objects(scene)):
         live.request_update()
 
@@ -111,7 +110,7 @@ def on_depsgraph_update_post(scene, depsgraph=None):
 def on_frame_change_pre(scene, depsgraph=None):
     # Animated values are not evaluated yet here (see the module docstring):
     # only forget cached geometry so vertex-group fields are re-read.
-    state.GEOMETRY_EPOCH[state.FRAME_EPOCH] = state.GEOMETRY_EPOCH.get(state.FRAME_EPOCH, 0) + 1
+    state.bump_geometry_epoch()
 
 
 @persistent
@@ -200,17 +199,16 @@ def on_load_post(*_args):
             continue
         in_scene = scene is not None and obj.name in scene.objects
         found = cache_files.check_cache(obj, depsgraph if in_scene else None)
-        if found.startswith("Baked"):
-            state.CACHE_STATUS.pop(obj.name, None)
-        else:
-            state.CACHE_STATUS[obj.name] = found  # shown by the panel; the .blend is not modified
+        state.set_cache_problem(obj.name, None if found.startswith("Baked") else found)  # the .blend is not modified
+        if not found.startswith("Baked"):
             state.log(f"'{obj.name}': {found}")
 
 
 @persistent
 def on_undo_redo(*_args):
     state.invalidate_views()
-    for name, st in list(state._STATES.items()):
+    for st in state.object_states():
+        name = st.name
         obj = bpy.data.objects.get(name)
         if obj is None or obj.type != 'MESH' or obj.translucency.bake_key != st.key:
             state.drop_state(name)

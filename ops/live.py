@@ -19,7 +19,7 @@ costs; the text goes once playback has stopped and no fluid frame is slow.
 
 Handlers and timers are not operators, so they cannot write to Blender's
 Info log themselves: :func:`report_info` hands the messages the runtime
-queued (``state.INFO``: a failed solve, a fluid without particles) to the
+queued (``state.queue_info``: a failed solve, a fluid without particles) to the
 ``translucency.report`` operator from a one-shot timer.
 
 Nothing is scheduled while the add-on is not registered (:func:`enable` /
@@ -63,7 +63,7 @@ def request_update(delay: float | None = None) -> None:
     if not _state["enabled"] or bpy.app.timers.is_registered(_on_timer):
         return
     if delay is None:
-        last = max((st.seconds for st in list(state._STATES.values()) + list(state._FLUIDS.values())), default=0.0)
+        last = max((st.seconds for st in state.all_states()), default=0.0)
         delay = min(MAX_INTERVAL, max(MIN_INTERVAL, last))
     bpy.app.timers.register(_on_timer, first_interval=delay)
 
@@ -109,13 +109,12 @@ def announce_fluids(reports) -> None:
 
 def report_info() -> None:
     """Hand the queued Info-log messages to the ``translucency.report`` operator (from a timer)."""
-    if state.INFO and _state["enabled"] and not bpy.app.timers.is_registered(_report_timer):
+    if state.has_info() and _state["enabled"] and not bpy.app.timers.is_registered(_report_timer):
         bpy.app.timers.register(_report_timer, first_interval=0.0)
 
 
 def _report_timer():
-    while state.INFO:
-        level, message = state.INFO.pop(0)
+    for level, message in state.take_info():
         try:
             bpy.ops.translucency.report(level=level, message=message)
         except Exception as ex:  # noqa: BLE001 - no window to report to: the console has it already

@@ -74,7 +74,7 @@ class TRANSLUCENCY_OT_solve(bpy.types.Operator):
                 continue
             self.report({'WARNING'} if report.skipped or getattr(report, "empty", "") else {'INFO'}, report.describe())
             if state.is_fluid(obj):
-                fluid = state._FLUIDS.get(obj.name)
+                fluid = state.fluid_state_of(obj.name)
                 for warning in (fluid.warnings if fluid is not None else ()):
                     self.report({'WARNING'}, f"'{obj.name}': {warning}")
                 continue

@@ -100,7 +100,7 @@ def _draw_object_settings(layout, obj, context=None) -> None:
             row.operator("translucency.bake_single_scattering", icon='LIGHT_SUN')
     baked = settings.status
     box.label(text=f"Status: {baked.bake_status}")
-    problem = state.CACHE_STATUS.get(obj.name)
+    problem = state.cache_problem(obj.name)
     if problem:
         _draw_multiline(box, problem, icon='ERROR')
     if len(baked.bake_levels):
@@ -258,12 +258,12 @@ def _draw_fluid(col, obj, context) -> None:
     box.operator("translucency.solve", icon='PLAY')
     for line in status.fluid_lines(obj):  # runtime state: never saved
         _draw_multiline(box, line, icon='INFO')
-    error = state.ERRORS.get(obj.name)
+    error = state.solve_error(obj.name)
     if error:
         sub = box.column()
         sub.alert = True
         _draw_multiline(sub, error, icon='ERROR')
-    fluid = state._FLUIDS.get(obj.name)
+    fluid = state.fluid_state_of(obj.name)
     for warning in (fluid.warnings if fluid is not None else ()):
         _draw_multiline(box, warning, icon='ERROR')
     _draw_plan(box, obj)

@@ -140,7 +140,7 @@ def solve_object(obj, scene=None, depsgraph=None, *, use_camera: bool = False, f
         return fluid_runtime.solve_fluid(obj, scene, depsgraph, use_camera=use_camera, force=force)
     if obj.mode == 'EDIT':
         return None  # attribute writes are lost when leaving edit mode; solve afterwards
-    with state._LOCK:
+    with state.lock():
         return _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load)
 
 
@@ -150,9 +150,10 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
     if stale:
         _refuse_stale(obj, st, stale)
     frame = gather(obj, scene, depsgraph, st, use_camera)
-    st.plan = state.PLANS[obj.name] = frame.plan
+    st.plan = frame.plan
+    state.set_plan(obj.name, frame.plan)
     if frame.unseen:
-        state.COUNTERS["planner_skips"] += 1
+        state.count("planner_skips")
         return None  # unseen in this render: no work at all
     deformed = st.pose is not None  # solved on the baked graph deformed to the pose (ops.deformation)
     if deformed:
@@ -207,10 +208,10 @@ def _refuse_stale(obj, st: state.ObjectState, message: str) -> None:
     from ..translucency_addon.errors import CacheError
 
     st.view_sig = None  # whatever the attribute held is gone: the next valid frame writes and reports
-    state.CACHE_STATUS[obj.name] = f"Stale: {message}"
+    state.set_cache_problem(obj.name, f"Stale: {message}")
     for name in (attributes.ATTRIBUTE_NAME, attributes.SS_ATTRIBUTE_NAME):
         if attributes.remove_attribute(obj, name):
-            state.OWN_WRITES.add(obj.name)
+            state.mark_own_write(obj.name)
     raise CacheError(f"stale bake: {message}. Nothing was solved, and the object shows no Translucency radiance "
                      "until it is re-baked (Bake in the Translucency panel) or the change is undone")
 
@@ -455,12 +456,12 @@ def _record(st: state.ObjectState, frame: FrameInputs, view_sig, ms: Diffusion, 
         st.vnm_seconds, st.vnm_backend = 0.0, ""
     if ms.solved:
         st.solves += 1
-        state.COUNTERS["solves"] += 1
+        state.count("solves")
         st.seconds = ms.seconds
         st.residual = float(np.max(np.asarray(ms.result.residual)))
         st.iterations = int(ms.result.iterations)
     else:
-        state.COUNTERS["radiance_only"] += 1
+        state.count("radiance_only")
 
 
 def _report(st: state.ObjectState, frame: FrameInputs, ms: Diffusion) -> SolveReport:
@@ -502,7 +503,7 @@ def solve_scene(scene=None, depsgraph=None, *, use_camera: bool = False, force: 
         depsgraph = bpy.context.evaluated_depsgraph_get()
     reports = []
     for obj in state.baked_objects(scene) + state.fluid_objects(scene):
-        fluid = state._FLUIDS.get(obj.name) if state.is_fluid(obj) else None
+        fluid = state.fluid_state_of(obj.name) if state.is_fluid(obj) else None
         if playback and fluid is not None and fluid.seconds > status.FLUID_LIVE_BUDGET:
             reports.append(fluid_runtime.deferred_report(obj, fluid, scene.frame_current))
             continue

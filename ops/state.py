@@ -189,26 +189,155 @@ class FluidObjectState:
         self.warm = self.result = None
 
 
+# Everything below is private to this module: the rest of the add-on reads and writes it through the
+# functions that follow (one interface; tests/test_ops_house.py holds every other module to it).
 _STATES: dict[str, ObjectState] = {}
 _FLUIDS: dict[str, FluidObjectState] = {}
 _FAILED: dict[str, tuple] = {}  # name -> (inputs, message): a load that failed is not retried blindly
 _LOGGED: set = set()
 # Problems found with an object's cache (missing, truncated, stale), by object name; shown
 # by the panel.  Runtime only: a file load refills it, the .blend is never modified for it.
-CACHE_STATUS: dict[str, str] = {}
+_CACHE_STATUS: dict[str, str] = {}
 # Counters for tests and diagnostics.
-COUNTERS = {"solves": 0, "radiance_only": 0, "loads": 0, "field_samples": 0, "writes": 0, "planner_skips": 0}
-PLANS: dict = {}  # object name -> the planner's last Plan (shown in the panel)
-ERRORS: dict[str, str] = {}  # object name -> why its last solve failed (shown until one succeeds)
-LAST_SOLVE: dict = {}  # the last solve of any object: name, seconds, residual, backend (the scene's line)
+_COUNTERS = {"solves": 0, "radiance_only": 0, "loads": 0, "field_samples": 0, "writes": 0, "planner_skips": 0}
+_PLANS: dict = {}  # object name -> the planner's last Plan (shown in the panel)
+_ERRORS: dict[str, str] = {}  # object name -> why its last solve failed (shown until one succeeds)
+_LAST_SOLVE: dict = {}  # the last solve of any object: name, seconds, residual, backend (the scene's line)
 # (level, message) for Blender's Info log: handlers and timers are not operators, so ``live.report_info``
 # hands these to the ``translucency.report`` operator from a timer (the console has them at once).
-INFO: list = []
+_INFO: list = []
 # Object names whose mesh we just wrote (the handler ignores the update that causes).
-OWN_WRITES: set = set()
+_OWN_WRITES: set = set()
 # Bumped by the handlers when a mesh is edited (vertex-group weights are not hashed each time).
-GEOMETRY_EPOCH: dict[str, int] = {}
-FRAME_EPOCH = "\0frame"  # a GEOMETRY_EPOCH key no object can have: bumped on every frame change
+_GEOMETRY_EPOCH: dict[str, int] = {}
+_FRAME_EPOCH = "\0frame"  # a _GEOMETRY_EPOCH key no object can have: bumped on every frame change
+
+
+def failed_load(name: str) -> tuple | None:
+    """``(inputs, message)`` of the object's last failed cache load (not retried while the inputs are the same)."""
+    return _FAILED.get(name)
+
+
+def remember_failed_load(name: str, inputs: tuple, message: str) -> None:
+    _FAILED[name] = (inputs, message)
+    _CACHE_STATUS[name] = f"Cache problem: {message}"
+
+
+def lock():
+    """The lock every change of an object's state holds (a render thread and the main thread both solve)."""
+    return _LOCK
+
+
+# -- what the panel shows: a cache's problem, a solve's error, the last plan, the last solve ---------------
+def cache_problem(name: str) -> str | None:
+    """What is wrong with the object's cache ('Stale: ...', 'Cache problem: ...'), or None."""
+    return _CACHE_STATUS.get(name)
+
+
+def set_cache_problem(name: str, problem: str | None) -> None:
+    """Record the cache's problem (None: the cache is fine)."""
+    if problem is None:
+        _CACHE_STATUS.pop(name, None)
+    else:
+        _CACHE_STATUS[name] = problem
+
+
+def solve_error(name: str) -> str:
+    """Why the object's last solve failed ('' when it did not)."""
+    return _ERRORS.get(name, "")
+
+
+def solve_errors() -> dict:
+    """Every object's last solve error, by name (a copy)."""
+    return dict(_ERRORS)
+
+
+def set_solve_error(name: str, message: str | None) -> bool:
+    """Record why the last solve failed (None: it succeeded); True when the message is new."""
+    if message is None:
+        _ERRORS.pop(name, None)
+        return False
+    new = _ERRORS.get(name) != message
+    _ERRORS[name] = message
+    return new
+
+
+def last_plan(name: str):
+    """The planner's last Plan for the object, or None before its first frame."""
+    return _PLANS.get(name)
+
+
+def set_plan(name: str, plan) -> None:
+    if plan is None:
+        _PLANS.pop(name, None)
+    else:
+        _PLANS[name] = plan
+
+
+def last_solve() -> dict:
+    """The last solve of any object: ``{"name", "seconds", "residual", "backend"}`` (empty before one)."""
+    return dict(_LAST_SOLVE)
+
+
+def set_last_solve(**record) -> None:
+    _LAST_SOLVE.update(record)
+
+
+# -- diagnostics and the Info log ----------------------------------------------------------------------
+def count(event: str) -> None:
+    """Count one ``event`` (a key of :func:`counters`)."""
+    _COUNTERS[event] += 1
+
+
+def counters() -> dict:
+    """How often each event happened this session: solves, radiance-only updates, cache loads, field
+    samplings, attribute writes, frames the planner skipped (a copy)."""
+    return dict(_COUNTERS)
+
+
+def queue_info(level: str, message: str) -> None:
+    """A message for Blender's Info log, handed on from a timer (``live.report_info``)."""
+    _INFO.append((level, message))
+
+
+def take_info() -> list:
+    """The queued Info messages, oldest first, and the queue emptied."""
+    out = list(_INFO)
+    _INFO.clear()
+    return out
+
+
+def queued_info() -> list:
+    """The queued Info messages, left queued (a copy)."""
+    return list(_INFO)
+
+
+def has_info() -> bool:
+    return bool(_INFO)
+
+
+# -- the handlers' bookkeeping ---------------------------------------------------------------------------
+def mark_own_write(name: str) -> None:
+    """Our attribute write to ``name``'s mesh: the update it causes is not an edit."""
+    _OWN_WRITES.add(name)
+
+
+def take_own_writes() -> set:
+    """The names written since the last depsgraph update, and the set emptied."""
+    out = set(_OWN_WRITES)
+    _OWN_WRITES.clear()
+    return out
+
+
+def bump_geometry_epoch(name: str | None = None) -> None:
+    """A mesh edit of ``name`` (None: a frame change, which every object sees)."""
+    key = _FRAME_EPOCH if name is None else name
+    _GEOMETRY_EPOCH[key] = _GEOMETRY_EPOCH.get(key, 0) + 1
+
+
+def geometry_epoch(name: str) -> tuple:
+    """``(edits of the object, frame changes)``: stands for the vertex-group weights in a field's signature."""
+    return (_GEOMETRY_EPOCH.get(name, 0), _GEOMETRY_EPOCH.get(_FRAME_EPOCH, 0))
 
 
 def log(message: str, once_key=None) -> None:
@@ -230,6 +359,21 @@ def get_state(obj) -> ObjectState | None:
     return None
 
 
+def fluid_state_of(name: str) -> FluidObjectState | None:
+    """The runtime state of the Fluid-source object ``name``, or None before its first frame."""
+    return _FLUIDS.get(name)
+
+
+def object_states() -> list:
+    """Every baked object's runtime state (a list: safe to drop states while iterating)."""
+    return list(_STATES.values())
+
+
+def all_states() -> list:
+    """Every object's runtime state, baked and Fluid-source."""
+    return list(_STATES.values()) + list(_FLUIDS.values())
+
+
 def fluid_state(obj) -> FluidObjectState:
     """The runtime state of a Fluid-source object (made on first use)."""
     st = _FLUIDS.get(obj.name)
@@ -243,7 +387,7 @@ def drop_state(name: str) -> None:
         _FLUIDS.pop(name, None)
         st = _STATES.pop(name, None)
         _FAILED.pop(name, None)
-        ERRORS.pop(name, None)
+        _ERRORS.pop(name, None)
         if st is not None:
             st.free()
 
@@ -255,13 +399,13 @@ def clear() -> None:
             drop_state(name)
         _FAILED.clear()
         _LOGGED.clear()
-        CACHE_STATUS.clear()
-        OWN_WRITES.clear()
-        GEOMETRY_EPOCH.clear()
-        PLANS.clear()
-        ERRORS.clear()
-        LAST_SOLVE.clear()
-        INFO.clear()
+        _CACHE_STATUS.clear()
+        _OWN_WRITES.clear()
+        _GEOMETRY_EPOCH.clear()
+        _PLANS.clear()
+        _ERRORS.clear()
+        _LAST_SOLVE.clear()
+        _INFO.clear()
 
 
 def invalidate_views() -> None:
@@ -272,7 +416,7 @@ def invalidate_views() -> None:
             st.geometry_digest = ""
         for fl in _FLUIDS.values():
             fl.sig = fl.solve_sig = None
-        GEOMETRY_EPOCH.update({k: v + 1 for k, v in GEOMETRY_EPOCH.items()})
+        _GEOMETRY_EPOCH.update({k: v + 1 for k, v in _GEOMETRY_EPOCH.items()})
 
 
 def prune(existing_names) -> None:
@@ -287,7 +431,7 @@ def install_state(obj, bake, cache_path: str) -> ObjectState:
     """Register a freshly baked ``bake`` for ``obj`` (the bake operator's commit)."""
     with _LOCK:
         drop_state(obj.name)
-        CACHE_STATUS.pop(obj.name, None)
+        _CACHE_STATUS.pop(obj.name, None)
         st = ObjectState(name=obj.name, key=bake.key, cache_path=cache_path, bake=bake)
         _STATES[obj.name] = st
         return st

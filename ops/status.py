@@ -97,7 +97,7 @@ def set_bake_status(obj, bake, *, graph_seconds: float, ss_seconds: float, notes
         s.ss_bake_stats = ""
     s.bake_warnings = "\n".join(warnings)
     s.bake_status = "Baked"
-    state.ERRORS.pop(obj.name, None)
+    state.set_solve_error(obj.name, None)
     return warnings
 
 
@@ -108,7 +108,7 @@ def clear_bake_status(obj) -> None:
     for prop in s.bl_rna.properties:
         if prop.identifier not in ("rna_type", "bake_levels"):
             s.property_unset(prop.identifier)
-    state.ERRORS.pop(obj.name, None)
+    state.set_solve_error(obj.name, None)
 
 
 def migrate_legacy(obj) -> bool:
@@ -172,7 +172,7 @@ class SolveStatus:
 def solve_status(obj) -> SolveStatus:
     """The object's solve status (empty before its first solve in this session)."""
     st = state.get_state(obj)
-    error = state.ERRORS.get(obj.name, "")
+    error = state.solve_error(obj.name)
     if st is None:
         return SolveStatus("", 0.0, 0.0, 0, error, "", 0.0, "")
     message = st.frame_backend_message
@@ -202,43 +202,39 @@ def world_line(obj) -> tuple[str, bool]:
 
 def last_solve() -> dict:
     """The last solve of any object: ``{"name", "seconds", "residual", "backend"}`` (empty before one)."""
-    return dict(state.LAST_SOLVE)
+    return state.last_solve()
 
 
 def plan_summary(name: str) -> str:
     """The last plan of an object as text for the panel ('' when it has not been solved)."""
     from ..translucency_addon.planner import describe_plan
 
-    plan = state.PLANS.get(name)
+    plan = state.last_plan(name)
     return describe_plan(plan) if plan is not None else ""
 
 
 def publish(st: state.ObjectState) -> None:
     """After a solve on the main thread: record it as the scene's last and redraw the panels showing it."""
-    state.ERRORS.pop(st.name, None)
-    state.LAST_SOLVE.update(name=st.name, seconds=float(st.seconds), residual=float(st.residual),
-                            backend=st.frame_backend)
-    if st.stale_message:
-        state.CACHE_STATUS[st.name] = f"Stale: {st.stale_message}"
-    else:
-        state.CACHE_STATUS.pop(st.name, None)
+    state.set_solve_error(st.name, None)
+    state.set_last_solve(name=st.name, seconds=float(st.seconds), residual=float(st.residual),
+                         backend=st.frame_backend)
+    state.set_cache_problem(st.name, f"Stale: {st.stale_message}" if st.stale_message else None)
     tag_redraw()
 
 
 def report_error(name: str, message: str) -> None:
     """The last solve of ``name`` failed: the panel shows ``message`` until a solve succeeds.
 
-    A new message also goes to Blender's Info log (``state.INFO``, handed on by ``live.report_info``).
+    A new message also goes to Blender's Info log (``state.queue_info``, handed on by ``live.report_info``).
     """
-    if state.ERRORS.get(name) != message:
-        state.INFO.append(('ERROR', f"'{name}': {message}"))
-    state.ERRORS[name] = message
+    if state.set_solve_error(name, message):
+        state.queue_info('ERROR', f"'{name}': {message}")
     tag_redraw()
 
 
 def fluid_lines(obj) -> list[str]:
     """What the panel says about a Fluid source's last frame (runtime state; empty before its first)."""
-    st = state._FLUIDS.get(obj.name)
+    st = state.fluid_state_of(obj.name)
     if st is None or not st.sig:
         return []
     lines = [f"Frame {st.frame}: {st.particles:,} particles ({st.source}) -> {st.output}"

@@ -294,19 +294,19 @@ def test_save_and_reload_finds_the_cache(blender, addon, tmp_path, memo_bakes):
     factory_reset()
     assert "Blob" not in bpy.data.objects
     calls = memo_bakes.calls
-    loads = state.COUNTERS["loads"]
+    loads = state.counters()["loads"]
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     obj = bpy.data.objects["Blob"]
     s = obj.translucency
     assert s.bake_key == key and [(lv.n_surface, lv.n_inner) for lv in s.status.bake_levels] == levels
     assert s.material_preset == 'SKIMMILK' and s.status.bake_memory > 0
-    assert "Blob" not in state.CACHE_STATUS  # the load handler found the cache
+    assert state.cache_problem("Blob") is None  # the load handler found the cache
     assert state.get_state(obj) is None  # loaded lazily, on first use
     np.testing.assert_allclose(radiance(obj), before)  # the attribute was saved in the .blend
 
     activate(obj)
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    assert state.COUNTERS["loads"] == loads + 1 and memo_bakes.calls == calls  # no re-bake
+    assert state.counters()["loads"] == loads + 1 and memo_bakes.calls == calls  # no re-bake
     np.testing.assert_allclose(radiance(obj), before, rtol=2e-3, atol=1e-6)
 
 
@@ -322,12 +322,12 @@ def test_stale_cache_is_reported(blender, addon, tmp_path, memo_bakes):
     obj.data.update()
     bpy.ops.wm.save_mainfile()
     bpy.ops.wm.open_mainfile(filepath=str(blend))
-    assert "Blob" not in state.CACHE_STATUS
+    assert state.cache_problem("Blob") is None
     bpy.data.objects["Blob"].modifiers.new("Subdivision", 'SUBSURF')  # the topology changes after the bake
     bpy.ops.wm.save_mainfile()
     bpy.ops.wm.open_mainfile(filepath=str(blend))
     obj = bpy.data.objects["Blob"]
-    assert state.CACHE_STATUS["Blob"].startswith("Stale: the mesh changed since it was baked (modifiers "
+    assert state.cache_problem("Blob").startswith("Stale: the mesh changed since it was baked (modifiers "
                                                  "included): 42 vertices baked, 242 now")
     # Solve refuses it (never the old graph's solution as if it were current), with the reason and the fix,
     # and the object keeps no radiance from the old graph.
@@ -354,7 +354,7 @@ def test_changed_bake_settings_are_reported(blender, addon, cache_dir, memo_bake
     assert found.startswith("Stale: the bake settings changed (baked: draft, 2 levels)")
     with pytest.raises(CacheError, match=r"stale bake: the bake settings changed \(baked: draft, 2 levels\)"):
         runtime.solve_object(obj, force=True)
-    assert state.CACHE_STATUS["Blob"] == found
+    assert state.cache_problem("Blob") == found
 
 
 def test_truncated_cache_gives_a_clear_error(blender, addon, cache_dir, memo_bakes):
@@ -371,7 +371,7 @@ def test_truncated_cache_gives_a_clear_error(blender, addon, cache_dir, memo_bak
     with pytest.raises(RuntimeError, match=r"Cannot solve 'Blob': bake cache .* is corrupt or truncated"):
         bpy.ops.translucency.solve()
     np.testing.assert_array_equal(radiance(obj), before)  # nothing was written
-    assert state.CACHE_STATUS["Blob"].startswith("Cache problem")
+    assert state.cache_problem("Blob").startswith("Cache problem")
 
 
 def test_missing_cache_is_reported_after_reload(blender, addon, tmp_path, memo_bakes):
@@ -384,7 +384,7 @@ def test_missing_cache_is_reported_after_reload(blender, addon, tmp_path, memo_b
     bpy.ops.wm.save_mainfile()
     os.remove(cache_files.resolve_cache_path(obj))
     bpy.ops.wm.open_mainfile(filepath=str(blend))
-    assert "does not exist" in state.CACHE_STATUS["Blob"]
+    assert "does not exist" in state.cache_problem("Blob")
     activate(bpy.data.objects["Blob"])
     with pytest.raises(RuntimeError, match="does not exist"):
         bpy.ops.translucency.solve()
@@ -403,7 +403,7 @@ def test_free_bake(blender, addon, cache_dir, memo_bakes):
     assert s.status.bake_status == "Not baked" and s.status.bake_stats == ""
     cleared = (s.status.bake_memory, s.status.bake_seconds, s.status.bake_vertices, s.status.bake_warnings)
     assert cleared == (0.0, 0.0, 0, "")
-    assert radiance(obj) is None and state.get_state(obj) is None and "Blob" not in state._STATES
+    assert radiance(obj) is None and state.get_state(obj) is None and all(st.name != "Blob" for st in state.object_states())
     assert os.path.exists(path)  # the file stays unless asked (undo may need it)
 
     assert bake(obj) == {'FINISHED'}

@@ -278,13 +278,13 @@ def test_the_field_stays_at_rest_and_shadows_follow_the_pose(blender, addon, cac
     live.flush()
     st = state.get_state(obj)
     at_rest = st.field_values
-    samples = state.COUNTERS["field_samples"]
+    samples = state.counters()["field_samples"]
     scene.frame_set(5)
     bvh = st.deformation.occluders[2]
     scene.frame_set(10)
     shaded = radiance(obj)
     assert st.pose is not None and st.deformation.occluders[2] is bvh  # refitted, not rebuilt
-    assert state.COUNTERS["field_samples"] == samples and st.field_values is at_rest
+    assert state.counters()["field_samples"] == samples and st.field_values is at_rest
     V, _ = evaluated(obj)
     out, inputs = engine_frames(obj, V)
     assert inputs.occluders is not None and rel_rms(shaded, out.radiance) < 1e-4
@@ -313,12 +313,12 @@ def test_a_change_of_topology_asks_for_a_rebake(blender, addon, cache_dir, memo_
     # so the overlay shows nothing; Solve refuses with the reason and the fix.
     from translucency.ops import overlay
 
-    assert "stale bake: the mesh changed since it was baked" in state.ERRORS["Bar"]
+    assert "stale bake: the mesh changed since it was baked" in state.solve_error("Bar")
     assert obj.data.attributes.get("translucency_radiance") is None and not overlay.has_radiance(obj)
     activate(obj)
     with pytest.raises(RuntimeError, match="Cannot solve 'Bar': stale bake: .*re-bake to update the graph"):
         bpy.ops.translucency.solve()
-    assert state.CACHE_STATUS["Bar"].startswith("Stale: the mesh changed since it was baked")
+    assert state.cache_problem("Bar").startswith("Stale: the mesh changed since it was baked")
 
 
 def test_refused_poses_keep_the_last_valid_frame(blender, addon, cache_dir, memo_bakes, ui):
@@ -338,7 +338,7 @@ def test_refused_poses_keep_the_last_valid_frame(blender, addon, cache_dir, memo
     def refused(words):
         state.get_state(obj)
         np.testing.assert_array_equal(radiance(obj), valid)  # nothing written
-        message = state.ERRORS["Bar"]
+        message = state.solve_error("Bar")
         assert words in message and "the object keeps frame 20's radiance, nothing was written" in message, message
         assert status.solve_status(obj).message == message  # the panel shows it ...
         layout = ui.FakeLayout()
@@ -360,7 +360,7 @@ def test_refused_poses_keep_the_last_valid_frame(blender, addon, cache_dir, memo
 
     scene.frame_set(20)
     np.testing.assert_array_equal(radiance(obj), valid)  # solved again (the same frame, the same radiance)
-    assert "Bar" not in state.ERRORS
+    assert not state.solve_error("Bar")
 
     obj.shape_key_add(name="Basis")
     broken = obj.shape_key_add(name="Broken")
@@ -372,7 +372,7 @@ def test_refused_poses_keep_the_last_valid_frame(blender, addon, cache_dir, memo
     broken.value = 0.0
     bpy.context.view_layer.update()
     live.flush()
-    assert "Bar" not in state.ERRORS
+    assert not state.solve_error("Bar")
 
     rig.pose.bones["tip"].scale = (0.0, 0.0, 0.0)  # a bone scaled to zero
     bpy.context.view_layer.update()
@@ -402,7 +402,7 @@ def test_a_render_of_a_refused_pose_never_shows_another_frame(blender, addon, ca
     assert radiance(obj).max() > 0.0
     capfd.readouterr()
     scene.frame_set(37)
-    assert "Bar" in state.ERRORS and radiance(obj).max() > 0.0  # the viewport keeps frame 20's radiance, and says so
+    assert state.solve_error("Bar") and radiance(obj).max() > 0.0  # the viewport keeps frame 20's radiance, and says so
     bpy.ops.render.render()
     out = capfd.readouterr().out
     assert "frame 37: 'Bar' renders WITHOUT its Translucency pass: the deformation at frame 37 folds" in out, out
@@ -468,7 +468,7 @@ def test_a_cache_without_the_tet_mesh_asks_for_a_rebake_to_deform(blender, addon
     rest = radiance(obj)
     scene.frame_set(10)
     np.testing.assert_array_equal(radiance(obj), rest)
-    message = state.ERRORS["Bar"]
+    message = state.solve_error("Bar")
     assert message.startswith("this bake was written before deformation support (cache format 1") and \
         "re-bake the object to deform it" in message and "the object keeps frame 1's radiance" in message
 

@@ -150,7 +150,7 @@ def test_point_cloud_fluid_matches_the_engine(blender, addon):
                         light_dir=sun_direction(light)).point_radiance
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)
     assert got.max() > 0 and got[P[:, 0] > 0.15].mean() > 2 * got[P[:, 0] < -0.15].mean()  # lit from +x
-    st = state._FLUIDS["Milk"]
+    st = state.fluid_state_of("Milk")
     assert st.particles == len(P) and st.cells == len(P) and st.surface_cells > 0 and st.solves == 1
     lines = status.fluid_lines(obj)
     assert lines[0].startswith(f"Frame 1: {len(P):,} particles (points of 'Milk') -> {len(P)} points")
@@ -174,12 +174,12 @@ def test_emitter_particles_onto_a_mesh_every_frame_warm_started_by_id(blender, a
     for frame in (1, 2, 3):
         scene.frame_set(frame)
         live.flush()
-        assert state.ERRORS == {}, state.ERRORS
-        st = state._FLUIDS["Milk"]
+        assert state.solve_errors() == {}, state.solve_errors()
+        st = state.fluid_state_of("Milk")
         seen.append((radiance(target).copy(), st.warm_started, st.particles))
     assert [s[1:] for s in seen] == [(False, EMITTED), (True, EMITTED), (True, EMITTED)]
     assert np.abs(seen[2][0] - seen[0][0]).max() > 0.05 * seen[0][0].max()  # the particles moved
-    st = state._FLUIDS["Milk"]
+    st = state.fluid_state_of("Milk")
     assert st.source == "particle system 'Particles' of 'Emitter'" and st.output == "162 vertices"
     # The particles went into the target's space: a direct solve of them, moved there, agrees.
     ev = em.evaluated_get(bpy.context.evaluated_depsgraph_get()).particle_systems[0].particles
@@ -207,7 +207,7 @@ def test_generated_geometry_gets_the_radiance_through_the_carrier(blender, addon
     target.modifiers.new("Subdivision", 'SUBSURF').levels = 1
     sun()
     activate(target)
-    assert bpy.ops.translucency.solve() == {'FINISHED'}, state.ERRORS
+    assert bpy.ops.translucency.solve() == {'FINISHED'}, state.solve_errors()
     assert [m.name for m in target.modifiers] == ["Subdivision", "Translucency Radiance"]
     ev = target.evaluated_get(bpy.context.evaluated_depsgraph_get()).data
     attr = ev.attributes["translucency_radiance"]
@@ -265,8 +265,8 @@ def test_geometry_nodes_points_are_a_source(blender, addon):
     bpy.context.scene.unit_settings.scale_length = 0.005
     light = sun()
     activate(target)
-    assert bpy.ops.translucency.solve() == {'FINISHED'}, state.ERRORS
-    st = state._FLUIDS["Milk"]
+    assert bpy.ops.translucency.solve() == {'FINISHED'}, state.solve_errors()
+    st = state.fluid_state_of("Milk")
     assert st.source == "points of 'Points GN'" and st.particles == len(P)
     V, F = mesh_arrays(target.data)
     P = 2.0 * P
@@ -295,7 +295,7 @@ def test_two_media_from_a_point_attribute(blender, addon):
     s.use_heterogeneity, s.second_preset, s.field_source, s.field_attribute = True, 'KETCHUP', 'ATTRIBUTE', "ketchup"
     light = sun()
     activate(obj)
-    assert bpy.ops.translucency.solve() == {'FINISHED'}, state.ERRORS
+    assert bpy.ops.translucency.solve() == {'FINISHED'}, state.solve_errors()
     mixed = Material(preset("skimmilk"), preset("ketchup"), eta=1.3)
     lights = [Light("sun", color=(1.0, 1.0, 1.0), irradiance=3.0, direction=sun_direction(light))]
     want = FluidSolver(mixed, suggest_radius(P), 1000.0).solve(P, ids=np.arange(len(P)), field_values=weight,
@@ -350,7 +350,7 @@ def test_animation_render_of_a_saved_file_solves_every_frame(blender, addon, tmp
     blend = tmp_path / "fluid.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     bpy.ops.wm.open_mainfile(filepath=str(blend))  # like `blender -b fluid.blend`
-    assert state._FLUIDS == {}
+    assert state.all_states() == []
     scene, target = bpy.context.scene, bpy.data.objects["Milk"]
     assert target.translucency.source == 'FLUID' and target.translucency.fluid_object.name == "Emitter"
     written = []
@@ -395,7 +395,7 @@ def test_a_new_view_re_evaluates_the_radiance_without_new_cells(blender, addon):
     bpy.context.scene.camera = camera
     scene = bpy.context.scene
     scene.frame_set(1)
-    st = state._FLUIDS["Milk"]
+    st = state.fluid_state_of("Milk")
     assert st.solves == 1
     along_normals = radiance(target).copy()
     (report,) = runtime.solve_scene(scene, use_camera=True)
@@ -418,7 +418,7 @@ def test_slow_fluid_frames_are_left_to_the_live_check_during_playback(blender, a
     sun()
     activate(obj)
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    st = state._FLUIDS["Milk"]
+    st = state.fluid_state_of("Milk")
     st.seconds = 2.5  # as a 10k-particle frame on 2 cores
     monkeypatch.setattr(status, "playing", lambda: True)
     said = []
@@ -473,7 +473,7 @@ def test_bad_input_is_refused_and_the_scene_is_unchanged(blender, addon, ui, mon
     sun()
     activate(target)
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    state.INFO.clear()
+    state.take_info()
     expect = {
         "planar": "lie in one plane",
         "all_nan": "have NaN or Inf positions: the particle data is broken",
@@ -503,15 +503,15 @@ def test_bad_input_is_refused_and_the_scene_is_unchanged(blender, addon, ui, mon
     before = snapshot()
     bpy.context.scene.frame_set(2)  # the handler path
     live.flush()
-    assert expect in state.ERRORS.get("Milk", ""), state.ERRORS
+    assert expect in state.solve_error("Milk"), state.solve_errors()
     if case == "radius_huge":  # one suggestion, in scene units, naming the panel's settings
-        message = state.ERRORS["Milk"]
+        message = state.solve_error("Milk")
         assert "Auto Radius" in message and "suggest_radius" not in message and "object units" not in message
     assert snapshot() == before
     assert expect in _panel_text(ui, target)
-    assert any(level == 'ERROR' and expect in message for level, message in state.INFO)
+    assert any(level == 'ERROR' and expect in message for level, message in state.queued_info())
     live._report_timer()  # what the timer does in the UI: the operator puts it in the Info log
-    assert state.INFO == []
+    assert not state.has_info()
     _solve_refused(target, expect)  # the operator path
     assert snapshot() == before
 
@@ -538,10 +538,10 @@ def test_degenerate_particles_give_zero_where_zero_is_right(blender, addon, ui, 
     sun()
     activate(obj)
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    assert state.ERRORS == {}
+    assert state.solve_errors() == {}
     rgb = radiance(obj)
     assert rgb.shape == (len(P), 3) and np.isfinite(rgb).all()
-    text = "\n".join(status.fluid_lines(obj) + list(state._FLUIDS["Milk"].warnings))
+    text = "\n".join(status.fluid_lines(obj) + list(state.fluid_state_of("Milk").warnings))
     assert expect in text
     assert expect in _panel_text(ui, obj)
     if case == "some_nan":
@@ -572,16 +572,16 @@ def test_no_particles_outside_the_cache_range_or_before_emission(blender, addon,
     assert ("no particle of the particle system 'Particles' of 'Emitter' is alive at frame 2 (it emits from frame 2.5 "
             "to 3, each particle living 2 frames)") in status.fluid_lines(target)[1]
     scene.frame_set(3)
-    assert radiance(target).max() > 0 and state._FLUIDS["Milk"].empty == ""
-    state.INFO.clear()
+    assert radiance(target).max() > 0 and state.fluid_state_of("Milk").empty == ""
+    state.take_info()
     for frame in (4, 5, 6, 7):
         scene.frame_set(frame)
     live.flush()
-    assert not radiance(target).any() and state.ERRORS == {}
+    assert not radiance(target).any() and state.solve_errors() == {}
     message = ("no particles at frame 7: the cache of the particle system 'Particles' of 'Emitter' covers frames 2-6, "
                "and particles exist only there")
     assert message in status.fluid_lines(target)[1] and message in _panel_text(ui, target)
-    assert any(level == 'WARNING' and "no particle" in text for level, text in state.INFO)  # said once, not per frame
+    assert any(level == 'WARNING' and "no particle" in text for level, text in state.queued_info())  # said once, not per frame
 
 
 _MANTAFLOW_SCRIPT = textwrap.dedent(r"""
@@ -610,12 +610,12 @@ _MANTAFLOW_SCRIPT = textwrap.dedent(r"""
     out["systems"] = [p.settings.type for p in liquid.particle_systems]
     target = t.as_fluid(t.target_sphere(), kind='MANTAFLOW', source=liquid)
     bpy.context.scene.frame_set(300)
-    out["errors_300"] = dict(state.ERRORS)
+    out["errors_300"] = state.solve_errors()
     out["lines_300"] = status.fluid_lines(target)
     out["radiance_300"] = float(abs(t.radiance(target)).max())
     target.translucency.fluid_object = domain("Smoke", False)
     bpy.context.scene.frame_set(301)
-    out["errors_gas"] = dict(state.ERRORS)
+    out["errors_gas"] = state.solve_errors()
     print("RESULT " + json.dumps(out), flush=True)
     os._exit(0)  # Blender's Mantaflow aborts when a domain is freed in the bpy module ("some grids are still in use")
 """)

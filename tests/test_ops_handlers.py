@@ -60,29 +60,29 @@ def test_own_attribute_writes_do_not_trigger_a_solve(solved_ball):
     obj, light, live, state = solved_ball
     light.location = (0.0, 3.0, 1.0)
     assert _update_and_flush(live)
-    solves = state.COUNTERS["solves"]
+    solves = state.counters()["solves"]
     for _ in range(3):  # the write above and the panel statistics cause depsgraph updates
         _update_and_flush(live)
-    assert state.COUNTERS["solves"] == solves
+    assert state.counters()["solves"] == solves
     assert not live.pending()
 
 
 def test_bursts_coalesce_into_one_solve(solved_ball):
     obj, light, live, state = solved_ball
-    solves = state.COUNTERS["solves"]
+    solves = state.counters()["solves"]
     for x in np.linspace(3.0, -3.0, 6):  # a drag: many updates before the timer fires
         light.location.x = float(x)
         bpy.context.view_layer.update()
     assert live.pending()
     live.flush()
-    assert state.COUNTERS["solves"] == solves + 1
+    assert state.counters()["solves"] == solves + 1
 
 
 @pytest.mark.parametrize("change", ["energy", "color", "object_moved", "world", "texture", "preset", "tolerance"])
 def test_changes_that_resolve(solved_ball, change):
     obj, light, live, state = solved_ball
     before = radiance(obj)
-    solves = state.COUNTERS["solves"]
+    solves = state.counters()["solves"]
     if change == "energy":
         light.data.energy *= 3.0
     elif change == "color":
@@ -102,21 +102,21 @@ def test_changes_that_resolve(solved_ball, change):
         s.use_heterogeneity, s.field_texture = True, tex
         _update_and_flush(live)
         before = radiance(obj)
-        solves = state.COUNTERS["solves"]
+        solves = state.counters()["solves"]
         tex.noise_scale = 0.1  # a texture edit: an update with an empty list
     elif change == "preset":
         obj.translucency.material_preset = 'SKIN1'  # a Python property: its update callback schedules
     elif change == "tolerance":
         bpy.context.scene.translucency.tolerance = 1e-6
     _update_and_flush(live)
-    assert state.COUNTERS["solves"] == solves + 1
+    assert state.counters()["solves"] == solves + 1
     if change != "tolerance":
         assert np.abs(radiance(obj) - before).max() > 1e-4 * before.max()
 
 
 def test_live_update_off_and_disabled_objects(solved_ball):
     obj, light, live, state = solved_ball
-    solves = state.COUNTERS["solves"]
+    solves = state.counters()["solves"]
     bpy.context.scene.translucency.live_update = False
     live.flush()
     light.location.x = -3.0
@@ -125,7 +125,7 @@ def test_live_update_off_and_disabled_objects(solved_ball):
     bpy.context.scene.translucency.live_update = True
     obj.translucency.enabled = False
     _update_and_flush(live)
-    assert state.COUNTERS["solves"] == solves
+    assert state.counters()["solves"] == solves
 
 
 def _animated_light_scene(tmp_path):
@@ -246,7 +246,7 @@ def test_animation_render_solves_every_frame(blender, addon, cache_dir, memo_bak
     frames = [f for f, _ in seen]
     assert frames == [1, 10], frames
     assert np.abs(seen[1][1] - seen[0][1]).max() > 0.1 * seen[0][1].max()
-    assert state.COUNTERS["solves"] >= 2
+    assert state.counters()["solves"] >= 2
 
 
 _HEADLESS_SCRIPT = textwrap.dedent(r"""
@@ -303,9 +303,9 @@ def test_load_post_clears_runtime_state(solved_ball, tmp_path):
     blend = tmp_path / "reload.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     bpy.ops.wm.open_mainfile(filepath=str(blend))
-    assert state._STATES == {}
+    assert state.object_states() == []
     obj = bpy.data.objects["Blob"]
-    assert "Blob" not in state.CACHE_STATUS  # the absolute cache path is still valid
+    assert state.cache_problem("Blob") is None  # the absolute cache path is still valid
 
 
 def test_unregister_removes_every_handler(blender, addon):

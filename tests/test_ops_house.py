@@ -56,3 +56,19 @@ def test_runtime_re_exports_nothing():
     names = {a.asname or a.name for node in ast.walk(tree) if isinstance(node, ast.ImportFrom) and node.level == 1
              and node.module in ("state", "cache_files", "attributes") for a in node.names}
     assert names == set()
+
+
+def test_state_is_reached_through_its_functions():
+    """ops/state.py keeps the add-on's runtime state behind functions (cache problems, errors, plans, counters, the
+    Info queue, the handlers' bookkeeping): no other module reads or writes its private module variables."""
+    reached = []
+    for path in sorted(OPS.glob("*.py")):
+        if path.stem == "state":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "state" \
+                    and node.attr.startswith("_"):
+                reached.append(f"{path.stem}: state.{node.attr}")
+            if isinstance(node, ast.ImportFrom) and node.level == 1 and node.module == "state":
+                reached += [f"{path.stem}: from .state import {a.name}" for a in node.names if a.name.startswith("_")]
+    assert reached == []

@@ -193,7 +193,7 @@ def test_cube_with_a_cavity_matches_the_engine(blender, addon, cache_dir, memo_c
     err = np.abs(L_blender - L_engine).max() / L_engine.max()
     assert err < 1e-3, err  # measured 3e-5; without the cavity exchange 3e-2
     # the planner keeps diffusion for marble (valid everywhere); the map stays off, and says why
-    plan = state.PLANS[cube.name]
+    plan = state.last_plan(cube.name)
     assert plan.multiple.runs and not plan.voxel_number_map.runs
     assert "Voxel Number Map" in addon.ops.status.plan_summary(cube.name)
 
@@ -246,7 +246,7 @@ def test_bottle_of_wine_runs_the_voxel_number_map(blender, addon, cache_dir, mem
     assert bpy.context.scene.world is None  # no world light: the engine's comparison below has none
     assert bake_op(bottle) == {'FINISHED'}
     key = bottle.translucency.bake_key
-    plan = state.PLANS[bottle.name]
+    plan = state.last_plan(bottle.name)
     assert plan.voxel_number_map.runs and plan.voxel_number_map.channels == (True, True, True)
     assert not plan.multiple.runs and plan.voxel_number_map.weights is None
     assert "Voxel Number Map [RGB]" in status.plan_summary(bottle.name)
@@ -255,12 +255,12 @@ def test_bottle_of_wine_runs_the_voxel_number_map(blender, addon, cache_dir, mem
     assert st.vnm is not None and status.solve_status(bottle).vnm_backend == "CPU"
     np.testing.assert_allclose(L, engine_map_radiance(b, WINE), rtol=1e-4, atol=1e-6 * L.max())
 
-    loads = state.COUNTERS["loads"]
+    loads = state.counters()["loads"]
     wine_item = bottle.translucency.inner_parts[0]
     wine_item.sigma_a = DARK_WINE[0]
     assert solve_op(bottle) == {'FINISHED'}
     dark = attribute_ok(bottle)
-    assert bottle.translucency.bake_key == key and state.COUNTERS["loads"] == loads  # no re-bake, no re-load
+    assert bottle.translucency.bake_key == key and state.counters()["loads"] == loads  # no re-bake, no re-load
     assert not state.get_state(bottle).stale_message
     np.testing.assert_allclose(dark, engine_map_radiance(b, DARK_WINE), rtol=1e-4, atol=1e-6 * dark.max())
     low = _f32(b["outer"][0])[:, 2] < 5.0  # beside the wine (filled to 7)
@@ -296,7 +296,7 @@ def test_the_opaque_stone_casts_its_shadow(blender, addon, cache_dir, memo_bakes
     else:
         item.material_preset = 'MARBLE'
     assert bake_op(cube) == {'FINISHED'}
-    plan = state.PLANS[cube.name]
+    plan = state.last_plan(cube.name)
     assert plan.multiple.runs == (medium == "MARBLE") and plan.voxel_number_map.runs == (medium != "MARBLE")
     shadowed = attribute_ok(cube)
     key = cube.translucency.bake_key
@@ -507,7 +507,7 @@ def test_parts_persist_in_the_blend_and_the_panel_lists_them(blender, addon, cac
     cube = bpy.data.objects["Cube"]
     items = cube.translucency.inner_parts
     assert [(i.object.name, i.role) for i in items] == [("Sphere", 'CAVITY')] and items[0].object.parent == cube
-    assert state.get_state(cube) is None and "Cube" not in state.CACHE_STATUS  # found, not stale
+    assert state.get_state(cube) is None and state.cache_problem("Cube") is None  # found, not stale
     assert solve_op(cube) == {'FINISHED'}
     np.testing.assert_allclose(attribute_ok(cube), before, rtol=2e-3, atol=1e-6 * before.max())
 
@@ -554,16 +554,16 @@ def test_f12_renders_the_bottle_into_the_translucency_pass(blender, addon, cache
     scene.render.resolution_x = scene.render.resolution_y = 24
     scene.render.resolution_percentage = 100
     scene.render.film_transparent = True  # alpha 0 off the bottle
-    solves = state.COUNTERS["writes"]
+    solves = state.counters()["writes"]
     path = render_exr(render_pass, tmp_path / "bottle.exr", 'CYCLES')
-    assert state.COUNTERS["writes"] > solves  # the render's frame handler solved towards the camera
+    assert state.counters()["writes"] > solves  # the render's frame handler solved towards the camera
     aov = exr_pass(path, "Translucency")[..., :3]
     alpha = exr_pass(path, "Combined")[..., 3]
     assert np.all(np.isfinite(aov)) and np.all(aov >= 0.0)
     on, off = alpha > 0.99, alpha < 0.01
     assert on.sum() > 20 and off.sum() > 100
     assert np.all(aov[off] == 0.0) and np.mean(aov[on].max(axis=1) > 0.0) > 0.9
-    assert state.get_state(bottle).vnm is not None and state.PLANS[bottle.name].voxel_number_map.runs
+    assert state.get_state(bottle).vnm is not None and state.last_plan(bottle.name).voxel_number_map.runs
 
 
 def test_the_map_is_placed_by_the_one_policy(blender, addon, monkeypatch):
@@ -615,7 +615,7 @@ def test_single_scattering_is_baked_with_the_parts(blender, addon, cache_dir, me
     s.sigma_a, s.sigma_s = SS_MEDIUM
     s.inner_parts[0].material_preset = 'KETCHUP'
     assert bake_op(cube) == {'FINISHED'}
-    assert state.PLANS[cube.name].voxel_number_map.runs  # single scattering is not baked yet: the map replaces
+    assert state.last_plan(cube.name).voxel_number_map.runs  # single scattering is not baked yet: the map replaces
     s.use_single_scattering = True
     s.ss_quality, s.ss_directions, s.ss_samples = 'DRAFT', '32', 1500
     graph_key = s.bake_key
@@ -624,7 +624,7 @@ def test_single_scattering_is_baked_with_the_parts(blender, addon, cache_dir, me
     assert s.bake_key != graph_key
     data = state.get_state(cube).bake.single_scattering
     assert data.stats["inner_parts"] and data.stats["inputs"]["parts"][0][:2] == ["Sphere", "medium"]
-    plan = state.PLANS[cube.name]
+    plan = state.last_plan(cube.name)
     assert plan.single.runs and not plan.voxel_number_map.runs
     assert "baked with the inner parts" in status.plan_summary(cube.name)
     attribute_ok(cube)
@@ -662,7 +662,7 @@ def test_undo_brings_the_list_back(blender, addon, cache_dir, memo_composites):
     cube, _, _, _ = cube_scene()
     assert bake_op(cube) == {'FINISHED'}
     before = attribute_ok(cube)
-    loads = state.COUNTERS["loads"]
+    loads = state.counters()["loads"]
     bpy.ops.ed.undo_push(message="baked")
     activate(cube)
     assert bpy.ops.translucency.inner_part_remove() == {'FINISHED'}
@@ -675,6 +675,6 @@ def test_undo_brings_the_list_back(blender, addon, cache_dir, memo_composites):
     cube = bpy.data.objects["Cube"]  # a new ID: the old Python reference is gone
     assert [(i.object.name, i.role) for i in cube.translucency.inner_parts] == [("Sphere", 'CAVITY')]
     assert solve_op(cube) == {'FINISHED'} and not state.get_state(cube).stale_message
-    assert state.COUNTERS["loads"] == loads  # the same bake, still in the state
+    assert state.counters()["loads"] == loads  # the same bake, still in the state
     # warm-started from the last frame's solution: equal within the solver's tolerance (1e-4 of the residual)
     assert np.abs(attribute_ok(cube) - before).max() < 5e-3 * before.max()

@@ -57,18 +57,18 @@ def test_unchanged_frame_does_no_solve_and_a_moved_light_resolves_only_what_it_l
         assert bake(o) == {'FINISHED'}
     bpy.context.scene.world = None  # no world light: only the spots
     _solve_scene()
-    start = state.COUNTERS["solves"]
+    start = state.counters()["solves"]
     assert _solve_scene() == []  # nothing changed: no work
-    assert state.COUNTERS["solves"] == start
+    assert state.counters()["solves"] == start
     before_r = radiance(right).copy()
     spot_l.location.z = 3.0
     bpy.context.view_layer.update()
     reports = _solve_scene()
     assert [r.name for r in reports if r.solved] == ["Left"]
-    assert state.COUNTERS["solves"] == start + 1
+    assert state.counters()["solves"] == start + 1
     np.testing.assert_array_equal(radiance(right), before_r)
-    assert "SpotL" in state.PLANS["Left"].facts["lights_reaching"]
-    assert "SpotL" not in state.PLANS["Right"].facts["lights_reaching"]
+    assert "SpotL" in state.last_plan("Left").facts["lights_reaching"]
+    assert "SpotL" not in state.last_plan("Right").facts["lights_reaching"]
 
 
 def test_objects_outside_the_camera_do_no_work_in_renders(blender, cache_dir, memo_bakes):
@@ -86,11 +86,11 @@ def test_objects_outside_the_camera_do_no_work_in_renders(blender, cache_dir, me
     cam.rotation_euler = (math.radians(90.0), 0.0, 0.0)  # looking along +y at the origin
     bpy.context.scene.camera = cam
     bpy.context.view_layer.update()
-    skips = state.COUNTERS["planner_skips"]
+    skips = state.counters()["planner_skips"]
     reports = _solve_scene(use_camera=True)
     assert [r.name for r in reports] == ["Seen"]
-    assert state.COUNTERS["planner_skips"] == skips + 1
-    assert "camera" in state.PLANS["Hidden"].reason
+    assert state.counters()["planner_skips"] == skips + 1
+    assert "camera" in state.last_plan("Hidden").reason
 
 
 def test_an_unlit_object_gets_exactly_zero_without_a_solve(blender, cache_dir, memo_bakes):
@@ -101,10 +101,10 @@ def test_an_unlit_object_gets_exactly_zero_without_a_solve(blender, cache_dir, m
     spot.rotation_euler = (math.pi, 0.0, 0.0)  # pointing up, away from the object
     bpy.context.scene.world = None
     assert bake(obj) == {'FINISHED'}
-    start = state.COUNTERS["solves"]
+    start = state.counters()["solves"]
     _solve_scene()
-    assert state.COUNTERS["solves"] == start
-    assert "unlit" in state.PLANS[obj.name].reason
+    assert state.counters()["solves"] == start
+    assert "unlit" in state.last_plan(obj.name).reason
     L = radiance(obj)
     assert L is not None and np.all(L == 0.0)
     # The panel's plan says which light misses, by how much, and what to change (issue 19).
@@ -134,7 +134,7 @@ def test_a_pass_off_by_default_is_not_called_the_users_choice(blender, addon, ca
     add_light()
     assert bake(obj) == {'FINISHED'}
     runtime.solve_object(obj, force=True)
-    reasons = state.PLANS["Blob"].single.reasons if state.PLANS["Blob"].single is not None else []
+    reasons = state.last_plan("Blob").single.reasons if state.last_plan("Blob").single is not None else []
     assert reasons and all("forced off by default: 'Single Scattering' is off unless turned on" in r
                            for r in reasons), reasons
     assert not any("by the user" in r for r in reasons)
@@ -143,5 +143,5 @@ def test_a_pass_off_by_default_is_not_called_the_users_choice(blender, addon, ca
         runtime.solve_object(obj, force=True)
     except Exception:  # noqa: BLE001 - nothing may run; the plan is what is checked
         pass
-    reasons = state.PLANS["Blob"].multiple.reasons
+    reasons = state.last_plan("Blob").multiple.reasons
     assert all("forced off by the user's setting: 'Multiple Scattering' is off" in r for r in reasons), reasons

@@ -66,7 +66,7 @@ def test_thin_fin_is_never_black_and_single_scattering_serves_only_the_fin(blend
     assert fin.sum() > 20
 
     automatic = _solve(obj, 'AUTO')
-    plan = state.PLANS[obj.name]
+    plan = state.last_plan(obj.name)
     text = status.plan_summary(obj.name)
     assert plan.run and plan.multiple.channels == (True, True, True), text
     assert "diffusion doubtful where thinner than 0.33 mm" in text and "of the surface" in text, text
@@ -83,7 +83,7 @@ def test_thin_fin_is_never_black_and_single_scattering_serves_only_the_fin(blend
     s.pass_planning = 'AUTO'
     assert bpy.ops.translucency.bake_single_scattering() == {'FINISHED'}
     combined = _solve(obj, 'AUTO')
-    plan = state.PLANS[obj.name]
+    plan = state.last_plan(obj.name)
     assert plan.single.channels == (True, True, True), status.plan_summary(obj.name)
     ss = attributes.read_radiance(obj, SS_ATTR)
     assert np.all(ss[body] == 0.0)  # the body is thick: diffusion alone

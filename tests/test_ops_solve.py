@@ -106,11 +106,11 @@ def test_texture_field_is_sampled_at_the_nodes_and_resampled_on_edit(blender, ad
     s.second_preset = 'KETCHUP'
     s.field_source = 'TEXTURE'
     s.field_texture = tex
-    samples = state.COUNTERS["field_samples"]
+    samples = state.counters()["field_samples"]
     calls = memo_bakes.calls
     bpy.ops.translucency.solve()
     mixed = radiance(obj)
-    assert state.COUNTERS["field_samples"] == samples + 1
+    assert state.counters()["field_samples"] == samples + 1
     st = state.get_state(obj)
     assert [len(f) for f in st.field_values] == [lv.n_nodes for lv in st.bake.levels]
     f = st.field_values[-1]
@@ -121,14 +121,14 @@ def test_texture_field_is_sampled_at_the_nodes_and_resampled_on_edit(blender, ad
     assert np.abs(mixed - homogeneous).max() > 0.05 * homogeneous.max()
 
     bpy.ops.translucency.solve()  # nothing changed: not sampled again
-    assert state.COUNTERS["field_samples"] == samples + 1
+    assert state.counters()["field_samples"] == samples + 1
     tex.noise_scale = 0.15  # editing the texture re-samples, still without a re-bake
     bpy.ops.translucency.solve()
-    assert state.COUNTERS["field_samples"] == samples + 2
+    assert state.counters()["field_samples"] == samples + 2
     assert np.abs(radiance(obj) - mixed).max() > 0
     s.field_scale = 3.0
     bpy.ops.translucency.solve()
-    assert state.COUNTERS["field_samples"] == samples + 3
+    assert state.counters()["field_samples"] == samples + 3
     assert memo_bakes.calls == calls
 
 
@@ -245,14 +245,14 @@ def test_view_towards_the_camera(blender, addon, cache_dir, memo_bakes):
     activate(obj)
     bpy.ops.translucency.solve()
     normal = radiance(obj)
-    solves = state.COUNTERS["solves"]
+    solves = state.counters()["solves"]
     assert bpy.ops.translucency.solve(use_camera=True) == {'FINISHED'}
     towards = radiance(obj)
     y = np.array([v.co.y for v in obj.data.vertices])
     front = y < -0.9  # facing the camera: the same; grazing or back-facing: darker
     np.testing.assert_allclose(towards[front], normal[front], rtol=0.05)
     assert towards[y > 0.3].sum() == 0.0
-    assert state.COUNTERS["solves"] == solves + 1  # forced; a view change alone needs no solve
+    assert state.counters()["solves"] == solves + 1  # forced; a view change alone needs no solve
     report = runtime.solve_object(obj, use_camera=False)
     assert report is not None and not report.solved  # only the radiance was re-evaluated
 
@@ -266,14 +266,14 @@ def test_state_follows_the_bake_key_as_after_undo(blender, addon, cache_dir, mem
     activate(obj)
     bpy.ops.translucency.solve()
     key = obj.translucency.bake_key
-    loads = state.COUNTERS["loads"]
+    loads = state.counters()["loads"]
     obj.translucency.bake_key = "0" * 64  # as if undo went back to another bake
     assert state.get_state(obj) is None
     with pytest.raises(RuntimeError, match="stale"):
         bpy.ops.translucency.solve()
     obj.translucency.bake_key = key  # redo
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    assert state.COUNTERS["loads"] == loads + 1  # re-loaded from the cache file
+    assert state.counters()["loads"] == loads + 1  # re-loaded from the cache file
     assert state.get_state(obj).key == key
 
 

@@ -160,7 +160,7 @@ def test_the_operator_bakes_sky_visibility_and_solves_with_the_bounce(blender, a
     world.color = (1.0, 1.0, 1.0)
     bpy.context.scene.world = world
     assert bpy.ops.translucency.solve() == {'FINISHED'}
-    st = state._STATES[obj.name]
+    st = state.get_state(obj)
     assert st.bake.sky is not None and len(st.bake.sky.levels) == len(st.bake.levels)
     assert st.bounce is not None and st.bounce.shape == (len(st.bake.mesh_vertices), 3)
     assert np.all(np.isfinite(st.bounce)) and st.bounce.max() > 0

@@ -580,7 +580,7 @@ def test_blender_solve_refuses_a_bad_cache(variant, blender, addon, cache_dir, m
     with pytest.raises(RuntimeError, match=r"Cannot solve 'Blob': .*(" + regex + ")"):
         bpy.ops.translucency.solve()
     assert scene_digest(cache_dir) == before
-    assert state.CACHE_STATUS["Blob"].startswith("Cache problem")
+    assert state.cache_problem("Blob").startswith("Cache problem")
 
 
 def test_blender_no_lights_and_light_inside_give_exact_zero(blender, addon, cache_dir, memo_bakes):
