@@ -1,0 +1,190 @@
+"""The command line's arguments: each option's type (a value checked at the door: one line and exit
+status 2 naming the option), and the arguments turned into the engine's inputs (material, field, lights)
+and checked files.  ``__main__`` builds the parser from these; ``cli_solve`` and ``__main__`` read them."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import numpy as np
+
+from .errors import TranslucencyError
+
+
+def checked(check, what: str, cast=float):
+    """An argparse type: ``cast(text)`` passed through the engine's ``check`` (its message on failure)."""
+    kind = "a whole number" if cast is int else "a number"
+
+    def parse(text):
+        try:
+            return check(cast(text))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what}: expected {kind}, got {text!r}") from None
+        except TranslucencyError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    parse.__name__ = what
+    return parse
+
+
+def in_range(lo: float, hi: float, what: str, cast=float, lo_open: bool = False, hi_open: bool = False):
+    """An argparse type: a finite number in [lo, hi] (open ends where asked)."""
+    def check(v):
+        if not (np.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)):
+            ends = ("(" if lo_open else "[") + f"{lo:g}, {hi:g}" + (")" if hi_open else "]")
+            raise TranslucencyError(f"expected a finite number in {ends}, got {v:g}")
+        return v
+    return checked(check, what, cast)
+
+
+def mm_per_unit(text):
+    from .materials import check_mm_per_unit
+
+    return checked(check_mm_per_unit, "--mm-per-unit")(text)
+
+
+def radius(text):
+    from .fluid.particles import check_radius
+
+    return checked(check_radius, "--radius")(text)
+
+
+def eta(text):
+    from .fresnel import check_eta
+
+    return checked(check_eta, "--eta")(text)
+
+
+tolerance = in_range(0.0, 1.0, "--tol", lo_open=True, hi_open=True)
+
+
+def floats(text: str, n: int, what: str) -> tuple:
+    try:
+        vals = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{what}: expected {n} comma-separated numbers, got {text!r}") from None
+    if len(vals) != n:
+        raise argparse.ArgumentTypeError(f"{what}: expected {n} comma-separated numbers, got {text!r}")
+    if not all(np.isfinite(vals)):
+        raise argparse.ArgumentTypeError(f"{what}: expected {n} finite numbers (no NaN or Inf), got {text!r}")
+    return vals
+
+
+def rgb(text):
+    return floats(text, 3, "R,G,B")
+
+
+def camera(text):
+    return floats(text, 3, "--camera X,Y,Z")
+
+
+def sun(text):
+    try:
+        d, e = text.split(":")
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--sun: expected DX,DY,DZ:E, got {text!r}") from None
+    return floats(d, 3, "--sun direction"), floats(e, 1, "--sun irradiance")[0]
+
+
+def point(text):
+    try:
+        p, w = text.split(":")
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--point: expected X,Y,Z:W, got {text!r}") from None
+    return floats(p, 3, "--point position"), floats(w, 1, "--point power")[0]
+
+
+def field(text):
+    kind, _, scale = text.partition(":")
+    if not scale:
+        return kind, 1.0
+    return kind, in_range(0.0, np.inf, "--field SCALE", lo_open=True, hi_open=True)(scale)
+
+
+
+def material_args(parser, prefix: str) -> None:
+    parser.add_argument("--material", default=None, help=prefix + "preset name (marble, skimmilk, skin1, ketchup, ...)")
+    parser.add_argument("--mix-with", default=None, help=prefix + "second preset mixed in by --field")
+    parser.add_argument("--field", type=field, default=None,
+                        help=prefix + "mixing field KIND[:SCALE], SCALE in object units > 0, e.g. marble:0.05 "
+                                      "(default marble, a quarter of the size)")
+    parser.add_argument("--sigma-a", type=rgb, default=None,
+                        help=prefix + "absorption R,G,B per mm, each >= 0 (custom material)")
+    parser.add_argument("--sigma-s", type=rgb, default=None,
+                        help=prefix + "reduced scattering R,G,B per mm, each >= 0 (custom material)")
+    parser.add_argument("--eta", type=eta, default=1.3,
+                        help=prefix + "relative refractive index, in [1, 4] (default 1.3)")
+
+
+def field_spec_from_args(a, V):
+    """The mixing field of a heterogeneous material: --field, or marble at a quarter of the mesh size."""
+    from .fields import FieldSpec
+
+    kind, scale = a.field or ("marble", 0.25 * float(np.max(np.ptp(np.asarray(V), axis=0))))
+    return FieldSpec(kind=kind, scale=scale)
+
+
+def material_from_args(a):
+    from .materials import Material, Medium, material_from_preset, preset
+
+    if a.sigma_a is not None or a.sigma_s is not None:
+        if a.sigma_a is None or a.sigma_s is None:
+            raise TranslucencyError("a custom material needs both --sigma-a and --sigma-s")
+        return Material(Medium(a.sigma_a, a.sigma_s, "custom"), preset(a.mix_with) if a.mix_with else None, a.eta)
+    return material_from_preset(a.material or "marble", eta=a.eta, mix_with=a.mix_with)
+
+
+def lights_from_args(a):
+    from .lights import Environment, Light
+
+    lights = []
+    for d, e in a.sun:
+        lights.append(Light("sun", irradiance=e, direction=d, name="sun"))
+    for pos, watts in a.point:
+        lights.append(Light("point", intensity=watts / (4.0 * np.pi), position=pos, name="point"))
+    env = Environment(a.env) if a.env is not None else None
+    return lights, env
+
+
+def check_files(inputs=(), outputs=()) -> None:
+    """Refuse, before any work, an input that is not a readable file or an output that cannot be written.
+
+    ``inputs`` and ``outputs`` are ``(option, path)`` pairs (``path`` None: not given).  An output's folder
+    must exist and be writable (nothing creates it), the output must not be a folder, and no two outputs
+    may be the same file.  Raises :class:`InputError` naming the option and the file."""
+    from .errors import InputError
+
+    for option, path in inputs:
+        if path is None:
+            continue
+        if not os.path.exists(path):
+            raise InputError(f"{option} {path}: no such file")
+        if not os.path.isfile(path):
+            raise InputError(f"{option} {path}: is a folder, not a file")
+        if not os.access(path, os.R_OK):
+            raise InputError(f"{option} {path}: cannot be read (no read permission for this user)")
+    seen = {}
+    for option, path in outputs:
+        if path is None:
+            continue
+        full = os.path.realpath(path)
+        folder = os.path.dirname(full)
+        if full in seen:
+            raise InputError(f"{option} and {seen[full]} are the same file {path}; give each output its own name")
+        seen[full] = option
+        if os.path.isdir(full):
+            raise InputError(f"{option} {path}: is a folder; give a file name inside it")
+        if not os.path.isdir(folder):
+            raise InputError(f"{option} {path}: the folder {os.path.dirname(os.path.abspath(path))} does not exist; "
+                             "create it first")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise InputError(f"{option} {path}: the folder {folder} is not writable for this user")
+        if os.path.exists(full) and not os.access(full, os.W_OK) and not os.access(folder, os.W_OK):
+            raise InputError(f"{option} {path}: cannot be replaced (no write permission)")
+
+
+def inner_paths(specs) -> list:
+    """The files of ``--inner PART.obj:ROLE`` (malformed specs are refused later, with the spec)."""
+    return [("--inner", str(spec).rpartition(":")[0]) for spec in specs if str(spec).rpartition(":")[0]]
+
+
