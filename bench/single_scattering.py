@@ -46,7 +46,8 @@ from translucency_addon.raycast import TriangleBVH  # noqa: E402
 from translucency_addon.single_scattering import (  # noqa: E402
     STAGES, SingleScatteringSettings, bake_single_scattering, integrate_view_rays, light_term, reference_vertices,
     render_vertices, view_rays, view_term, voxelise)
-from translucency_addon.single_scattering.runtime import all_ray_sample_pairs, exit_factor  # noqa: E402
+from translucency_addon.single_scattering.ray_pairs import all_ray_sample_pairs  # noqa: E402
+from translucency_addon.single_scattering.runtime import exit_factor  # noqa: E402
 
 BUNNY = str(mesh_path("stanford-bunny"))
 

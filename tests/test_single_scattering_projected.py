@@ -18,7 +18,7 @@ from translucency_addon.single_scattering import (SingleScatteringSettings, all_
                                                   bake_single_scattering, integrate_view_rays, shapes, view_rays,
                                                   view_term)
 from translucency_addon.single_scattering.projected import ImageBins, exit_distances
-from translucency_addon.single_scattering.runtime import projected_pairs
+from translucency_addon.single_scattering.ray_pairs import projected_pairs
 
 
 @pytest.fixture(scope="module")

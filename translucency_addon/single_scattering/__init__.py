@@ -25,9 +25,9 @@ from .cached import (GridField, attach, bake_single_scattering_for, combined_key
 from .data import SampleGrid, SingleScatteringData
 from .frame import FrameEvaluator
 from .reference import march_optical_depth, reference_radiance, reference_vertices
-from .runtime import (CPUIntegrator, ViewRays, all_ray_sample_pairs, entry_transmittance, exit_factor,
-                      integrate_view_rays, light_term, ray_sample_pairs, rays_from_points, render_vertices, view_rays,
-                      view_term)
+from .ray_pairs import all_ray_sample_pairs, ray_sample_pairs
+from .runtime import (CPUIntegrator, ViewRays, entry_transmittance, exit_factor, integrate_view_rays, light_term,
+                      rays_from_points, render_vertices, view_rays, view_term)
 from .volume import QUALITY_RESOLUTION, VoxelVolume, voxelise
 
 __all__ = [

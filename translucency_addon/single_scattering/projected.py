@@ -7,7 +7,7 @@ image plane, and anything a ray can meet -- a sample's truncated Gaussian (a
 ball), a triangle of the far side -- covers a known region of that plane.
 Pairing the rays with those regions replaces two per-ray walks:
 
-* the 3D DDA through the sample grid (``runtime._dda``), which meets every
+* the 3D DDA through the sample grid (``ray_pairs._dda``), which meets every
   (ray, sample) pair once per grid cell the ball touches (3.6 times on the
   Final bunny) and needs an ownership test to keep one, and
 * the triangle BVH cast to the far side (``raycast.TriangleBVH.intersect``),
@@ -16,7 +16,7 @@ Pairing the rays with those regions replaces two per-ray walks:
 Here each region is one query: the rays lie sorted by (image row, u) in one
 array, so a query is one ``searchsorted`` range per image row it covers, and
 every (ray, region) candidate comes out exactly once.  The candidates then go
-through the same exact tests as before (``runtime.chord_integrals`` for the
+through the same exact tests as before (``ray_pairs.chord_integrals`` for the
 Gaussians, ``raycast.ray_triangle`` for the triangles), so the result is the
 same set of pairs and the same numbers; this module only decides which pairs
 to test.  Hand-written because no dependency (numpy, scipy) bins 2D points for
