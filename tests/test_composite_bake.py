@@ -61,15 +61,21 @@ def test_the_bake_keeps_the_cavity_and_its_wall(cli_bake):
     assert bake.voxel_number_map is not None and bake.composite.roles == ("cavity", "opaque")
 
 
+def _clear_without_stone(bake, tol):
+    """A solver of the cube in a clear medium (albedo ~1) with the stone left out (as the outer medium: it
+    absorbs, and these tests hold the power to account), and a sun."""
+    info = bake.composite
+    clear = Material(Medium((1e-4, 1e-4, 1e-4), (1.0, 1.0, 1.0), "clear"))
+    no_stone = type(info)(info.names, ("cavity", "medium"), (None, ((1e-4,) * 3, (1.0,) * 3)), info.labels,
+                          info.n_outer_vertices, info.exchange)
+    solver = DiffusionSolver(bake, CompositeMaterial(clear, no_stone), info.labels, SolveOptions(tol=tol))
+    return solver, [Light("sun", irradiance=1000.0, direction=(-1.0, -0.3, -0.2))]
+
+
 def test_the_exchange_returns_the_light_the_wall_loses(cli_bake):
     _, bake = cli_bake
     info = bake.composite
-    clear = Material(Medium((1e-4, 1e-4, 1e-4), (1.0, 1.0, 1.0), "clear"))
-    # the stone absorbs: leave it out here (as the outer medium) to test conservation alone
-    no_stone = type(info)(info.names, ("cavity", "medium"), (None, ((1e-4,) * 3, (1.0,) * 3)), info.labels,
-                          info.n_outer_vertices, info.exchange)
-    solver = DiffusionSolver(bake, CompositeMaterial(clear, no_stone), info.labels, SolveOptions(tol=1e-6))
-    sun = [Light("sun", irradiance=1000.0, direction=(-1.0, -0.3, -0.2))]
+    solver, sun = _clear_without_stone(bake, 1e-6)
     plain = solver.solve(sun, None)
     with_ex, meta = solve_with_cavities(solver, info.exchange, sun, None, tol=1e-6)
     p = exchange_power(solver, with_ex, info.exchange)
@@ -193,11 +199,7 @@ def test_the_exchange_carries_the_first_scatter_split(cli_bake):
     without the split, 1 % apart; leaving out the once-scattered share made it 17 % short."""
     _, bake = cli_bake
     info = bake.composite
-    clear = Material(Medium((1e-4, 1e-4, 1e-4), (1.0, 1.0, 1.0), "clear"))
-    no_stone = type(info)(info.names, ("cavity", "medium"), (None, ((1e-4,) * 3, (1.0,) * 3)), info.labels,
-                          info.n_outer_vertices, info.exchange)
-    solver = DiffusionSolver(bake, CompositeMaterial(clear, no_stone), info.labels, SolveOptions(tol=1e-7))
-    sun = [Light("sun", irradiance=1000.0, direction=(-1.0, -0.3, -0.2))]
+    solver, sun = _clear_without_stone(bake, 1e-7)
     plain, _ = solve_with_cavities(solver, info.exchange, sun, None, tol=1e-6)
     split, meta = solve_with_cavities(solver, info.exchange, sun, None, tol=1e-6, single=(True, True, True))
     assert split.single == (True, True, True) and split.q_incident is not None
