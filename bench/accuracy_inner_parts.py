@@ -194,10 +194,26 @@ def run_single(name, comp, mm, scene):
             "detail": f"{data.n_samples:,} samples, composite voxels"}
 
 
+def frame_diffusion(bake, material, solver, scene, environment, warm_start=None):
+    """The diffusion pass of one frame as the add-on and the CLI render it: the engine's recipe
+    (``frame.render_frame``: the planner's channels and first-scatter split, the cavity exchange), the
+    other passes turned off and diffusion forced on, so its row is the pass itself.  ``(frame, vertex
+    radiance of the outer mesh)``."""
+    from translucency_addon.frame import bake_mapping, n_outer_vertices, pass_overrides, passes_for, render_frame
+    from translucency_addon.planner import plan_object
+
+    overrides = pass_overrides(single=False, voxel_number_map=False, all_passes=True)
+    plan = plan_object(bake, material, [], environment, has_single_scattering=False, overrides=overrides)
+    passes = passes_for(plan, bake)
+    frame = render_frame(bake, plan, passes, bake_mapping(bake, n_outer_vertices(bake)), solver=solver,
+                         environment=environment, view=("ORTHO", tuple(towards_camera(scene))), eta=material.eta,
+                         tol=1e-4, warm_start=warm_start)
+    return frame, frame.terms.total
+
+
 def run_diffusion(name, comp, mm, scene, variants):
     from bench.accuracy_core import environment_turned
     from translucency_addon.bake import BakeSettings, bake_mesh
-    from translucency_addon.cavity import solve_with_cavities
     from translucency_addon.composite_bake import bake_composite, diffusion_material
     from translucency_addon.diffusion import DiffusionSolver, SolveOptions
 
@@ -211,21 +227,21 @@ def run_diffusion(name, comp, mm, scene, variants):
         bake = bake_mesh(comp.V, comp.F, settings)
         bake_s = time.perf_counter() - t0
         solver = DiffusionSolver(bake, comp.material, None, SolveOptions())
-        prev = solver.solve([], env_turned)
+        prev, _ = frame_diffusion(bake, comp.material, solver, scene, env_turned)
         t = time.perf_counter()
-        res = solver.solve([], env, warm_start=prev)
+        _, L = frame_diffusion(bake, comp.material, solver, scene, env, warm_start=prev.result)
         ms = 1e3 * (time.perf_counter() - t)
-        out.append({"pass": "diffusion, solid (no cavity)", "L": solver.vertex_radiance(res, vd), "precompute_s": bake_s,
+        out.append({"pass": "diffusion, solid (no cavity)", "L": L, "precompute_s": bake_s,
                     "frame_ms": ms, "detail": f"{bake.finest.n_nodes:,} nodes"})
     t0 = time.perf_counter()
     bake = bake_composite(comp, settings)
     bake_s = time.perf_counter() - t0
     solver = DiffusionSolver(bake, *diffusion_material(comp.material, bake.composite), SolveOptions())
-    idx, w = bake.vertex_map
     vd_all = np.zeros((len(bake.mesh_vertices), 3))
     vd_all[:n_outer] = vd
     ex = bake.composite.exchange
-    if ex is not None and "no exchange" in variants:  # dark walls, and what leaves them vanishes
+    if ex is not None and "no exchange" in variants:
+        # An ablation no user path renders (dark walls, and what leaves them vanishes): composed here.
         prev = solver.solve(q=ex.dark_walls(solver.incident([], env_turned)))
         t = time.perf_counter()
         res = solver.solve(q=ex.dark_walls(solver.incident([], env, levels=[len(bake.levels) - 1])), warm_start=prev)
@@ -233,14 +249,17 @@ def run_diffusion(name, comp, mm, scene, variants):
         out.append({"pass": "diffusion, cavity carved, no exchange (light lost in it)",
                     "L": solver.vertex_radiance(res, vd_all)[:n_outer], "precompute_s": bake_s, "frame_ms": ms,
                     "detail": f"{bake.finest.n_nodes:,} nodes"})
-    prev, _ = solve_with_cavities(solver, ex, [], env_turned)
+    prev, _ = frame_diffusion(bake, comp.material, solver, scene, env_turned)
     t = time.perf_counter()
-    res, info = solve_with_cavities(solver, ex, [], env, warm_start=prev)
+    frame, L = frame_diffusion(bake, comp.material, solver, scene, env, warm_start=prev.result)
     ms = 1e3 * (time.perf_counter() - t)
+    info = frame.cavity_exchange or {}
+    split = frame.result.single if frame.result is not None else (False, False, False)
     label = "diffusion" + (", cavity exchange" if ex is not None else "") + (", opaque absorber" if comp.opaque else "")
-    out.append({"pass": label, "L": solver.vertex_radiance(res, vd_all)[:n_outer], "precompute_s": bake_s,
+    out.append({"pass": label, "L": L, "precompute_s": bake_s,
                 "frame_ms": ms, "detail": f"{bake.finest.n_nodes:,} nodes"
-                + (f", {info['solves']} solves" if ex is not None else "")})
+                + (f", {info['solves']} solves" if ex is not None else "")
+                + (f", split in {''.join('RGB'[c] for c in range(3) if split[c])}" if any(split) else "")})
     return out
 
 
