@@ -139,7 +139,7 @@ class Bench:
         Preview graph the direct solve and this continuation agree (the tol section)."""
         from bench.accuracy_core import view_dirs
         from bench.reference.raster import rasterize
-        from translucency_addon.diffusion import SolveOptions
+        from translucency_addon.diffusion.solver import SolveOptions
 
         sc = self.scenes[name]
         solver, res = final.extra.pop("solver"), final.extra.pop("result")
@@ -187,7 +187,7 @@ class Bench:
                 r = self.ev.run(self.scenes[name], dict(quality=base, K=K), dict(solver="fast", tol=USER_TOL))
                 self.record("K", f"K={K:g}", name, r, K=K)
         if not self.quick and HEADLINE in self.scenes:  # the Final surface with Preview's K
-            from translucency_addon.bake import QUALITY_PRESETS
+            from translucency_addon.quadgraph.bake import QUALITY_PRESETS
 
             K = QUALITY_PRESETS["preview"]["K"]
             r = self.ev.run(self.scenes[HEADLINE], dict(quality="final", K=K), dict(solver="fast", tol=USER_TOL))
@@ -243,7 +243,7 @@ class Bench:
         (ketchup's blue sigma_s' is 0.03/mm against marble's 3.0/mm)."""
         from dataclasses import replace
 
-        from translucency_addon.materials import material_from_preset
+        from translucency_addon.scene.materials import material_from_preset
 
         name = HEADLINE if HEADLINE in self.scenes else next(iter(self.scenes))
         sc0 = self.scenes[name]
@@ -252,7 +252,7 @@ class Bench:
         self.kappa_rows = []
         for solver in ("fast", "paper"):
             bk, _ = self.ev.bake(sc, quality=base)
-            from translucency_addon.diffusion import SolveOptions
+            from translucency_addon.diffusion.solver import SolveOptions
 
             s = self.ev.make_solver(bk, sc, SolveOptions(solver=solver, tol=USER_TOL, max_iterations=cap), "cpu")
             t0 = time.perf_counter()
@@ -330,7 +330,7 @@ class Bench:
         hidden sky plus one interreflection bounce (the add-on's default; sky_visibility.py)."""
         from bench.accuracy_core import SUPERSAMPLE, view_dirs
         from bench.reference.raster import rasterize
-        from translucency_addon.diffusion import SolveOptions
+        from translucency_addon.diffusion.solver import SolveOptions
 
         name = HEADLINE if HEADLINE in self.scenes else next(iter(self.scenes))
         sc = self.scenes[name]

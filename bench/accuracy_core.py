@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 BAKE_CACHE = ROOT / "bench" / "out" / "accuracy_bakes"
 SUPERSAMPLE = 4
 # Every term on, as the add-on's planner runs it on these scenes (issue 17): the diffusion solve splits off the
-# closed-form single scattering (DiffusionSolver.solve(single=...), single_scattering/closed_form.py).  A
+# closed-form single scattering (DiffusionSolver.solve(single=...), diffusion/split.py).  A
 # configuration asks for diffusion alone with solve_options single_scattering=False.
 ALL_TERMS = True
 
@@ -71,7 +71,7 @@ def environment_turned(scene, deg: float):
 # The add-on's default: bakes carry sky visibility (Object > Translucency > Self-Occlusion) and each
 # solve adds one interreflection bounce (ops/runtime._solve).  BakeSettings(sky_directions=0) and
 # SolveOptions(sky_occlusion=False) measure the engine without it.
-from translucency_addon.sky_visibility import DEFAULT_DIRECTIONS as SKY_DIRECTIONS  # noqa: E402
+from translucency_addon.diffusion.sky_visibility import DEFAULT_DIRECTIONS as SKY_DIRECTIONS  # noqa: E402
 
 
 def solve(solver, **kw):
@@ -111,7 +111,7 @@ class Evaluator:
     # -- bakes -------------------------------------------------------------------------
     def bake(self, scene, **settings):
         """``(Bake, seconds)`` of the scene's mesh with BakeSettings(**settings)."""
-        from translucency_addon import bake as bake_mod
+        from translucency_addon.quadgraph import bake as bake_mod
         from translucency_addon import cache
 
         settings.setdefault("sky_directions", SKY_DIRECTIONS)
@@ -143,14 +143,14 @@ class Evaluator:
             return None
         k = (bk.key, repr(scene.field))
         if k not in self._fields:
-            from translucency_addon.fields import evaluate_field
+            from translucency_addon.scene.fields import evaluate_field
 
             self._fields[k] = [evaluate_field(scene.field, lv.position) for lv in bk.levels]
         return self._fields[k]
 
     # -- single scattering ------------------------------------------------------------------
     def ss_bake(self, scene, **ss_settings):
-        from translucency_addon.fields import evaluate_field
+        from translucency_addon.scene.fields import evaluate_field
         from translucency_addon.single_scattering import SingleScatteringSettings, bake_single_scattering
 
         k = (scene.name.split("_sa")[0], repr(scene.material), repr(sorted(ss_settings.items())))
@@ -164,7 +164,7 @@ class Evaluator:
 
     # -- one configuration ----------------------------------------------------------------
     def make_solver(self, bk, scene, options, backend: str):
-        from translucency_addon.diffusion import DiffusionSolver
+        from translucency_addon.diffusion.solver import DiffusionSolver
 
         fv = self.field_values(scene, bk)
         if backend == "cpu":
@@ -178,8 +178,8 @@ class Evaluator:
 
     def run(self, scene, bake_settings: dict, solve_options: dict | None = None, backend: str = "cpu",
             ss: dict | None = None, frames: bool = True, keep: bool = False) -> Render:
-        from translucency_addon.diffusion import SolveOptions
-        from translucency_addon.meshio import vertex_normals
+        from translucency_addon.diffusion.solver import SolveOptions
+        from translucency_addon.geometry.meshio import vertex_normals
 
         bk, bake_s = self.bake(scene, **bake_settings)
         opts = SolveOptions(**{"single_scattering": ALL_TERMS, **(solve_options or {})})

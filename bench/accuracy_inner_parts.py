@@ -56,9 +56,9 @@ VIEW = np.array([0.7, 0.55, -0.45])  # viewing direction: from the dark side (th
 
 
 def full_bottle():
-    from translucency_addon import primitives
-    from translucency_addon.composite import CompositeObject, InnerPart
-    from translucency_addon.materials import Material
+    from translucency_addon.geometry import primitives
+    from translucency_addon.scene.composite import CompositeObject, InnerPart
+    from translucency_addon.scene.materials import Material
 
     b = primitives.bottle_with_wine()
     return CompositeObject(*b["outer"], Material(S.GLASS, eta=S.GLASS_ETA),
@@ -67,8 +67,8 @@ def full_bottle():
 
 def index_matched(make):
     """The same scene with eta = 1 everywhere: no interface, no internal reflection (a diagnostic)."""
-    from translucency_addon.composite import CompositeObject
-    from translucency_addon.materials import Material
+    from translucency_addon.scene.composite import CompositeObject
+    from translucency_addon.scene.materials import Material
 
     def build():
         comp, mm = make()
@@ -108,7 +108,7 @@ def without_scattering(scene):
     its translucency is the light that crosses the object unscattered."""
     from dataclasses import replace
 
-    from translucency_addon.materials import Material, Medium
+    from translucency_addon.scene.materials import Material, Medium
 
     def clear(m):
         sa, ss = (np.asarray(x, dtype=np.float64) for x in m.arrays())
@@ -213,9 +213,9 @@ def frame_diffusion(bake, material, solver, scene, environment, warm_start=None)
 
 def run_diffusion(name, comp, mm, scene, variants):
     from bench.accuracy_core import environment_turned
-    from translucency_addon.bake import BakeSettings, bake_mesh
-    from translucency_addon.composite_bake import bake_composite, diffusion_material
-    from translucency_addon.diffusion import DiffusionSolver, SolveOptions
+    from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh
+    from translucency_addon.inner_parts.bake import bake_composite, diffusion_material
+    from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
 
     out = []
     settings = BakeSettings(quality="preview", mm_per_unit=mm)

@@ -52,7 +52,7 @@ TARGET = 0.03  # near spherical light, converged Final graph, debiased (issue 17
 def render_ours(ev: Evaluator, scene, quality: str, tol: float, lights=None):
     """``(image, mask, vertex radiance, seconds of the first frame, bake seconds, nodes, residual)``
     lit by ``lights`` (default: the scene's emitters' engine counterparts), solved from zero."""
-    from translucency_addon.diffusion import SolveOptions
+    from translucency_addon.diffusion.solver import SolveOptions
 
     bk, bake_s = ev.bake(scene, quality=quality)
     # every term on, as the add-on's planner runs marble (the first-scatter split; ALL_TERMS)
@@ -77,8 +77,8 @@ def emitter_as_area_lights(em, mm_per_unit: float, n: int = 64) -> list:
     whose horizon cuts the sphere, which the single point light at the centre does not.  What is
     left against the reference is then the transport model (and the discretisation).
     """
-    from translucency_addon.lights import Light
-    from translucency_addon.sh import fibonacci_directions
+    from translucency_addon.scene.lights import Light
+    from translucency_addon.scene.sh import fibonacci_directions
 
     dirs = fibonacci_directions(n)
     a_m = em.radius * mm_per_unit * 1e-3
@@ -229,7 +229,7 @@ def section(res: dict) -> str:
          "statistical error, propagated). Target (issue 17): <= 3.0 % debiased for the marble sphere and bunny "
          "under the near spherical light, converged Final graph.", "",
          "Our solve runs every term, as the add-on runs marble (the first-scatter split, "
-         "`single_scattering/closed_form.py`; until 2098aba this bench solved diffusion alone, which gave the "
+         "`diffusion/split.py`; until 2098aba this bench solved diffusion alone, which gave the "
          "near sphere 6.7 % and the near bunny 9.3 %, converged). The split is calibrated for diffuse light: "
          "under a point light its once- and many-times-scattered shares depend on the incidence, which its "
          "tables do not carry (a random walk of the half-space at IOR 1.3, albedo 0.999, in the two bins "

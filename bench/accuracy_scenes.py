@@ -31,9 +31,9 @@ import numpy as np
 
 from data import mesh_path
 from bench.reference.scene import Camera, RefScene, sky_environment
-from translucency_addon.fields import FieldSpec
-from translucency_addon.lights import Environment
-from translucency_addon.materials import Material, material_from_preset
+from translucency_addon.scene.fields import FieldSpec
+from translucency_addon.scene.lights import Environment
+from translucency_addon.scene.materials import Material, material_from_preset
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -47,7 +47,7 @@ MESH_NAMES = ("bunny", "sphere")
 
 def fill_holes(V, F):
     """Close every boundary loop with a fan around its centroid (small, nearly planar holes)."""
-    from translucency_addon.meshio import boundary_edges
+    from translucency_addon.geometry.meshio import boundary_edges
 
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
@@ -89,8 +89,8 @@ def fill_holes(V, F):
 @lru_cache(maxsize=None)
 def bunny_mesh(triangles: int = 10_000):
     """The closed, decimated Stanford bunny in its own object units (as the OBJ)."""
-    from translucency_addon.bake import resample_surface
-    from translucency_addon.meshio import count_holes, load_obj, signed_volume
+    from translucency_addon.quadgraph.bake import resample_surface
+    from translucency_addon.geometry.meshio import count_holes, load_obj, signed_volume
 
     V, F = load_obj(mesh_path("stanford-bunny"))
     V, F = resample_surface(V, F, triangles)
@@ -105,7 +105,7 @@ def bunny_mesh(triangles: int = 10_000):
 
 @lru_cache(maxsize=None)
 def sphere_mesh(subdivisions: int = 4):
-    from translucency_addon.primitives import icosphere
+    from translucency_addon.geometry.primitives import icosphere
 
     return icosphere(1.0, subdivisions)
 

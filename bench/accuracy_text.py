@@ -292,7 +292,7 @@ def findings_headline(b, head):
 
 
 def findings_scenes(b):
-    from translucency_addon.materials import reduced_albedo
+    from translucency_addon.scene.materials import reduced_albedo
 
     out = []
     lines = []
@@ -320,9 +320,9 @@ def findings_scenes(b):
                            "entered, the regime where the diffusion approximation overestimates the light that "
                            "comes back out, and single scattering is a large share of what does (about half at "
                            "0.68, blue). The first-scatter split (every term on, "
-                           "`single_scattering/closed_form.py`) returns the once-scattered light in closed form "
+                           "`diffusion/split.py`) returns the once-scattered light in closed form "
                            "and lets diffusion carry only what scatters more, with its source calibrated on the "
-                           "transport solution of a half-space (`single_scattering/half_space.py`), so that a "
+                           "transport solution of a half-space (`diffusion/half_space.py`), so that a "
                            "half-space returns what transport returns (diffusion's own half-space answer for "
                            "that light is 8 % high at 0.68 and 4 % at 0.84; the sum now within 0.2 % of a "
                            "random walk, `tests/test_scattering_split.py`). What remains is where the object "
@@ -339,7 +339,7 @@ def findings_scenes(b):
                    f"({pct(bunny.get('bias'))}); see *Where the bunny's model error comes from* below for how much "
                    "of it sits in the concavities. With every term on (the first-scatter split) the once-scattered "
                    "light leaves mostly at grazing angles, so the rest must leave with the angular shape of multiple "
-                   "scattering, not isotropically (`closed_form.py` eq. 4); with an isotropic rest the sum was too "
+                   "scattering, not isotropically (`diffusion/split.py` eq. 4); with an isotropic rest the sum was too "
                    "dark head-on, -4 % along the normal at alpha 0.999 and IOR 1 against a random walk of the same "
                    "half-space (angular RMS 3.7 %, with eq. 4 0.7 %; `tests/test_scattering_split.py`), and marble "
                    "was worse with every term on than with diffusion alone (sphere 1.4 -> 1.7 %, bunny 3.4 -> 3.7 % "
@@ -486,7 +486,7 @@ def findings_ss(b):
                    "layer where single scattering happens. *Every term (split)* is what the add-on runs where "
                    "diffusion is valid: the entering light split over the local half-space into the closed-form "
                    "single scattering (exact for a half-space, no voxels) and the diffusion of what scatters "
-                   "more (source m q, `single_scattering/closed_form.py`), so each path counts once; the "
+                   "more (source m q, `diffusion/split.py`), so each path counts once; the "
                    "RBF pass replaces diffusion only where diffusion is invalid (planner).")
     return out
 

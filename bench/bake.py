@@ -27,9 +27,9 @@ MM_PER_UNIT = {"spot": 50.0, "fandisk": 20.0, "rocker-arm": 1.0, "stanford-bunny
 def _one(args, queue):
     import resource
 
-    from translucency_addon.bake import BakeSettings, bake_mesh
+    from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh
     from data import mesh_path
-    from translucency_addon.meshio import load_obj
+    from translucency_addon.geometry.meshio import load_obj
 
     name, quality = args
     V, F = load_obj(mesh_path(name))

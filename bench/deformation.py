@@ -42,15 +42,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from translucency_addon import primitives  # noqa: E402
-from translucency_addon.bake import BakeSettings, bake_mesh  # noqa: E402
-from translucency_addon.deformation import DeformationRig  # noqa: E402
-from translucency_addon.deformation_frames import DeformationFrames  # noqa: E402
-from translucency_addon.diffusion import DiffusionSolver, SolveOptions  # noqa: E402
-from translucency_addon.lights import Light  # noqa: E402
-from translucency_addon.materials import material_from_preset  # noqa: E402
+from translucency_addon.geometry import primitives  # noqa: E402
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh  # noqa: E402
+from translucency_addon.deformation.pose import DeformationRig  # noqa: E402
+from translucency_addon.deformation.frames import DeformationFrames  # noqa: E402
+from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions  # noqa: E402
+from translucency_addon.scene.lights import Light  # noqa: E402
+from translucency_addon.scene.materials import material_from_preset  # noqa: E402
 from data import mesh_path  # noqa: E402
-from translucency_addon.meshio import load_obj  # noqa: E402
+from translucency_addon.geometry.meshio import load_obj  # noqa: E402
 
 SKY_DIRECTIONS = 64
 CONVERGED = 1e-6
@@ -308,7 +308,7 @@ def accuracy_section(rows, ref, quality: str, command: str) -> str:
     text = [
         "",
         f"Written by `{command}` (tables also in docs/bench_deformation.md). A pose of the baked mesh's vertices "
-        "moves the baked graph (Wang et al. sec. 6.4; `translucency_addon/deformation.py`): surface points stay on "
+        "moves the baked graph (Wang et al. sec. 6.4; `translucency_addon/deformation/pose.py`): surface points stay on "
         "the deformed mesh, the tet mesh's inner vertices follow the harmonic extension of the surface's motion, "
         "links, faces, volumes and normals are recomputed, and the same solver runs on it. The material, its "
         "field and the sky visibility stay attached to the rest pose.",

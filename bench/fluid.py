@@ -91,10 +91,10 @@ def ball(n_target: int, seed: int = 0):
 
 def scene(n: int, tol: float = 1e-4, solver: str = "fast"):
     """The benchmark's ball of about n particles: rest positions, radius, icosphere, solver, lights."""
-    from translucency_addon import primitives
+    from translucency_addon.geometry import primitives
     from translucency_addon.fluid import FluidOptions, FluidSolver, suggest_radius
-    from translucency_addon.lights import Environment, Light
-    from translucency_addon.materials import material_from_preset
+    from translucency_addon.scene.lights import Environment, Light
+    from translucency_addon.scene.materials import material_from_preset
 
     rest, r = ball(n)
     R = suggest_radius(rest)

@@ -59,8 +59,8 @@ def fluid_particles(spacing: float, seed: int = 0) -> np.ndarray:
 def scene():
     from bench.accuracy_scenes import SKY_DIR
     from bench.reference.scene import Camera, RefScene, sky_environment
-    from translucency_addon import primitives
-    from translucency_addon.materials import material_from_preset
+    from translucency_addon.geometry import primitives
+    from translucency_addon.scene.materials import material_from_preset
 
     V, F = primitives.icosphere(1.0, 4)
     V = V * np.asarray(SEMI_AXES)
@@ -74,8 +74,8 @@ def ours(sc):
     """Our images of the scene: the fluid at each spacing and the QuadGraph Preview bake."""
     from bench.accuracy_core import SUPERSAMPLE, view_dirs
     from bench.reference.raster import rasterize
-    from translucency_addon.bake import BakeSettings, bake_mesh
-    from translucency_addon.diffusion import DiffusionSolver
+    from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh
+    from translucency_addon.diffusion.solver import DiffusionSolver
     from translucency_addon.fluid import FluidSolver, suggest_radius
 
     vd = view_dirs(sc)

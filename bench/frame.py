@@ -48,7 +48,7 @@ def worker(root: str, quality: str, out: str) -> None:
     sys.path.insert(0, root)
     from bench import accuracy_scenes as scenes
     from bench.accuracy_core import Evaluator, environment_turned, view_dirs
-    from translucency_addon import diffusion
+    from translucency_addon.diffusion import solver as diffusion
 
     sc = next(s for s in scenes.reference_scenes() if s.name == "bunny_marble_sky")
     bk, _ = Evaluator(bake_cache=BAKES, log=lambda *a: None).bake(sc, quality=quality)
@@ -58,7 +58,7 @@ def worker(root: str, quality: str, out: str) -> None:
     rec = {"nodes": int(bk.finest.n_nodes), "levels": [int(lv.n_nodes) for lv in bk.levels]}
     # The parts of today's frame (two passes), on a fresh solver (so the first use of the bounds counts).
     s = mk()
-    from translucency_addon.spectral import deflation, spectral_bounds
+    from translucency_addon.diffusion.spectral import deflation, spectral_bounds
 
     clock = time.process_time  # CPU time of this process: steadier than wall time on a shared machine
     t = {}
@@ -134,7 +134,7 @@ def profile_worker(root: str, quality: str, out: str) -> None:
     sys.path.insert(0, root)
     from bench import accuracy_scenes as scenes
     from bench.accuracy_core import Evaluator, environment_turned, view_dirs
-    from translucency_addon import diffusion
+    from translucency_addon.diffusion import solver as diffusion
 
     sc = next(s for s in scenes.reference_scenes() if s.name == "bunny_marble_sky")
     bk, _ = Evaluator(bake_cache=BAKES, log=lambda *a: None).bake(sc, quality=quality)
@@ -326,11 +326,11 @@ class VoxelBall:
 
 def scaling_section(sizes, tol: float) -> str:
     sys.path.insert(0, str(ROOT))
-    from translucency_addon import kernels
-    from translucency_addon.assembly import assemble, node_coefficients
-    from translucency_addon.iterative import solve_chebyshev
-    from translucency_addon.materials import material_from_preset
-    from translucency_addon.spectral import deflation, spectral_bounds
+    from translucency_addon.diffusion import kernels
+    from translucency_addon.diffusion.assembly import assemble, node_coefficients
+    from translucency_addon.diffusion.iterative import solve_chebyshev
+    from translucency_addon.scene.materials import material_from_preset
+    from translucency_addon.diffusion.spectral import deflation, spectral_bounds
 
     mat = material_from_preset("marble")
     lines = ["## How cost grows (voxel ball, 40 mm, marble, tol %g)" % tol, "",

@@ -59,7 +59,7 @@ TARGET_NODES = 500_000
 
 
 def _load_or_bake(V, F, settings, path):
-    from translucency_addon import bake as bake_mod
+    from translucency_addon.quadgraph import bake as bake_mod
     from translucency_addon import cache
 
     if path is not None and path.exists():
@@ -80,8 +80,8 @@ def get_bake(name: str, cache_dir: Path | None, _memo={}):  # noqa: B006 - the b
     refinement level, its base surface scaled so that the finest level has about 500k nodes."""
     from dataclasses import replace
 
-    from translucency_addon import bake as bake_mod
-    from translucency_addon import meshio
+    from translucency_addon.quadgraph import bake as bake_mod
+    from translucency_addon.geometry import meshio
 
     V, F = meshio.load_obj(str(mesh_path("stanford-bunny")))[:2]
     bunny_settings = bake_mod.BakeSettings(quality="preview", mm_per_unit=1000.0)
@@ -158,7 +158,7 @@ def gpu_step_times(system, nbr, off, diag, b_scale, steps: int):
 def cpu_step_times(system, steps: int):
     """The CPU solver's own steps: CSR products (LevelSystem.apply) where the engine has them,
     else the packed numpy twins."""
-    from translucency_addon import kernels
+    from translucency_addon.diffusion import kernels
 
     rng = np.random.default_rng(0)
     N = system.n
@@ -212,7 +212,8 @@ def node_updates(bake, res) -> int:
 # ------------------------------------------------------------------ one graph
 def bench_graph(name: str, args) -> dict:
     import gpu_shaders
-    from translucency_addon import diffusion, lights, materials, spectral
+    from translucency_addon.diffusion import solver as diffusion, spectral
+    from translucency_addon.scene import lights, materials
 
     bk, bake_s = get_bake(name, args.cache_dir)
     fin = bk.finest

@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from translucency_addon import primitives
-from translucency_addon.composite import CompositeObject, InnerPart
-from translucency_addon.materials import Material, Medium, preset
+from translucency_addon.geometry import primitives
+from translucency_addon.scene.composite import CompositeObject, InnerPart
+from translucency_addon.scene.materials import Material, Medium, preset
 
 SS_MEDIUM = Medium((0.10, 0.12, 0.16), (0.025, 0.03, 0.035), "single-scattering")
 GLASS = Medium((0.004, 0.001, 0.004), (0.02, 0.02, 0.02), "glass")

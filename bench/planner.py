@@ -36,11 +36,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from translucency_addon import primitives  # noqa: E402
-from translucency_addon.bake import BakeSettings, bake_mesh  # noqa: E402
-from translucency_addon.diffusion import DiffusionSolver, SolveOptions  # noqa: E402
-from translucency_addon.lights import Light  # noqa: E402
-from translucency_addon.materials import Material, Medium, material_from_preset  # noqa: E402
+from translucency_addon.geometry import primitives  # noqa: E402
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh  # noqa: E402
+from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions  # noqa: E402
+from translucency_addon.scene.lights import Light  # noqa: E402
+from translucency_addon.scene.materials import Material, Medium, material_from_preset  # noqa: E402
 from translucency_addon.planner import ChangeTracker, ObjectState, fingerprint, light_fingerprint, plan_object  # noqa: E402
 from translucency_addon.single_scattering import SingleScatteringSettings, bake_single_scattering  # noqa: E402
 from translucency_addon.single_scattering.frame import FrameEvaluator  # noqa: E402

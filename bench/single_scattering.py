@@ -39,10 +39,10 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from data import mesh_path  # noqa: E402
-from translucency_addon import meshio  # noqa: E402
-from translucency_addon.lights import Light  # noqa: E402
-from translucency_addon.materials import Material, Medium, material_from_preset  # noqa: E402
-from translucency_addon.raycast import TriangleBVH  # noqa: E402
+from translucency_addon.geometry import meshio  # noqa: E402
+from translucency_addon.scene.lights import Light  # noqa: E402
+from translucency_addon.scene.materials import Material, Medium, material_from_preset  # noqa: E402
+from translucency_addon.geometry.raycast import TriangleBVH  # noqa: E402
 from translucency_addon.single_scattering import (  # noqa: E402
     STAGES, SingleScatteringSettings, bake_single_scattering, integrate_view_rays, light_term, reference_vertices,
     render_vertices, view_rays, view_term, voxelise)

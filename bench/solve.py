@@ -26,12 +26,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from translucency_addon.bake import BakeSettings, bake_mesh  # noqa: E402
-from translucency_addon.diffusion import DiffusionSolver, SolveOptions  # noqa: E402
-from translucency_addon.lights import Light  # noqa: E402
-from translucency_addon.materials import material_from_preset  # noqa: E402
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh  # noqa: E402
+from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions  # noqa: E402
+from translucency_addon.scene.lights import Light  # noqa: E402
+from translucency_addon.scene.materials import material_from_preset  # noqa: E402
 from data import mesh_path  # noqa: E402
-from translucency_addon.meshio import load_obj  # noqa: E402
+from translucency_addon.geometry.meshio import load_obj  # noqa: E402
 
 
 

@@ -35,7 +35,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench import inner_parts_scenes as scenes  # noqa: E402
-from translucency_addon.lights import Light  # noqa: E402
+from translucency_addon.scene.lights import Light  # noqa: E402
 from translucency_addon.voxel_number_map import (MAX_SURFACE_VOXELS, VNMSettings,  # noqa: E402
                                                  VoxelNumberMapEvaluator, bake_voxel_number_map, kernel_bytes,
                                                  lut_bytes)

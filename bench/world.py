@@ -47,7 +47,7 @@ MM_PER_UNIT = 5.0
 
 def large(width: int):
     """(seconds to reduce, peak extra MiB, seconds to extract the sun and project) of a width x width/2 RGBA map."""
-    from translucency_addon import environment_map as em
+    from translucency_addon.scene import environment_map as em
 
     h = width // 2
     img = np.empty((h, width, 4), np.float32)
@@ -85,8 +85,8 @@ def irradiance_check(n_normals: int = 600):
     what the engine receives (order-2 SH + the extracted sun), the same SH with the sun left in, and the
     map's mean (a uniform world).  Returns rows ``(label, rel. RMS, worst, sunlit worst, shaded worst)``."""
     from tools.make_hdri import pixels
-    from translucency_addon import environment_map as em
-    from translucency_addon.sh import fibonacci_directions, transmitted_flux_from_sh
+    from translucency_addon.scene import environment_map as em
+    from translucency_addon.scene.sh import fibonacci_directions, transmitted_flux_from_sh
 
     L = pixels().astype(np.float64)
     h, w = L.shape[:2]
@@ -117,7 +117,7 @@ def irradiance_check(n_normals: int = 600):
 def hdri_mean() -> np.ndarray:
     """The shipped HDRI's mean radiance per channel (solid-angle weighted), W/(m^2 sr)."""
     from tools.make_hdri import pixels
-    from translucency_addon import environment_map as em
+    from translucency_addon.scene import environment_map as em
 
     L = pixels().astype(np.float64)
     wt = em.equirect_solid_angles(*L.shape[:2])
@@ -127,7 +127,7 @@ def hdri_mean() -> np.ndarray:
 def hdri_sun():
     """The sun the add-on extracts from the shipped HDRI (world space)."""
     from tools.make_hdri import pixels
-    from translucency_addon import environment_map as em
+    from translucency_addon.scene import environment_map as em
 
     return em.extract_sun(pixels())[0]
 
@@ -244,7 +244,7 @@ def cycles_volume(res: int, spp: int, tmp: str, progress=print, kind="hdri"):
     import bpy
 
     from bench.reference.cycles_ref import volume_material
-    from translucency_addon.materials import material_from_preset
+    from translucency_addon.scene.materials import material_from_preset
 
     sa, ss = material_from_preset("marble").coefficients(n=1)
     out = np.zeros((res, res, 3))

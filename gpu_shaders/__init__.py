@@ -17,7 +17,7 @@ let ``prefer="AUTO"`` fall back here)::
     free_all()                                     # add-on unregister: all GPU textures + compiled kernels
 
 Files: ``*.glsl`` (the kernels, one per numpy twin in
-``translucency_addon.kernels``), ``runtime.py`` (compile, cache, dispatch,
+``translucency_addon.diffusion.kernels``), ``runtime.py`` (compile, cache, dispatch,
 textures), ``pack.py`` (texture layout and packing, numpy only),
 ``device.py`` (a level's textures and kernel calls), ``solver.py``
 (``GPUDiffusionSolver``).

@@ -7,6 +7,12 @@ both are top-level packages.  Never mix the two copies' classes.
 """
 
 try:  # installed extension: translucency.gpu_shaders -> translucency.translucency_addon
-    from ..translucency_addon import bake, diffusion, errors, fresnel, iterative, kernels, quadgraph, spectral  # noqa: F401
+    from ..translucency_addon.quadgraph import bake, levels as quadgraph  # noqa: F401
+    from ..translucency_addon.diffusion import solver as diffusion, iterative, kernels, spectral  # noqa: F401
+    from ..translucency_addon import errors  # noqa: F401
+    from ..translucency_addon.scene import fresnel  # noqa: F401
 except ImportError:  # top-level package (repo root on sys.path)
-    from translucency_addon import bake, diffusion, errors, fresnel, iterative, kernels, quadgraph, spectral  # noqa: F401
+    from translucency_addon.quadgraph import bake, levels as quadgraph  # noqa: F401
+    from translucency_addon.diffusion import solver as diffusion, iterative, kernels, spectral  # noqa: F401
+    from translucency_addon import errors  # noqa: F401
+    from translucency_addon.scene import fresnel  # noqa: F401

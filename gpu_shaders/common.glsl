@@ -26,7 +26,7 @@ vec3 diagonal(vec4 o_r, vec4 o_g, vec4 o_b, vec4 ext)
 }
 
 /* Exact unpolarised Fresnel transmittance F_t = 1 - F_r for light leaving
- * through the surface at cos_i (twin: translucency_addon.fresnel; used by
+ * through the surface at cos_i (twin: translucency_addon.scene.fresnel; used by
  * radiance.glsl and single_scattering.glsl).  eta = 1: no interface, F_t = 1. */
 float fresnel_transmittance(float cos_i, float n)
 {

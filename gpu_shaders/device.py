@@ -4,7 +4,7 @@
 has one method per kernel; :class:`GPUVertexMap` owns the finest level's
 vertex map and the radiance output.  The solver (``solver.py``) strings these
 together; the parity tests call them one by one against the numpy twins in
-``translucency_addon.kernels``.
+``translucency_addon.diffusion.kernels``.
 
 Uploads are counted in ``uploads`` (texture uploads per kind: ``graph``,
 ``coefficients``, ``q``, ``x``) so tests can check that a material edit

@@ -1,4 +1,4 @@
-/* One Jacobi relaxation sweep (twin: translucency_addon.kernels.jacobi_sweep):
+/* One Jacobi relaxation sweep (twin: translucency_addon.diffusion.kernels.jacobi_sweep):
  *
  *   x'_i = (b_i + sum_j c_ij x_j) / a_ii,     b_i = b_scale_i q_i
  *

@@ -89,7 +89,7 @@ float erf_approx(float x)
 }
 
 /* Real orthonormal SH without the Condon-Shortley phase, order <= 4, in the
- * order and signs of translucency_addon/sh.py (sh_basis). */
+ * order and signs of translucency_addon/scene/sh.py (sh_basis). */
 void sh_basis(vec3 w, out float Y[25])
 {
   float x = w.x, y = w.y, z = w.z;

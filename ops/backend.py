@@ -112,7 +112,7 @@ def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "f
 
 
 def cpu_solver(bake, material, field_values, options):
-    from ..translucency_addon.diffusion import DiffusionSolver
+    from ..translucency_addon.diffusion.solver import DiffusionSolver
 
     return DiffusionSolver(bake, material, field_values, options)
 

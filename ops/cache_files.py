@@ -248,7 +248,7 @@ def check_cache(obj, depsgraph=None) -> str:
         return (f"Stale cache: {path} holds another bake than this object's (key "
                 f"{str(meta.get('key'))[:12]} != {settings.bake_key[:12]}); re-bake")
     if depsgraph is not None:
-        from ..translucency_addon.bake import BakeSettings
+        from ..translucency_addon.quadgraph.bake import BakeSettings
         from ..translucency_addon.cache import read_mesh_topology
 
         try:
@@ -298,7 +298,7 @@ def _staleness(obj, depsgraph, key: str, baked_settings, baked_mesh=None,
     """
     from dataclasses import replace
 
-    from ..translucency_addon.bake import mesh_key
+    from ..translucency_addon.quadgraph.bake import mesh_key
 
     V, F = scene_inputs.evaluated_triangles(obj, depsgraph)
     pose = None

@@ -12,7 +12,7 @@ object's own solver:
    it was baked for the rest pose and is not deformed (a deformed bake carries
    none), and the frame's warnings say so.
 2. :func:`diffuse`: the engine's
-   :class:`~translucency_addon.deformation_frames.DeformationFrames` -- pose ->
+   :class:`~translucency_addon.deformation.frames.DeformationFrames` -- pose ->
    deformed graph -> the one ``DiffusionSolver`` on it, warm-started from the
    last valid frame -> radiance at the posed vertices.  Its rig (attachments
    and a factorised stiffness per level, up to a few seconds at Preview) is
@@ -108,8 +108,8 @@ def _frames(st: state.ObjectState, frame: FrameInputs):
     The rig is built on the first deformed frame of a loaded bake (logged: it takes a moment); the
     frames are re-made over it when the scale or the tolerance changes.
     """
-    from ..translucency_addon.deformation import DeformationRig
-    from ..translucency_addon.deformation_frames import DeformationFrames
+    from ..translucency_addon.deformation.pose import DeformationRig
+    from ..translucency_addon.deformation.frames import DeformationFrames
 
     d = st.deformation
     bake = st.bake
@@ -143,7 +143,7 @@ def _shadow_bvh(d: state.DeformationState, V, F, frame: FrameInputs):
     """
     if frame.occluders is None or not np.all(np.isfinite(V)):
         return None
-    from ..translucency_addon.raycast import TriangleBVH
+    from ..translucency_addon.geometry.raycast import TriangleBVH
 
     if d.occluders is not None and d.occluders[0] == frame.occ_sig:
         return d.occluders[2].refit(np.vstack([V, d.occluders[1]]))

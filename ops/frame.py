@@ -39,11 +39,11 @@ class FrameInputs:
     name: str
     n_vertices: int  # of obj.data, whose attribute is written
     mm: float  # millimetres per object unit
-    material: object  # translucency_addon.materials.Material
+    material: object  # translucency_addon.scene.materials.Material
     field_sig: object  # the heterogeneity field's signature (None: homogeneous)
     field_values: list | None  # the field at every level's nodes (sampled when field_sig changed)
-    lights: tuple  # translucency_addon.lights.Light, object space
-    environment: object | None  # translucency_addon.lights.Environment
+    lights: tuple  # translucency_addon.scene.lights.Light, object space
+    environment: object | None  # translucency_addon.scene.lights.Environment
     view: tuple | None  # towards the render camera (use_camera), object space; None: along the normals
     ss_view: tuple | None  # single scattering's view: the camera, else the first 3D viewport's eye
     prefer: str  # the scene's Solver setting: AUTO, GPU or CPU
@@ -78,7 +78,7 @@ class FrameInputs:
 
     def solve_options(self):
         """The diffusion solver's options for this frame (the scene's tolerance)."""
-        from ..translucency_addon.diffusion import SolveOptions
+        from ..translucency_addon.diffusion.solver import SolveOptions
 
         return SolveOptions(solver="fast", tol=self.tolerance)
 
@@ -247,7 +247,7 @@ def mesh_mapping(obj, st: ObjectState):
     if len(obj.data.vertices) == n:
         idx, w = bake.vertex_map
         return MeshMapping(True, idx[:n], w[:n])
-    from ..translucency_addon.bake import vertex_mapping
+    from ..translucency_addon.quadgraph.bake import vertex_mapping
 
     mesh = obj.data
     V = scene_inputs.vertex_positions(mesh)

@@ -4,7 +4,7 @@
 An object's Translucency settings list **inner parts** (``object.translucency.inner_parts``,
 :class:`~.properties.TranslucencyInnerPart`): mesh objects, typically children, each a
 medium (its own preset or coefficients), a cavity or opaque (Mochida et al.; the engine's
-``translucency_addon.composite``).  This module is what the bake operator, the cache check
+``translucency_addon.scene.composite``).  This module is what the bake operator, the cache check
 and a frame's path call for them:
 
 * **Bake** (main thread, before the job starts): :func:`gather_composite` reads every part's
@@ -118,7 +118,7 @@ def gather_composite(obj, depsgraph, V, F, material, field=None):
     Main thread.  ``field``: the outer material's mixing field (a sampled ``GridField``) when it
     mixes two media.  Raises ``TranslucencyError`` subclasses naming the part.
     """
-    from ..translucency_addon.composite import CompositeObject, InnerPart
+    from ..translucency_addon.scene.composite import CompositeObject, InnerPart
     from ..translucency_addon.errors import MaterialError
 
     parts = []
@@ -165,7 +165,7 @@ def bake_key(composite, settings, vnm, field_fp=None) -> str:
     """The key of a composite bake: the QuadGraph's (outer surface with the cavities carved), the
     composite's (every part's geometry and role: medium and opaque parts change no QuadGraph) and the
     map's settings.  The parts' media are not in it: they are read every frame."""
-    from ..translucency_addon.bake import mesh_key
+    from ..translucency_addon.quadgraph.bake import mesh_key
 
     V, F, _ = composite.diffusion_mesh()
     h = hashlib.sha256()
@@ -178,7 +178,7 @@ def bake_key(composite, settings, vnm, field_fp=None) -> str:
 class BakeInputs:
     """What a bake of an object with inner parts needs, gathered on the main thread (:func:`bake_inputs`)."""
 
-    composite: object  # translucency_addon.composite.CompositeObject
+    composite: object  # translucency_addon.scene.composite.CompositeObject
     vnm: object  # VNMSettings, or None without the map
     key: str  # :func:`bake_key`
     record: dict  # :func:`record`
@@ -204,7 +204,7 @@ def bake_inputs(obj, depsgraph, V, F, settings) -> BakeInputs:
 def bake(inputs: BakeInputs, settings, progress=None):
     """The engine's ``bake_composite`` (QuadGraph with the cavities carved, cavity exchange, node labels, the
     Voxel Number Map) under :func:`bake_key`, with :func:`record` in its stats.  Any thread."""
-    from ..translucency_addon.composite_bake import bake_composite
+    from ..translucency_addon.inner_parts.bake import bake_composite
     from ..translucency_addon.errors import MeshError
 
     named = None if progress is None else (lambda f, stage: progress(f, STAGE_NAMES.get(stage, stage)))
@@ -357,7 +357,7 @@ def _media(bake, media_now) -> tuple:
     """Per baked part: ``(sigma_a, sigma_s)`` of a medium -- the settings' now, by part name (the baked
     ones for a part no longer listed as a medium) -- or None.  Raises ``MaterialError`` for absurd values."""
     from ..translucency_addon.errors import MaterialError
-    from ..translucency_addon.materials import Medium, check_medium
+    from ..translucency_addon.scene.materials import Medium, check_medium
 
     info = bake.composite
     now = {name: (sa, ss) for name, role, sa, ss in media_now or () if role == "medium"}
@@ -380,7 +380,7 @@ def diffusion_inputs(bake, material, field_values, media_now):
     media (``composite_bake.diffusion_material``) with the parts' media now; unchanged otherwise."""
     if getattr(bake, "composite", None) is None:
         return material, field_values
-    from ..translucency_addon.composite_bake import diffusion_material
+    from ..translucency_addon.inner_parts.bake import diffusion_material
 
     return diffusion_material(material, replace(bake.composite, media=_media(bake, media_now)), field_values)
 

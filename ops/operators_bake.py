@@ -126,7 +126,7 @@ class BakeJob:
         return not self.cancel_requested
 
     def run(self) -> None:
-        from ..translucency_addon import bake as bake_mod
+        from ..translucency_addon.quadgraph import bake as bake_mod
         from ..translucency_addon.cache import save_bake
         from ..translucency_addon.errors import BakeCancelled
 
@@ -229,7 +229,7 @@ class BakeJob:
     # -- main thread --------------------------------------------------------------
     def commit(self, context) -> list[tuple[str, str]]:
         """Apply a finished bake to the scene; returns ``[(level, message)]`` to report."""
-        from ..translucency_addon.bake import format_stats
+        from ..translucency_addon.quadgraph.bake import format_stats
         from ..translucency_addon.errors import TranslucencyError
 
         obj = bpy.data.objects.get(self.obj_name)
@@ -314,8 +314,8 @@ def _check_writable(directory: str) -> None:
 
 def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
     """Gather the bake's inputs on the main thread (raises ``TranslucencyError``)."""
-    from ..translucency_addon import bake as bake_mod
-    from ..translucency_addon.sky_visibility import DEFAULT_DIRECTIONS
+    from ..translucency_addon.quadgraph import bake as bake_mod
+    from ..translucency_addon.diffusion.sky_visibility import DEFAULT_DIRECTIONS
 
     _check_object(obj)
     scene = context.scene

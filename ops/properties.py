@@ -69,7 +69,7 @@ def _preset_items() -> list[tuple[str, str, str]]:
     accepts them as they are (it lower-cases its argument).
     """
     try:
-        from ..translucency_addon.materials import PRESETS
+        from ..translucency_addon.scene.materials import PRESETS
         presets = [
             (key, f"Jensen et al. 2001, per mm: sigma_a {_fmt3(m.sigma_a)}, sigma_s' {_fmt3(m.sigma_s)}")
             for key, m in PRESETS.items()
@@ -129,7 +129,7 @@ def _is_inner_part_candidate(item, obj) -> bool:
 
 class TranslucencyInnerPart(bpy.types.PropertyGroup):
     """One inner part of an object (``object.translucency.inner_parts``): a mesh object, typically a child,
-    with its role (Mochida et al.; ``translucency_addon.composite``)."""
+    with its role (Mochida et al.; ``translucency_addon.scene.composite``)."""
 
     object: PointerProperty(
         update=_request_update,
@@ -490,7 +490,7 @@ class TranslucencyObjectSettings(bpy.types.PropertyGroup):
         precision=3,
     )
 
-    # -- inner parts (Mochida et al.; translucency_addon.composite) ---------------
+    # -- inner parts (Mochida et al.; translucency_addon.scene.composite) ---------------
     inner_parts: CollectionProperty(
         name="Inner Parts",
         description=(

@@ -5,12 +5,12 @@ Everything the engine receives is in the **object's space** (the space of its
 QuadGraph) with ``mm_per_unit`` converting object units to millimetres
 (``docs/architecture.md``).  This module converts:
 
-* Blender lights -> :class:`translucency_addon.lights.Light`;
-* the world -> :class:`translucency_addon.lights.Environment`;
+* Blender lights -> :class:`translucency_addon.scene.lights.Light`;
+* the world -> :class:`translucency_addon.scene.lights.Environment`;
 * other visible meshes -> occluder triangles ``(V, F)`` in object space;
 * a texture / mesh attribute / vertex group -> the heterogeneity field at
   every level's nodes;
-* the panel's material settings -> :class:`translucency_addon.materials.Material`.
+* the panel's material settings -> :class:`translucency_addon.scene.materials.Material`.
 
 Radiometric conversion (Blender's conventions, measured against Cycles)
 -----------------------------------------------------------------------
@@ -197,7 +197,7 @@ def convert_light(data, light_matrix, to_object, metres_per_bu: float, name: str
     Returns ``None`` for a light that emits nothing.  See the module docstring
     for the factors.
     """
-    from ..translucency_addon.lights import Light
+    from ..translucency_addon.scene.lights import Light
 
     power = float(data.energy) * 2.0 ** float(getattr(data, "exposure", 0.0))
     color = _light_color(data)
@@ -280,8 +280,8 @@ def world_environment(world, obj_matrix=None, can_render: bool = True):
     world's viewport colour times the Background strength, with a warning that
     names the node and what to change.
     """
-    from ..translucency_addon.lights import Environment
-    from ..translucency_addon.world_nodes import WorldNodeError
+    from ..translucency_addon.scene.lights import Environment
+    from ..translucency_addon.scene.world_nodes import WorldNodeError
     from .world import set_status_line, world_light
 
     if world is None:
@@ -398,7 +398,7 @@ def collect_occluders(depsgraph, obj, obj_matrix, cache: OccluderCache | None = 
 def build_medium(settings, name: str = "custom"):
     """The engine ``Medium`` of settings with ``material_preset``, ``sigma_a`` and ``sigma_s`` (an object's,
     or an inner part's): the preset, or the Custom coefficients named ``name``."""
-    from ..translucency_addon.materials import Medium, preset
+    from ..translucency_addon.scene.materials import Medium, preset
 
     if settings.material_preset == 'CUSTOM':
         return Medium(tuple(float(x) for x in settings.sigma_a), tuple(float(x) for x in settings.sigma_s), name)
@@ -407,7 +407,7 @@ def build_medium(settings, name: str = "custom"):
 
 def build_material(settings):
     """The engine ``Material`` of an object's settings (raises ``MaterialError``)."""
-    from ..translucency_addon.materials import Material, preset
+    from ..translucency_addon.scene.materials import Material, preset
 
     medium_b = preset(settings.second_preset) if settings.use_heterogeneity else None
     return Material(build_medium(settings), medium_b, eta=float(settings.eta), name=settings.material_preset.lower())
@@ -603,7 +603,7 @@ def sample_field(obj, settings, node_positions, depsgraph, rest=None) -> list[np
             raise MaterialError(f"'{obj.name}': Heterogeneous is on but no texture is chosen for the field")
         scale = float(settings.field_scale)
         return [evaluate_texture(tex, np.asarray(p) * scale) for p in node_positions]
-    from ..translucency_addon.fields import vertex_field_at_nodes
+    from ..translucency_addon.scene.fields import vertex_field_at_nodes
 
     positions, values = mesh_field(obj, settings, depsgraph, rest)
     return [vertex_field_at_nodes(positions, values, p) for p in node_positions]

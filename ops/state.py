@@ -27,9 +27,9 @@ class DeformationState:
     first deformed frame); the rest is what the panel and the log say about the current frame.
     """
 
-    rig: object | None = None  # translucency_addon.deformation.DeformationRig of the loaded bake
+    rig: object | None = None  # translucency_addon.deformation.pose.DeformationRig of the loaded bake
     rig_seconds: float = 0.0
-    frames: object | None = None  # translucency_addon.deformation_frames.DeformationFrames at the frame's scale
+    frames: object | None = None  # translucency_addon.deformation.frames.DeformationFrames at the frame's scale
     frames_sig: tuple | None = None  # (mm per unit, tolerance) the frames were made for
     backend: str = "CPU"  # where deformed frames solve (ops.backend.placement)
     reason: str = ""  # why not on the GPU
@@ -65,7 +65,7 @@ class ObjectState:
     name: str
     key: str
     cache_path: str
-    bake: object  # translucency_addon.bake.Bake as loaded (baked mm_per_unit)
+    bake: object  # translucency_addon.quadgraph.bake.Bake as loaded (baked mm_per_unit)
     solver: object | None = None
     solver_sig: tuple | None = None
     backend: str = ""

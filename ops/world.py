@@ -2,7 +2,7 @@
 """The scene's World as the engine's environment: SH radiance plus an HDRI's sun.
 
 :func:`world_light` reads the World's node tree into the engine's bpy-free
-description (``translucency_addon.world_nodes``), evaluates the radiance
+description (``translucency_addon.scene.world_nodes``), evaluates the radiance
 arriving from every direction of an equirectangular grid (as wide as the
 widest map, at most 2048 pixels), takes an HDRI's sun out as a directional
 light (``environment_map.extract_sun``: direction, irradiance in W/m^2,
@@ -101,7 +101,7 @@ def _value(sock):
 
 def describe_tree(world):
     """``(WorldGraph without pixels, [(node name, image or sky node)])`` of the nodes the output reaches."""
-    from ..translucency_addon.world_nodes import WorldGraph, WorldNode, WorldNodeError
+    from ..translucency_addon.scene.world_nodes import WorldGraph, WorldNode, WorldNodeError
 
     tree = world.node_tree
     out = _active_output(tree)
@@ -186,8 +186,8 @@ def sky_key(node) -> tuple:
 
 def image_pixels(img, name: str) -> np.ndarray:
     """An image's linear radiance, reduced to at most MAX_WIDTH wide; raises WorldNodeError if it did not load."""
-    from ..translucency_addon.environment_map import downsample
-    from ..translucency_addon.world_nodes import WorldNodeError
+    from ..translucency_addon.scene.environment_map import downsample
+    from ..translucency_addon.scene.world_nodes import WorldNodeError
 
     w, h = img.size
     if w == 0 or h == 0 or not img.has_data and (img.pixels is None or len(img.pixels) == 0):
@@ -221,7 +221,7 @@ def bake_sky(node, can_render: bool = True) -> np.ndarray:
     created is removed again (the Render Result too, unless it existed; if it
     did, it now shows the sky).
     """
-    from ..translucency_addon.world_nodes import WorldNodeError
+    from ..translucency_addon.scene.world_nodes import WorldNodeError
 
     if not can_render or _BAKING or bpy.app.is_job_running('RENDER'):
         raise WorldNodeError(f"Sky Texture '{node.name}' is evaluated by a Cycles render of the sky, which cannot "
@@ -296,8 +296,8 @@ def bake_sky(node, can_render: bool = True) -> np.ndarray:
 
 def evaluate_world(world, can_render: bool = True) -> WorldResult:
     """The World's SH and sun in world space, evaluated once per change (cached)."""
-    from ..translucency_addon import environment_map as em
-    from ..translucency_addon.world_nodes import content_hash, evaluate, sample_grid
+    from ..translucency_addon.scene import environment_map as em
+    from ..translucency_addon.scene.world_nodes import content_hash, evaluate, sample_grid
 
     graph, sources = describe_tree(world)
     key = (world.name, content_hash(graph))
@@ -343,11 +343,11 @@ def world_light(world, obj_matrix=None, can_render: bool = True):
 
     ``obj_matrix``: the object's world matrix (None: world space).  ``can_render``: False inside a
     render (a render depsgraph, a render thread), where a Sky Texture cannot be baked.  Raises
-    :class:`translucency_addon.world_nodes.WorldNodeError` when the World holds
+    :class:`translucency_addon.scene.world_nodes.WorldNodeError` when the World holds
     something that is not evaluated (the caller falls back and warns).
     """
-    from ..translucency_addon.environment_map import rotate_sh
-    from ..translucency_addon.lights import Environment, Light
+    from ..translucency_addon.scene.environment_map import rotate_sh
+    from ..translucency_addon.scene.lights import Environment, Light
 
     res = evaluate_world(world, can_render)
     _LAST["note"] = res.note

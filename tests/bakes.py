@@ -7,8 +7,8 @@ from functools import lru_cache
 import numpy as np
 
 from data import mesh_path
-from translucency_addon import meshio, primitives
-from translucency_addon.bake import BakeSettings, bake_mesh, resample_surface
+from translucency_addon.geometry import meshio, primitives
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh, resample_surface
 
 
 

@@ -58,7 +58,7 @@ def test_wrong_material_is_much_worse(tiny):
 
 
 def test_scenes_are_closed_and_matched():
-    from translucency_addon.meshio import count_holes, signed_volume
+    from translucency_addon.geometry.meshio import count_holes, signed_volume
 
     for name in scenes.MESH_NAMES:
         V, F, mpu = scenes.mesh(name)

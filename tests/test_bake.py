@@ -10,11 +10,13 @@ import numpy as np
 import pytest
 
 from bakes import baked, mesh
-from translucency_addon import cache, meshio, primitives, tetra
-from translucency_addon.bake import BakeSettings, bake_mesh, mesh_key, shepard_weights
+from translucency_addon import cache
+from translucency_addon.geometry import meshio, primitives
+from translucency_addon.geometry import tetra
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh, mesh_key, shepard_weights
 from translucency_addon.errors import BakeCancelled, CacheError, MeshError
-from translucency_addon.quadgraph import check_invariants
-from translucency_addon.raycast import TriangleBVH
+from translucency_addon.quadgraph.levels import check_invariants
+from translucency_addon.geometry.raycast import TriangleBVH
 
 MESHES = ["spot", "fandisk", "rocker-arm", "bunny-decimated"]
 
@@ -212,7 +214,7 @@ def test_bad_meshes_are_rejected(case, match):
 
 def test_closed_zero_volume_mesh_rejected():
     """A closed mesh that encloses nothing: a box squashed to zero height."""
-    from translucency_addon.primitives import box
+    from translucency_addon.geometry.primitives import box
 
     V, F = box((1.0, 1.0, 1e-9))
     with pytest.raises(MeshError, match="flat|zero volume"):
@@ -285,10 +287,10 @@ def test_relaxed_inner_nodes_stay_inside_the_volume():
     bounding-box diagonal, ``tetra.tetrahedralize``'s ``epsilon``): a relaxed node can sit between a
     facet of the object and the tet mesh's boundary (seen once in ~10 runs: radius 0.9976 of the unit
     icosphere, outside a facet), so the object is checked up to that envelope."""
-    from translucency_addon.bake import resample_surface, triangle_size
-    from translucency_addon.meshio import vertex_normals
-    from translucency_addon.quadgraph import build_level
-    from translucency_addon.raycast import inside_mesh
+    from translucency_addon.quadgraph.bake import resample_surface, triangle_size
+    from translucency_addon.geometry.meshio import vertex_normals
+    from translucency_addon.quadgraph.levels import build_level
+    from translucency_addon.geometry.raycast import inside_mesh
 
     V, F = mesh("sphere")
     Vs, Fs = resample_surface(V, F, 300)
@@ -352,7 +354,7 @@ def test_a_flat_tetrahedron_from_the_tetrahedralizer_is_made_again(monkeypatch):
     again with a 1 % longer edge, and refused with the count and what to change after three tries."""
     import pytetwild
 
-    from translucency_addon import tetra
+    from translucency_addon.geometry import tetra
 
     real = pytetwild.tetrahedralize
     calls = []

@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from translucency_addon import cache, meshio, primitives
+from translucency_addon import cache
+from translucency_addon.geometry import meshio, primitives
 from translucency_addon.errors import CacheError, MeshError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -252,7 +253,7 @@ def test_ss_output_without_single_scattering_is_refused_before_the_solve(files, 
     """--ss-output for a cache without single scattering (or with the term turned off) is refused when the
     cache is read, before any solve: the solver is never built."""
     from translucency_addon import __main__ as cli_main
-    from translucency_addon import diffusion
+    from translucency_addon.diffusion import solver as diffusion
 
     def no_solve(*args, **kwargs):
         raise AssertionError("the solver was built before the refusal")
@@ -271,7 +272,7 @@ def test_a_damaged_npy_header_is_one_line_naming_the_file(tmp_path):
     """Damaged bytes in the header's dict literal reach numpy's header parser, which raises the
     tokenizer's errors (``TokenError``, ``SyntaxError``), not ``ValueError``."""
     from translucency_addon.errors import ParticleError
-    from translucency_addon.fluid.cli import load_frames
+    from translucency_addon.cli_fluid import load_frames
 
     path = tmp_path / "pts.npy"
     np.save(path, _lattice())

@@ -163,7 +163,7 @@ def test_a_deformed_pose_renders_the_same_through_the_cli(blender, addon, cache_
 
     from translucency.ops import state
     from translucency.ops.frame import gather
-    from translucency.translucency_addon.meshio import save_obj
+    from translucency.translucency_addon.geometry.meshio import save_obj
 
     obj, rig = baked_bar()
     key_bend(rig, 10, 60.0)

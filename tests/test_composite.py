@@ -1,4 +1,4 @@
-"""Objects made of several parts (translucency_addon/composite.py, voxelise_composite).
+"""Objects made of several parts (translucency_addon/scene/composite.py, voxelise_composite).
 
 Every case of the issue's "defined behaviour" and "bad input" lists: nested and
 touching parts, parts sticking out of the outer mesh, overlapping parts, a
@@ -13,10 +13,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from translucency_addon import primitives
-from translucency_addon.composite import CompositeObject, InnerPart, parse_role
+from translucency_addon.geometry import primitives
+from translucency_addon.scene.composite import CompositeObject, InnerPart, parse_role
 from translucency_addon.errors import MaterialError, MeshError, TranslucencyError
-from translucency_addon.materials import Material, Medium, preset
+from translucency_addon.scene.materials import Material, Medium, preset
 from translucency_addon.single_scattering.volume import voxelise_composite
 
 THIN = Material(Medium((0.02, 0.02, 0.02), (0.05, 0.05, 0.05), "thin"))
@@ -130,7 +130,7 @@ def _open(V, F, cut):
 def test_open_parts_are_refused_with_their_holes(role):
     """A part with holes has no inside (which voxels are its medium?): refused by name, with the number of
     boundary loops and their edges; the outer mesh's own holes stay a warning (the bake closes them)."""
-    from translucency_addon.meshio import hole_loops
+    from translucency_addon.geometry.meshio import hole_loops
 
     V, F = _open(*sphere(0.5), lambda c: np.abs(c[:, 2]) > 0.45)  # both poles cut off: two holes
     loops = hole_loops(V, F)
@@ -156,7 +156,7 @@ def test_open_parts_are_refused_with_their_holes(role):
 def test_self_intersecting_parts_are_refused_with_the_crossing_pairs(role):
     """Two overlapping spheres in one mesh: its inside is not defined; the message counts the crossing pairs
     of triangles and gives one crossing point (on the circle where the spheres meet)."""
-    from translucency_addon.meshio import self_intersections
+    from translucency_addon.geometry.meshio import self_intersections
 
     (V1, F1), (V2, F2) = sphere(0.4, (-0.15, 0.0, 0.0)), sphere(0.4, (0.15, 0.0, 0.0))
     V, F = np.concatenate([V1, V2]), np.concatenate([F1, F2 + len(V1)])

@@ -20,13 +20,13 @@ import numpy as np
 import pytest
 
 from translucency_addon import __main__ as cli
-from translucency_addon import meshio, primitives
+from translucency_addon.geometry import meshio, primitives
 from translucency_addon.cache import load_bake
-from translucency_addon.cavity import exchange_power, solve_with_cavities, wall_partial_current
-from translucency_addon.composite_bake import CompositeMaterial
-from translucency_addon.diffusion import DiffusionSolver, SolveOptions
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material, Medium
+from translucency_addon.inner_parts.cavity import exchange_power, solve_with_cavities, wall_partial_current
+from translucency_addon.inner_parts.bake import CompositeMaterial
+from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material, Medium
 
 R_CAVITY = 6.0
 
@@ -173,8 +173,8 @@ def test_exchange_with_coincident_wall_nodes_drops_the_pair_without_a_warning():
     import warnings
     from types import SimpleNamespace
 
-    from translucency_addon.cavity import build_cavity_exchange
-    from translucency_addon.composite import CompositeObject, InnerPart
+    from translucency_addon.inner_parts.cavity import build_cavity_exchange
+    from translucency_addon.scene.composite import CompositeObject, InnerPart
 
     (Vb, Fb), (Vs, Fs) = primitives.cube_with_sphere(20.0, R_CAVITY, n=4, subdivisions=1)
     comp = CompositeObject(Vb, Fb, Material(Medium((0.01,) * 3, (1.0,) * 3, "m")), [InnerPart("hole", Vs, Fs, "cavity")])

@@ -11,14 +11,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from translucency_addon import primitives
-from translucency_addon.bake import BakeSettings, bake_mesh
-from translucency_addon.deformation import DeformationRig
-from translucency_addon.deformation_frames import DeformationFrames, pose_solver
-from translucency_addon.diffusion import DiffusionSolver, SolveOptions
+from translucency_addon.geometry import primitives
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh
+from translucency_addon.deformation.pose import DeformationRig
+from translucency_addon.deformation.frames import DeformationFrames, pose_solver
+from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
 from translucency_addon.errors import DeformationError, GraphFolded, TranslucencyError
-from translucency_addon.lights import Light
-from translucency_addon.materials import material_from_preset
+from translucency_addon.scene.lights import Light
+from translucency_addon.scene.materials import material_from_preset
 
 MPU = 10.0  # the bar is 4 x 1 x 1 units: 40 x 10 x 10 mm
 SUN = (0.3, -1.0, -0.5)
@@ -249,7 +249,7 @@ def test_moment_sky_equals_the_pair_by_pair_sum(bar):
 def test_cli_solve_deformed(bar, tmp_path):
     from translucency_addon import cache
     from translucency_addon.__main__ import main
-    from translucency_addon.meshio import save_obj
+    from translucency_addon.geometry.meshio import save_obj
 
     V, F, bake, rig = bar
     path = tmp_path / "bar.npz"
@@ -260,8 +260,8 @@ def test_cli_solve_deformed(bar, tmp_path):
     out = tmp_path / "L.npy"
     assert main(["solve", str(path), "--deformed", str(posed), "-o", str(out), "--env", "1,1,1",
                  "--tol", "1e-8"]) == 0
-    from translucency_addon.lights import Environment
-    from translucency_addon.meshio import load_obj
+    from translucency_addon.scene.lights import Environment
+    from translucency_addon.geometry.meshio import load_obj
 
     from translucency_addon.planner import plan_object
 

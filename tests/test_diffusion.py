@@ -19,13 +19,16 @@ import numpy as np
 import pytest
 
 from bakes import baked
-from translucency_addon import cache, fresnel, kernels, primitives
-from translucency_addon.bake import BakeSettings, bake_mesh
-from translucency_addon.diffusion import DiffusionSolver, SolveOptions
-from translucency_addon.iterative import solve_direct
-from translucency_addon.fields import FieldSpec, evaluate_field
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material, Medium, material_from_preset, preset
+from translucency_addon import cache
+from translucency_addon.scene import fresnel
+from translucency_addon.diffusion import kernels
+from translucency_addon.geometry import primitives
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh
+from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
+from translucency_addon.diffusion.iterative import solve_direct
+from translucency_addon.scene.fields import FieldSpec, evaluate_field
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material, Medium, material_from_preset, preset
 
 ROOT = Path(__file__).resolve().parents[1]
 MARBLE = material_from_preset("marble")
@@ -111,7 +114,7 @@ def test_unresolved_boundary_layer_matches_the_closed_form(sphere_bakes, name):
 
 
 def _vertex_areas(b):
-    from translucency_addon.meshio import triangle_areas
+    from translucency_addon.geometry.meshio import triangle_areas
 
     w = np.zeros(len(b.mesh_vertices))
     a = triangle_areas(b.mesh_vertices, b.mesh_faces)
@@ -121,7 +124,7 @@ def _vertex_areas(b):
 
 
 def _remap(b, n_levels):
-    from translucency_addon.bake import vertex_mapping
+    from translucency_addon.quadgraph.bake import vertex_mapping
 
     return vertex_mapping(b.mesh_vertices, b.mesh_normals, b.levels[n_levels - 1])
 
@@ -291,7 +294,7 @@ def test_no_light_gives_exactly_zero():
 
 def test_kernel_twins_match_the_sparse_matrix():
     """The packed (N,4) kernels equal the assembled CSR matrix product."""
-    from translucency_addon.assembly import sparse_matrix
+    from translucency_addon.diffusion.assembly import sparse_matrix
 
     b = baked("sphere", levels=2, base_triangles=300, mm_per_unit=10.0)
     s = DiffusionSolver(b, MARBLE)
@@ -341,7 +344,7 @@ def test_cli_solve_writes_radiance_and_stats(tmp_path):
 
 def test_subnormal_light_colours_are_flushed_to_zero():
     """A colour channel below float32's smallest normal carries no light (no subnormal arithmetic)."""
-    from translucency_addon.lights import Light
+    from translucency_addon.scene.lights import Light
 
     sun = Light("sun", color=(1.0, 2.2e-311, 1e-39), irradiance=2.0)
     np.testing.assert_array_equal(sun.rgb, [2.0, 0.0, 0.0])
@@ -351,7 +354,7 @@ def test_subnormal_light_colours_are_flushed_to_zero():
 def test_first_residual_check_with_a_zero_tolerance():
     """tol = 0 (a fixed sweep count, as the accuracy bench's tolerance table runs it) skips no check and
     does not divide by zero; a finite tolerance skips half the steps the Chebyshev bound needs."""
-    from translucency_addon.iterative import first_check
+    from translucency_addon.diffusion.iterative import first_check
 
     assert first_check(np.array([1.0, 0.5, 0.2]), 0.0, np.array([1.01, 1.01, 1.01]), 8) == 0
     k = first_check(np.array([1.0]), 1e-4, np.array([1.01]), 8)

@@ -10,9 +10,10 @@ import math
 import numpy as np
 import pytest
 
-from translucency_addon import environment_map as em
-from translucency_addon.sh import evaluate, fibonacci_directions, sh_basis
-from translucency_addon.world_nodes import WorldGraph, WorldNode, WorldNodeError, euler_matrix, evaluate as world_eval
+from translucency_addon.scene import environment_map as em
+from translucency_addon.scene.sh import evaluate, fibonacci_directions, sh_basis
+from translucency_addon.scene.world_nodes import (WorldGraph, WorldNode, WorldNodeError, euler_matrix,
+                                                  evaluate as world_eval)
 
 C00, C1, C20 = 0.282094791773878, 0.488602511902920, 0.315391565252520
 

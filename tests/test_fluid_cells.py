@@ -13,9 +13,9 @@ import pytest
 from translucency_addon.errors import ParticleError
 from translucency_addon.fluid import FluidSolver, build_cells, build_graph, prepare_particles, suggest_radius
 from translucency_addon.fluid.disk_faces import clipped_disk
-from translucency_addon.graph import check_graph
-from translucency_addon.lights import Environment
-from translucency_addon.materials import material_from_preset
+from translucency_addon.diffusion.graph import check_graph
+from translucency_addon.scene.lights import Environment
+from translucency_addon.scene.materials import material_from_preset
 
 # The bound for lattices: exact up to rounding (measured ~1e-15 relative).
 EXACT = 1e-9

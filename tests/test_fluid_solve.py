@@ -16,16 +16,16 @@ import numpy as np
 import pytest
 
 from test_diffusion import sphere_analytic
-from translucency_addon import primitives
-from translucency_addon.assembly import assemble
-from translucency_addon.diffusion import DiffusionSolver
-from translucency_addon.iterative import solve_direct
+from translucency_addon.geometry import primitives
+from translucency_addon.diffusion.assembly import assemble
+from translucency_addon.diffusion.solver import DiffusionSolver
+from translucency_addon.diffusion.iterative import solve_direct
 from translucency_addon.fluid import FluidOptions, FluidSolver
 from translucency_addon.fluid.solver import FluidDiffusionSolver
 from translucency_addon.fluid.surface_map import surface_weights
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material, Medium, material_from_preset
-from translucency_addon.meshio import vertex_normals
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material, Medium, material_from_preset
+from translucency_addon.geometry.meshio import vertex_normals
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV1 = Environment((1.0, 1.0, 1.0))
@@ -223,7 +223,7 @@ def test_two_media_by_particle_field():
 
 
 def test_cli_solves_frames_and_writes_every_output(tmp_path):
-    from translucency_addon.meshio import save_obj
+    from translucency_addon.geometry.meshio import save_obj
 
     P = ball_of_particles(4.0, 1.0)
     frames = np.stack([P, P + 0.05, P - 0.05])

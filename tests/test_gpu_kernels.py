@@ -1,4 +1,4 @@
-"""Parity of every GLSL kernel (gpu_shaders/*.glsl) with its numpy twin (translucency_addon.kernels).
+"""Parity of every GLSL kernel (gpu_shaders/*.glsl) with its numpy twin (translucency_addon.diffusion.kernels).
 
 Each kernel runs on llvmpipe here (any GPU elsewhere) on random inputs over a
 synthetic graph with partial blocks, missing neighbours and padding texels,
@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 
 from gpu_shaders import device, pack, runtime
-from translucency_addon import errors, kernels
+from translucency_addon import errors
+from translucency_addon.diffusion import kernels
 
 FP32_TOL = 1e-5
 FP16_TOL = 2e-3
@@ -264,7 +265,7 @@ def test_outgoing_partial_current(layout, precision):
 @pytest.mark.parametrize("view", ["normal", "random"])
 def test_vertex_radiance(layout, view):
     """J+ gather over the vertex map and L_o = F_t J+ / (pi eta^2): DiffusionSolver.vertex_radiance's formula."""
-    from translucency_addon.radiance import outgoing_radiance
+    from translucency_addon.diffusion.radiance import outgoing_radiance
 
     rng = np.random.default_rng(9)
     g, _, _ = make_level(layout)

@@ -26,11 +26,12 @@ from scipy.special import erf
 import gpu_shaders
 from gpu_shaders import runtime as gpu_runtime
 from gpu_shaders import single_scattering as gss
-from translucency_addon import errors, primitives
-from translucency_addon.fields import FieldSpec, evaluate_field
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material, material_from_preset, preset
-from translucency_addon.meshio import vertex_normals
+from translucency_addon import errors
+from translucency_addon.geometry import primitives
+from translucency_addon.scene.fields import FieldSpec, evaluate_field
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material, material_from_preset, preset
+from translucency_addon.geometry.meshio import vertex_normals
 from translucency_addon.single_scattering import (CPUIntegrator, FrameEvaluator, SingleScatteringSettings,
                                                   bake_single_scattering, integrate_view_rays, light_term,
                                                   view_rays, view_term)

@@ -25,8 +25,11 @@ import pytest
 import gpu_shaders
 from gpu_shaders import pack, runtime
 from gpu_shaders.solver import GPUDiffusionSolver, GPUSolveResult
-from translucency_addon import bake as bake_mod
-from translucency_addon import diffusion, errors, iterative, lights, materials, primitives
+from translucency_addon.quadgraph import bake as bake_mod
+from translucency_addon.diffusion import solver as diffusion, iterative
+from translucency_addon import errors
+from translucency_addon.scene import lights, materials
+from translucency_addon.geometry import primitives
 
 ROOT = Path(__file__).resolve().parent.parent
 SOLVE_TOL = 1e-4
@@ -365,7 +368,7 @@ def test_texture_budget_numbers():
 # ------------------------------------------------------------------ heterogeneous media
 def _layers(scale):
     """marble/skin1 layers across a 20 mm cube: kappa jumps (as in test_diffusion)."""
-    from translucency_addon.fields import FieldSpec, evaluate_field
+    from translucency_addon.scene.fields import FieldSpec, evaluate_field
 
     V, F = primitives.box((1.0, 1.0, 1.0), subdivisions=4)
     bk = bake_mod.bake_mesh(V, F, bake_mod.BakeSettings(quality="draft", levels=1, base_triangles=300,

@@ -15,10 +15,11 @@ import pytest
 
 import gpu_shaders
 from gpu_shaders import voxel_number_map as gv
-from translucency_addon import errors, primitives
-from translucency_addon.composite import CompositeObject, InnerPart
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material, Medium, preset
+from translucency_addon import errors
+from translucency_addon.geometry import primitives
+from translucency_addon.scene.composite import CompositeObject, InnerPart
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material, Medium, preset
 from translucency_addon.voxel_number_map import VNMSettings, VoxelNumberMapEvaluator, bake_voxel_number_map
 
 PARITY_TOL = 1e-5

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""The graph contract (translucency_addon.graph): one assembly and one set of solvers for every graph kind.
+"""The graph contract (translucency_addon.diffusion.graph): one assembly and one set of solvers for every graph kind.
 
 A graph that is not a QuadGraph -- a column of box cells with six link slots,
 the shape of a Voronoi-fluid or voxel discretisation -- goes through the same
@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 
 from bakes import baked
-from translucency_addon.assembly import assemble
+from translucency_addon.diffusion.assembly import assemble
 from translucency_addon.errors import TranslucencyError
-from translucency_addon.fresnel import boundary_A, diffuse_reflectance_internal
-from translucency_addon.graph import check_graph, graph_components
-from translucency_addon.iterative import solve_chebyshev, solve_direct
-from translucency_addon.materials import diffusion_coefficient
+from translucency_addon.scene.fresnel import boundary_A, diffuse_reflectance_internal
+from translucency_addon.diffusion.graph import check_graph, graph_components
+from translucency_addon.diffusion.iterative import solve_chebyshev, solve_direct
+from translucency_addon.scene.materials import diffusion_coefficient
 
 
 @dataclass

@@ -19,7 +19,7 @@ import pytest
 
 from bench import light_scenes as LS
 from bench.reference.scene import RefEmitter
-from translucency_addon.lights import light_irradiance
+from translucency_addon.scene.lights import light_irradiance
 
 
 def _cached(name):

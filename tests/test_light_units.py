@@ -4,7 +4,7 @@
 A white Lambertian plane (Diffuse BSDF, albedo 1) is rendered with Cycles,
 orthographic from above, lit by one light.  Its radiance is ``E cos / pi``,
 so every pixel must equal ``cos * E / pi`` where ``E`` is the irradiance the
-engine computes (``translucency_addon.lights.light_irradiance``) from the
+engine computes (``translucency_addon.scene.lights.light_irradiance``) from the
 light as ``ops.scene_inputs`` converts it, at that pixel's point of the plane
 in the plane's *object* space (the plane is moved, rotated and scaled, so
 the transform into object space and ``mm_per_unit`` are exercised too).
@@ -100,7 +100,7 @@ def _pixel_points(sub=1) -> np.ndarray:
 def _predicted(addon, plane, scene) -> np.ndarray:
     """cos * E / pi per pixel (red channel) from the converted lights and world."""
     from translucency.ops import scene_inputs
-    from translucency.translucency_addon.lights import light_irradiance
+    from translucency.translucency_addon.scene.lights import light_irradiance
 
     depsgraph = bpy.context.evaluated_depsgraph_get()
     matrix = plane.matrix_world.copy()

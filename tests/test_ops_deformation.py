@@ -124,8 +124,8 @@ def engine_frames(obj, V, use_camera=False):
     from translucency.ops import frame as frame_mod
     from translucency.ops import state
     from translucency.ops.scene_inputs import view_directions
-    from translucency.translucency_addon.deformation import DeformationRig
-    from translucency.translucency_addon.deformation_frames import DeformationFrames
+    from translucency.translucency_addon.deformation.pose import DeformationRig
+    from translucency.translucency_addon.deformation.frames import DeformationFrames
 
     st = state.get_state(obj)
     inputs = frame_mod.gather(obj, bpy.context.scene, bpy.context.evaluated_depsgraph_get(), st, use_camera)
@@ -151,7 +151,7 @@ def test_armature_bend_solves_on_the_deformed_graph(blender, addon, cache_dir, m
     fresh bake of the posed mesh as the engine's own test allows (8 %)."""
     from translucency.ops import live, state, status
     from translucency.translucency_addon import bake as bake_mod
-    from translucency.translucency_addon.diffusion import DiffusionSolver
+    from translucency.translucency_addon.diffusion.solver import DiffusionSolver
 
     obj, rig = baked_bar()
     key_bend(rig, 10, 60.0)

@@ -114,8 +114,8 @@ def snapshot():
 def engine_solve(points, radius, mm, ids=None, surface=None, light_dir=None, irradiance=3.0):
     """The same frame through the engine directly (the independent check of what the add-on passes it)."""
     from translucency.translucency_addon.fluid import FluidSolver
-    from translucency.translucency_addon.lights import Light
-    from translucency.translucency_addon.materials import Material, preset
+    from translucency.translucency_addon.scene.lights import Light
+    from translucency.translucency_addon.scene.materials import Material, preset
 
     lights = [Light("sun", color=(1.0, 1.0, 1.0), irradiance=irradiance, direction=light_dir)]
     return FluidSolver(Material(preset("skimmilk"), eta=1.3), radius, mm).solve(points, ids=ids, lights=lights,
@@ -284,8 +284,8 @@ def test_two_media_from_a_point_attribute(blender, addon):
     particle system has no point attributes and says so."""
     from translucency.ops import state
     from translucency.translucency_addon.fluid import FluidSolver, suggest_radius
-    from translucency.translucency_addon.lights import Light
-    from translucency.translucency_addon.materials import Material, preset
+    from translucency.translucency_addon.scene.lights import Light
+    from translucency.translucency_addon.scene.materials import Material, preset
 
     P = blob()
     obj = as_fluid(point_cloud("Milk", P))

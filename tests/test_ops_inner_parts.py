@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """Objects with inner parts in headless Blender: the list, the bake, the solve, staleness, refusals.
 
-The paper's three scenes, built small from ``translucency_addon.primitives`` (Draft bakes, a
+The paper's three scenes, built small from ``translucency_addon.geometry.primitives`` (Draft bakes, a
 Draft Voxel Number Map), go through the operators:
 
 * a cube with a child sphere as a **cavity**: the attribute matches the engine's own
@@ -161,11 +161,11 @@ def attribute_ok(obj):
 
 def test_cube_with_a_cavity_matches_the_engine(blender, addon, cache_dir, memo_composites):
     from translucency.ops import state
-    from translucency.translucency_addon.cavity import solve_with_cavities
-    from translucency.translucency_addon.composite_bake import diffusion_material
-    from translucency.translucency_addon.diffusion import DiffusionSolver, SolveOptions
-    from translucency.translucency_addon.lights import Light
-    from translucency.translucency_addon.materials import material_from_preset
+    from translucency.translucency_addon.inner_parts.cavity import solve_with_cavities
+    from translucency.translucency_addon.inner_parts.bake import diffusion_material
+    from translucency.translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
+    from translucency.translucency_addon.scene.lights import Light
+    from translucency.translucency_addon.scene.materials import material_from_preset
 
     cube, sphere, (Vb, Fb), (Vs, Fs) = cube_scene()
     assert bake_op(cube) == {'FINISHED'}
@@ -223,9 +223,9 @@ def bottle_scene():
 
 def engine_map_radiance(b, wine_medium):
     """The engine alone: the bottle and its wine baked into a Voxel Number Map and evaluated."""
-    from translucency.translucency_addon.composite import CompositeObject, InnerPart
-    from translucency.translucency_addon.lights import Light
-    from translucency.translucency_addon.materials import Material, Medium
+    from translucency.translucency_addon.scene.composite import CompositeObject, InnerPart
+    from translucency.translucency_addon.scene.lights import Light
+    from translucency.translucency_addon.scene.materials import Material, Medium
     from translucency.translucency_addon.voxel_number_map import (VNMSettings, VoxelNumberMapEvaluator,
                                                                   bake_voxel_number_map)
 

@@ -289,10 +289,10 @@ def test_backend_falls_back_to_cpu(blender, addon, monkeypatch):
     import types
 
     from translucency.ops import backend
-    from translucency.translucency_addon.bake import bake_mesh, BakeSettings
-    from translucency.translucency_addon.diffusion import DiffusionSolver, SolveOptions
-    from translucency.translucency_addon.materials import material_from_preset
-    from translucency.translucency_addon.primitives import icosphere
+    from translucency.translucency_addon.quadgraph.bake import bake_mesh, BakeSettings
+    from translucency.translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
+    from translucency.translucency_addon.scene.materials import material_from_preset
+    from translucency.translucency_addon.geometry.primitives import icosphere
 
     V, F = icosphere(1.0, 2)
     bake_obj = bake_mesh(V, F, BakeSettings(quality="draft", levels=1, base_triangles=200, mm_per_unit=10))

@@ -19,11 +19,12 @@ import numpy as np
 import pytest
 
 from bakes import baked
-from translucency_addon import cache, primitives
-from translucency_addon.bake import BakeSettings, bake_mesh
-from translucency_addon.diffusion import DiffusionSolver, SolveOptions
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material, Medium, material_from_preset
+from translucency_addon import cache
+from translucency_addon.geometry import primitives
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh
+from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material, Medium, material_from_preset
 from translucency_addon.planner import (NEGLIGIBLE, ChangeTracker, ObjectState, describe_plan, fingerprint,
                                         fluid_thickness, light_fingerprint, plan_fluid, plan_object,
                                         semi_infinite_albedo)
@@ -85,7 +86,7 @@ def test_planned_diffusion_channels_stay_within_threshold_of_all_channels(name):
 
 
 def _vertex_areas(b):
-    from translucency_addon.meshio import triangle_areas
+    from translucency_addon.geometry.meshio import triangle_areas
 
     w = np.zeros(len(b.mesh_vertices))
     a = triangle_areas(b.mesh_vertices, b.mesh_faces)

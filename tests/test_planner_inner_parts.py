@@ -16,9 +16,9 @@ from types import SimpleNamespace
 import numpy as np
 
 from bakes import baked
-from translucency_addon.composite_bake import CompositeInfo
-from translucency_addon.lights import Light
-from translucency_addon.materials import Material, Medium, material_from_preset
+from translucency_addon.inner_parts.bake import CompositeInfo
+from translucency_addon.scene.lights import Light
+from translucency_addon.scene.materials import Material, Medium, material_from_preset
 from translucency_addon.planner import describe_plan, plan_object, replacement_pass
 
 SUN = [Light("sun", irradiance=1000.0, direction=(0.2, -0.3, -1.0), name="sun")]

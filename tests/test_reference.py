@@ -16,9 +16,9 @@ from bench.reference.mitsuba_ref import (  # noqa: E402
     DeltaLightError, cached_reference, environment_radiance, render_mask, render_reference, scene_dict)
 from bench.reference.raster import rasterize  # noqa: E402
 from bench.reference.scene import Camera, RefScene, sky_environment, sphere_env, uv_sphere  # noqa: E402
-from translucency_addon.fields import FieldSpec  # noqa: E402
-from translucency_addon.lights import Light  # noqa: E402
-from translucency_addon.materials import Material, Medium, material_from_preset, preset  # noqa: E402
+from translucency_addon.scene.fields import FieldSpec  # noqa: E402
+from translucency_addon.scene.lights import Light  # noqa: E402
+from translucency_addon.scene.materials import Material, Medium, material_from_preset, preset  # noqa: E402
 
 WHITE = Material(Medium((0.0, 0.0, 0.0), (2.19, 2.62, 3.00), "white"), eta=1.3)
 

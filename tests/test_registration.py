@@ -107,7 +107,7 @@ def test_scene_settings_defaults(blender, addon):
 
 
 def test_material_presets_come_from_the_engine(blender, addon):
-    from translucency.translucency_addon.materials import PRESETS, preset
+    from translucency.translucency_addon.scene.materials import PRESETS, preset
 
     items = {item.identifier for item in addon.ops.properties.TranslucencyObjectSettings.bl_rna
              .properties["material_preset"].enum_items}

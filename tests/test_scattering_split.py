@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """Single and multiple scattering that add up (issue 17): the first-scatter split.
 
-* the closed form (``single_scattering/closed_form.py``) against an independent Monte Carlo random walk of
+* the closed form (``diffusion/split.py``) against an independent Monte Carlo random walk of
   the same half-space (isotropic phase, Fresnel boundary at eta = 1.3, diffuse light): the single-scattering
   power to noise, and single + multiple no further from the walk's total than diffusion alone;
 * per scene family, against the cached Mitsuba reference (``bench/data/reference``): every term on is never
@@ -16,8 +16,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from translucency_addon.fresnel import fresnel_transmittance
-from translucency_addon.single_scattering.closed_form import HalfSpaceSplit, half_space_split, inside_transmittance
+from translucency_addon.scene.fresnel import fresnel_transmittance
+from translucency_addon.diffusion.split import HalfSpaceSplit, half_space_split, inside_transmittance
 
 ETA = 1.3
 
@@ -75,7 +75,7 @@ def test_transport_solution_against_a_random_walk_order_by_order(eta, alpha):
     the first three orders and all the rest.  Measured (400k paths): every order within 1 % (the walk's
     noise: about 0.3 % for the first orders), where diffusion (closed_form eq. 3) is 6-10 % over the walk's
     multiple scattering at alpha 0.68-0.84."""
-    from translucency_addon.single_scattering.half_space import HalfSpaceTransport, depth_grid
+    from translucency_addon.diffusion.half_space import HalfSpaceTransport, depth_grid
 
     split = HalfSpaceSplit(eta)
     ht = HalfSpaceTransport(eta, lambda m: inside_transmittance(m, eta), depth_grid(h0=0.001, growth=1.04,
@@ -122,7 +122,7 @@ def test_directions_of_single_plus_multiple_against_a_random_walk(eta, alpha):
     alike: 0.999 0.5 % against 0.5 %, 0.96 2.1 % against 1.1 %, 0.68 (skin1's blue) 2.6 % against 1.1 %.
     The walk's noise is about 1 % per bin at 200k paths: at 800k eq. 4's bins are within 1 % of the walk
     with no pattern."""
-    from translucency_addon.radiance import outgoing_radiance
+    from translucency_addon.diffusion.radiance import outgoing_radiance
 
     bins, sub = 10, 64
     split = HalfSpaceSplit(eta)
@@ -181,7 +181,7 @@ def _images(ev, scene):
 
     from bench.accuracy_core import SUPERSAMPLE, solve, view_dirs
     from bench.reference.raster import rasterize
-    from translucency_addon.diffusion import DiffusionSolver, SolveOptions
+    from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
 
     bk, _ = ev.bake(scene, quality="draft")
     solver = DiffusionSolver(bk, scene.material, ev.field_values(scene, bk), SolveOptions(solver="fast", tol=1e-5))

@@ -21,12 +21,12 @@ import io
 import numpy as np
 import pytest
 
-from translucency_addon import meshio
+from translucency_addon.geometry import meshio
 from translucency_addon.errors import BakeCancelled, CacheError, MaterialError, MeshError
-from translucency_addon.fields import FieldSpec, evaluate_field
-from translucency_addon.fresnel import diffuse_reflectance_external, fresnel_transmittance
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material, Medium
+from translucency_addon.scene.fields import FieldSpec, evaluate_field
+from translucency_addon.scene.fresnel import diffuse_reflectance_external, fresnel_transmittance
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material, Medium
 from translucency_addon.single_scattering import (
     STAGES, SampleGrid, SingleScatteringData, SingleScatteringSettings, bake_single_scattering, integrate_view_rays,
     light_term, ray_sample_pairs, reference_vertices, render_vertices, view_rays, view_term, voxelise)

@@ -11,11 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from translucency_addon import cache, meshio, primitives
-from translucency_addon.bake import BakeSettings, bake_mesh
-from translucency_addon.fields import FieldSpec, evaluate_field
-from translucency_addon.lights import Light
-from translucency_addon.materials import Material, material_from_preset, preset
+from translucency_addon import cache
+from translucency_addon.geometry import meshio, primitives
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh
+from translucency_addon.scene.fields import FieldSpec, evaluate_field
+from translucency_addon.scene.lights import Light
+from translucency_addon.scene.materials import Material, material_from_preset, preset
 from translucency_addon.single_scattering import (FrameEvaluator, GridField, SingleScatteringSettings, attach,
                                                   bake_single_scattering_for, expected_key, fingerprint_field,
                                                   graph_key, stale_message, staleness)

@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from translucency_addon import meshio
-from translucency_addon.materials import Material, Medium
-from translucency_addon.raycast import TriangleBVH
+from translucency_addon.geometry import meshio
+from translucency_addon.scene.materials import Material, Medium
+from translucency_addon.geometry.raycast import TriangleBVH
 from translucency_addon.single_scattering import (SingleScatteringSettings, all_ray_sample_pairs,
                                                   bake_single_scattering, integrate_view_rays, shapes, view_rays,
                                                   view_term)

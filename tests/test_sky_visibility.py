@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""Self-occlusion of world light and the interreflection bounce (translucency_addon/sky_visibility.py).
+"""Self-occlusion of world light and the interreflection bounce (translucency_addon/diffusion/sky_visibility.py).
 
 Independent checks: a convex body hides no sky (nothing changes); the white
 furnace (a non-absorbing body under uniform light sends back what it gets,
@@ -13,12 +13,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from translucency_addon import cache, primitives
-from translucency_addon.bake import BakeSettings, bake_mesh, mesh_key
-from translucency_addon.diffusion import DiffusionSolver, SolveOptions
+from translucency_addon import cache
+from translucency_addon.geometry import primitives
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh, mesh_key
+from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
 from translucency_addon.errors import CacheError
-from translucency_addon.lights import Environment
-from translucency_addon.materials import Material, Medium, material_from_preset
+from translucency_addon.scene.lights import Environment
+from translucency_addon.scene.materials import Material, Medium, material_from_preset
 from test_ops_bake import activate, cache_dir, radiance  # noqa: F401 (fixture)
 
 UNIFORM = Environment((1.0, 1.0, 1.0))
@@ -124,7 +125,7 @@ def test_marble_bunny_is_closer_to_the_path_tracer():
     from bench.accuracy_core import SUPERSAMPLE, Evaluator, view_dirs
     from bench.reference.metrics import relative_rms
     from bench.reference.raster import rasterize
-    from translucency_addon.sky_visibility import compute_sky_visibility
+    from translucency_addon.diffusion.sky_visibility import compute_sky_visibility
 
     sc = next(s for s in scenes.reference_scenes(False) if s.name == "bunny_marble_sky")
     ref = scenes.get_reference(sc)
@@ -168,7 +169,7 @@ def test_the_operator_bakes_sky_visibility_and_solves_with_the_bounce(blender, a
     # The written radiance is the interreflected solve, not the first pass: compare with the engine
     # solving the same bake, material and world itself, with and without the bounce.
     from translucency.ops import scene_inputs
-    from translucency.translucency_addon.diffusion import DiffusionSolver, SolveOptions
+    from translucency.translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
 
     written = radiance(obj)
     env, _, _ = scene_inputs.world_environment(bpy.context.scene.world)
@@ -191,8 +192,8 @@ def test_one_block_solve_equals_the_two_passes_and_a_direct_solve(torus_bake):
     not use interreflection.py) and the sparse LU of the 2N block system."""
     from scipy.sparse.linalg import splu
 
-    from translucency_addon.interreflection import BouncedSystem, bounce_operator
-    from translucency_addon.lights import Light
+    from translucency_addon.diffusion.interreflection import BouncedSystem, bounce_operator
+    from translucency_addon.scene.lights import Light
 
     s = DiffusionSolver(torus_bake, material_from_preset("skin1"), options=SolveOptions(tol=1e-10))
     sun = [Light("sun", irradiance=1000.0, direction=(0.3, -0.2, -1.0))]
@@ -221,7 +222,7 @@ def test_one_block_solve_equals_the_two_passes_and_a_direct_solve(torus_bake):
 
 def test_a_frame_does_not_depend_on_the_frame_before(torus_bake):
     """Warm-started from another frame's pair, a frame converges to its own answer."""
-    from translucency_addon.lights import Light
+    from translucency_addon.scene.lights import Light
 
     s = DiffusionSolver(torus_bake, material_from_preset("marble"), options=SolveOptions(tol=1e-8))
     before, _ = s.solve_interreflected([Light("sun", irradiance=1000.0, direction=(0.0, 0.0, -1.0))], UNIFORM)
@@ -237,8 +238,8 @@ def test_one_block_solve_carries_the_first_scatter_split(torus_bake):
     solve gives the two passes of the split solve, which differ from the solve without the split."""
     from scipy.sparse.linalg import splu
 
-    from translucency_addon.interreflection import bounced_system, one_solve_applies
-    from translucency_addon.lights import Light
+    from translucency_addon.diffusion.interreflection import bounced_system, one_solve_applies
+    from translucency_addon.scene.lights import Light
 
     s = DiffusionSolver(torus_bake, material_from_preset("skin1"), options=SolveOptions(tol=1e-10))
     assert one_solve_applies(s) == ""

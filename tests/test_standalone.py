@@ -19,7 +19,7 @@ import pytest
 
 from conftest import ROOT
 from data import MESHES, mesh_names, mesh_path
-from translucency_addon import meshio
+from translucency_addon.geometry import meshio
 
 # Written in pieces so this file does not match itself.
 _OUTSIDE = [

@@ -25,12 +25,12 @@ import io
 import numpy as np
 import pytest
 
-from translucency_addon import primitives
-from translucency_addon.composite import CompositeObject, InnerPart
+from translucency_addon.geometry import primitives
+from translucency_addon.scene.composite import CompositeObject, InnerPart
 from translucency_addon.errors import CacheError, MeshError
-from translucency_addon.fresnel import diffuse_reflectance_internal
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material, Medium
+from translucency_addon.scene.fresnel import diffuse_reflectance_internal
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material, Medium
 from translucency_addon.voxel_number_map import (VNMSettings, VoxelNumberMap, VoxelNumberMapEvaluator,
                                                  bake_voxel_number_map, kernel_bytes, lut_bytes, n_pairs,
                                                  packed_index)
@@ -279,7 +279,7 @@ def test_cache_round_trip_and_corrupt_data(hollow_sphere):
 
 def test_radiance_is_the_diffusion_output_query(hollow_sphere):
     """L_o = F_t(n . w_o) J+ / (pi eta^2) through the vertex weights: the unit of every other pass."""
-    from translucency_addon.fresnel import fresnel_transmittance
+    from translucency_addon.scene.fresnel import fresnel_transmittance
 
     cav, _ = hollow_sphere
     mat = Material(MED, eta=1.4)

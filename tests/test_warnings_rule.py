@@ -16,7 +16,7 @@ def _divide_in(module: str):
     return eval(code, {"__name__": module, "np": np})  # noqa: S307 -- a fixed expression
 
 
-@pytest.mark.parametrize("module", ["translucency_addon.cavity", "translucency.translucency_addon.cavity",
+@pytest.mark.parametrize("module", ["translucency_addon.inner_parts.cavity", "translucency.translucency_addon.inner_parts.cavity",
                                     "translucency_addon"])
 def test_numpy_warnings_from_the_engine_are_errors(module):
     with pytest.raises(RuntimeWarning, match="divide by zero"):

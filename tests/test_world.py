@@ -120,8 +120,8 @@ def test_hdri_world_solves_in_the_viewport_and_f12_with_its_sun_as_a_light(rende
 def test_mapping_rotation_turns_the_hdri_sun_and_the_sh(blender):
     from tools.make_hdri import sun_direction
     from translucency.ops import scene_inputs, world
-    from translucency.translucency_addon.environment_map import rotate_sh
-    from translucency.translucency_addon.world_nodes import euler_matrix
+    from translucency.translucency_addon.scene.environment_map import rotate_sh
+    from translucency.translucency_addon.scene.world_nodes import euler_matrix
 
     world.clear_cache()
     rot = (40.0, 0.0, 90.0)  # a tilt too: the sky without its sun is symmetric about Z

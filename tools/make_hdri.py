@@ -3,7 +3,7 @@
 
 Generated here, not photographed, and dedicated to the public domain (CC0 1.0):
 anyone may use it for anything.  It is a 1024 x 512 equirectangular map
-(Cycles' convention, ``translucency_addon.environment_map``), half-float
+(Cycles' convention, ``translucency_addon.scene.environment_map``), half-float
 OpenEXR with ZIP compression (~ 100 KB):
 
 * a sky above the horizon: blue, brighter towards the horizon,
@@ -43,7 +43,7 @@ def sun_direction() -> np.ndarray:
 def pixels() -> np.ndarray:
     """(h, w, 3) radiance, rows bottom to top."""
     sys.path.insert(0, str(ROOT))
-    from translucency_addon.environment_map import equirect_directions
+    from translucency_addon.scene.environment_map import equirect_directions
 
     w, h = SIZE
     d = equirect_directions(h, w)

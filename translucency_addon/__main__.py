@@ -161,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _fluid_parser(sub) -> None:
-    """The ``fluid`` subcommand (particle fluids, Kang & Kim 2013; ``fluid/cli.py``)."""
+    """The ``fluid`` subcommand (particle fluids, Kang & Kim 2013; ``cli_fluid.py``)."""
     f = sub.add_parser("fluid", help="solve a particle fluid frame by frame (Voronoi-fluid cells)")
     f.add_argument("points", help="(N, 3) or (F, N, 3) float array (.npy, numpy.save) of particle positions, "
                                   "object units; NaN rows are absent particles")
@@ -193,7 +193,7 @@ def _fluid_parser(sub) -> None:
 
 
 def cmd_fluid(a) -> int:
-    from .fluid.cli import run_fluid
+    from .cli_fluid import run_fluid
 
     check_files([("POINTS", a.points), ("--surface", a.surface)],
                 [("-o", a.output), ("--surface-out", a.surface_out), ("--stats", a.stats)])
@@ -201,9 +201,9 @@ def cmd_fluid(a) -> int:
 
 
 def cmd_bake(a) -> int:
-    from .bake import BakeSettings, bake_mesh, format_stats
+    from .quadgraph.bake import BakeSettings, bake_mesh, format_stats
     from .cache import save_bake
-    from .meshio import load_obj
+    from .geometry.meshio import load_obj
 
     check_files([("MESH", a.mesh)] + arg.inner_paths(a.inner), [("-o", a.output)])
     settings = BakeSettings(quality=a.quality, levels=a.levels, mm_per_unit=a.mm_per_unit,
@@ -229,13 +229,13 @@ def cmd_bake(a) -> int:
         except ValueError as exc:
             raise TranslucencyError(f"single scattering: {exc}") from None
     if a.inner or a.voxel_number_map:
-        from .composite_bake import bake_composite, composite_from_files
+        from .inner_parts.bake import bake_composite, composite_from_files
         from .voxel_number_map import VNMSettings
 
         material = material or material_from_args(a)
         field = None
         if material.heterogeneous:
-            from .fields import evaluate_field
+            from .scene.fields import evaluate_field
 
             spec = field_spec_from_args(a, V)
             field = lambda p: evaluate_field(spec, p)  # noqa: E731

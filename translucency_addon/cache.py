@@ -26,9 +26,9 @@ import zlib
 import numpy as np
 
 from . import __version__
-from .bake import Bake, BakeSettings
+from .quadgraph.bake import Bake, BakeSettings
 from .errors import CacheError
-from .quadgraph import GraphLevel
+from .quadgraph.levels import GraphLevel
 
 CACHE_FORMAT = 2  # 2: each level's tetrahedral mesh (deformation.py) is stored too
 READABLE_FORMATS = (1, 2)  # a format-1 cache still solves; deforming it asks for a re-bake
@@ -240,7 +240,7 @@ def load_bake(path, expected_key: str | None = None) -> Bake:
             ss = SingleScatteringData.from_arrays(arrays, prefix="ss/")
         sky = None
         if meta.get("sky"):
-            from .sky_visibility import SkyVisibility
+            from .diffusion.sky_visibility import SkyVisibility
 
             sky = SkyVisibility.from_arrays(arrays, n, len(arrays["mesh/V"]), prefix="sky/")
         vnm = None
@@ -250,7 +250,7 @@ def load_bake(path, expected_key: str | None = None) -> Bake:
             vnm = VoxelNumberMap.from_arrays(arrays, prefix="vnm/")
         comp = None
         if meta.get("composite"):
-            from .composite_bake import CompositeInfo
+            from .inner_parts.bake import CompositeInfo
 
             comp = CompositeInfo.from_arrays(arrays, levels, prefix="composite/")
         bake = Bake(

@@ -38,7 +38,7 @@ def in_range(lo: float, hi: float, what: str, cast=float, lo_open: bool = False,
 
 
 def mm_per_unit(text):
-    from .materials import check_mm_per_unit
+    from .scene.materials import check_mm_per_unit
 
     return checked(check_mm_per_unit, "--mm-per-unit")(text)
 
@@ -50,7 +50,7 @@ def radius(text):
 
 
 def eta(text):
-    from .fresnel import check_eta
+    from .scene.fresnel import check_eta
 
     return checked(check_eta, "--eta")(text)
 
@@ -118,14 +118,14 @@ def material_args(parser, prefix: str) -> None:
 
 def field_spec_from_args(a, V):
     """The mixing field of a heterogeneous material: --field, or marble at a quarter of the mesh size."""
-    from .fields import FieldSpec
+    from .scene.fields import FieldSpec
 
     kind, scale = a.field or ("marble", 0.25 * float(np.max(np.ptp(np.asarray(V), axis=0))))
     return FieldSpec(kind=kind, scale=scale)
 
 
 def material_from_args(a):
-    from .materials import Material, Medium, material_from_preset, preset
+    from .scene.materials import Material, Medium, material_from_preset, preset
 
     if a.sigma_a is not None or a.sigma_s is not None:
         if a.sigma_a is None or a.sigma_s is None:
@@ -135,7 +135,7 @@ def material_from_args(a):
 
 
 def lights_from_args(a):
-    from .lights import Environment, Light
+    from .scene.lights import Environment, Light
 
     lights = []
     for d, e in a.sun:

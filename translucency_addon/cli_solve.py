@@ -17,8 +17,8 @@ from .errors import TranslucencyError
 
 def cmd_solve(a) -> int:
     from .cache import load_bake
-    from .diffusion import DiffusionSolver, SolveOptions
-    from .fields import evaluate_field
+    from .diffusion.solver import DiffusionSolver, SolveOptions
+    from .scene.fields import evaluate_field
 
     from .cache import write_files
 
@@ -42,7 +42,7 @@ def cmd_solve(a) -> int:
     if a.field_values is not None and a.field is not None:
         raise TranslucencyError("--field-values and --field both give the mixing field: use one")
     if a.field_values is not None:
-        from .fields import load_vertex_field, vertex_field_at_nodes
+        from .scene.fields import load_vertex_field, vertex_field_at_nodes
 
         weights = load_vertex_field(a.field_values, len(bake.mesh_vertices))
         field_values = [vertex_field_at_nodes(bake.mesh_vertices, weights, lv.position) for lv in bake.levels]
@@ -58,7 +58,7 @@ def cmd_solve(a) -> int:
                                "cavity exchange and Voxel Number Map are baked in the rest pose and are not "
                                "deformed; re-bake the posed mesh instead")
     if a.deformed:  # after the field: the material stays attached to the rest pose
-        from .deformation import deform_from_obj
+        from .deformation.pose import deform_from_obj
 
         pose = deform_from_obj(bake, a.deformed)
         deformation = {"worst_link_stretch": pose.report.worst_stretch, "inverted_tets": pose.report.inverted_tets,
@@ -87,7 +87,7 @@ def cmd_solve(a) -> int:
     if passes.use_ms:
         solver_material, solver_field = material, field_values
         if bake.composite is not None:  # inner parts: per-node media (composite_bake)
-            from .composite_bake import diffusion_material
+            from .inner_parts.bake import diffusion_material
 
             solver_material, solver_field = diffusion_material(material, bake.composite, field_values)
         solver = DiffusionSolver(bake, solver_material, solver_field, SolveOptions(solver=a.solver, tol=a.tol))
@@ -99,7 +99,7 @@ def cmd_solve(a) -> int:
         else "the planner leaves it out: " + _why(plan, plan.voxel_number_map))}
 
     def voxel_number_map():
-        from .composite_bake import solve_voxel_number_map
+        from .inner_parts.bake import solve_voxel_number_map
 
         L_vnm, stats_vnm = solve_voxel_number_map(bake, outer_material, lights, env, view, shadows=not a.no_shadows)
         vnm_stats.clear()

@@ -148,7 +148,7 @@ def single_scattering_needed(material, thickness_mm: float) -> str:
     (diffusion there returns a fraction of the light, or several times too much).  A bake asks this
     first, so no default scene renders black because a pass was not baked.
     """
-    from .materials import reduced_albedo
+    from .scene.materials import reduced_albedo
     from .planner import ALBEDO_MIN, THICK_MIN
 
     media = [material.medium_a] + ([material.medium_b] if material.medium_b is not None else [])
@@ -186,7 +186,7 @@ def diffuse(solver, bake, lights, environment, passes: FramePasses, *, tol: floa
     lights = list(lights)
     exchange = getattr(getattr(bake, "composite", None), "exchange", None)
     if exchange is not None:
-        from .cavity import solve_with_cavities
+        from .inner_parts.cavity import solve_with_cavities
 
         result, info = solve_with_cavities(solver, exchange, lights, environment, tol=tol, warm_start=warm_start,
                                            shadows=shadows, occluders=occluders, channels=passes.ms_channels,

@@ -46,7 +46,7 @@ below and in the tests.
   path-traced marble sphere diffusion alone is within 2 %, diffusion plus
   that pass 7.5 % off), so the RBF pass stays off there.  Instead the diffusion
   solve splits it off (:attr:`PassDecision.split`, the first-scatter split of
-  :mod:`.single_scattering.closed_form`): closed-form single scattering of the
+  :mod:`.diffusion.split`): closed-form single scattering of the
   local half-space plus the diffusion of what scatters more, which add up.
   It runs in every channel where its single-scattering term brings at least
   ``NEGLIGIBLE`` (1 %) of the object's peak (the brightest channel's
@@ -88,8 +88,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .lights import Environment
-from .materials import Material
+from .scene.lights import Environment
+from .scene.materials import Material
 from .planner_changes import ChangeTracker, FrameWork, ObjectState, fingerprint, light_fingerprint
 from .planner_facts import fluid_thickness, light_reaching, object_thickness, surface_thickness, unlit_misses
 from .planner_messages import (CHANNELS, MEASURED_INNER_PARTS, SS_HINT, advice_text, describe_plan, plan_reason_text,
@@ -97,7 +97,7 @@ from .planner_messages import (CHANNELS, MEASURED_INNER_PARTS, SS_HINT, advice_t
 from .planner_rules import (ALBEDO_MIN, NEGLIGIBLE, THICK_MIN, Decision, Reason, Why, decide_diffusion,
                             decide_single, decide_split, force, hand_over, is_lit, measure, nothing_runs,
                             replacement_pass, skip_object)
-from .single_scattering.closed_form import half_space_split, semi_infinite_albedo  # the planner's measure
+from .diffusion.split import half_space_split, semi_infinite_albedo  # the planner's measure
 
 __all__ = [  # the public names, wherever they are defined (tests, ops/, bench/ and the CLI import them from here)
     "ALBEDO_MIN", "CHANNELS", "FLUID_MS_PER_PARTICLE", "MEASURED_INNER_PARTS", "NEGLIGIBLE", "SS_HINT", "THICK_MIN",

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .lights import Light
+from .scene.lights import Light
 
 
 def fingerprint(*parts) -> str:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .lights import spot_falloff
+from .scene.lights import spot_falloff
 
 
 def surface_thickness(bake) -> np.ndarray:
@@ -32,7 +32,7 @@ def surface_thickness(bake) -> np.ndarray:
     cached = _THICKNESS.get(key)
     if cached is not None and cached[0] is lv.position:
         return cached[1]
-    from .raycast import TriangleBVH
+    from .geometry.raycast import TriangleBVH
 
     V = np.asarray(bake.mesh_vertices, dtype=np.float64)
     diag = float(np.linalg.norm(np.ptp(V, axis=0)))

@@ -17,8 +17,8 @@ from enum import Enum
 
 import numpy as np
 
-from .materials import reduced_albedo
-from .single_scattering.closed_form import half_space_split, semi_infinite_albedo
+from .scene.materials import reduced_albedo
+from .diffusion.split import half_space_split, semi_infinite_albedo
 
 ALBEDO_MIN = 0.5  # diffusion needs on average one scattering event before absorption (reduced albedo)
 THICK_MIN = 1.0  # ... and a local thickness of at least one transport mean free path
@@ -303,7 +303,7 @@ def decide_diffusion(f: ObjectFacts, ss_available: bool, single_pass: bool = Tru
 def decide_split(f: ObjectFacts, diffusion: Decision, split_on: bool) -> tuple:
     """The first-scatter split runs in a channel where diffusion runs and its closed-form single scattering
     brings at least NEGLIGIBLE of the object's peak: s(alpha) E >= NEGLIGIBLE max_c (s + M)(alpha) E (the
-    half-space's once-scattered and multiply-scattered returns, :func:`.single_scattering.closed_form.
+    half-space's once-scattered and multiply-scattered returns, :func:`.diffusion.split.
     half_space_split`).  ``split_on``: not turned off, and the object has single scattering at all."""
     return tuple(bool(split_on and diffusion.channels[c] and f.ss_closed_form[c] >= NEGLIGIBLE * f.peak)
                  for c in range(3))

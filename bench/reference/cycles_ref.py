@@ -252,7 +252,7 @@ def main(argv=None):
     from bench.reference import metrics
     from bench.reference.mitsuba_ref import render_reference
     from bench.reference.scene import sphere_env
-    from translucency_addon.materials import Material, Medium, material_from_preset
+    from translucency_addon.scene.materials import Material, Medium, material_from_preset
 
     if a.material == "white":
         mat = Material(Medium((0.0, 0.0, 0.0), (2.19, 2.62, 3.00), "white"), eta=1.3)

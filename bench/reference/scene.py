@@ -5,12 +5,12 @@ Conventions (see ``docs/reference.md``):
 
 * Geometry ``V`` (n, 3) and ``F`` (m, 3) are in **object units**; ``mm_per_unit``
   converts them to millimetres, like a bake (``docs/architecture.md``).
-* The material is a :class:`translucency_addon.materials.Material` (per-mm
+* The material is a :class:`translucency_addon.scene.materials.Material` (per-mm
   ``sigma_a`` and reduced ``sigma_s'``, ``eta``); an optional
-  :class:`translucency_addon.fields.FieldSpec` mixes its two media.
-* Lights are :class:`translucency_addon.lights.Light` in object space (point
+  :class:`translucency_addon.scene.fields.FieldSpec` mixes its two media.
+* Lights are :class:`translucency_addon.scene.lights.Light` in object space (point
   intensity in W/sr with 1/r^2 in metres, sun irradiance in W/m^2) plus an
-  optional uniform :class:`~translucency_addon.lights.Environment`.
+  optional uniform :class:`~translucency_addon.scene.lights.Environment`.
 * The camera is orthographic or perspective (:class:`Camera`).  Pixel ``(i, j)``
   is row ``i`` from the **top**, column ``j`` from the **left**; its centre is
   at ``((j + 0.5) / W, (i + 0.5) / H)`` of the image.  The camera's right vector
@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from translucency_addon.fields import FieldSpec
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material
+from translucency_addon.scene.fields import FieldSpec
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material
 
 
 def _unit(v, what: str) -> np.ndarray:
@@ -285,7 +285,7 @@ class RefScene:
             raise ValueError("a heterogeneous material needs a FieldSpec (RefScene.field)")
         for light in self.lights:
             if not isinstance(light, Light):
-                raise TypeError(f"lights must be translucency_addon.lights.Light, got {type(light).__name__}")
+                raise TypeError(f"lights must be translucency_addon.scene.lights.Light, got {type(light).__name__}")
         for em in self.emitters:
             if not isinstance(em, RefEmitter):
                 raise TypeError(f"emitters must be RefEmitter, got {type(em).__name__}")
@@ -306,7 +306,7 @@ class RefScene:
         """Mixing field at object-space points, or None for a homogeneous material."""
         if not self.material.heterogeneous:
             return None
-        from translucency_addon.fields import evaluate_field
+        from translucency_addon.scene.fields import evaluate_field
 
         return evaluate_field(self.field, points)
 
@@ -365,7 +365,7 @@ def sky_environment(to_light=(0.4, 0.5, 1.0), lobe: int = 2, irradiance: float =
     This is the reference's stand-in for a sun: a path tracer cannot render a
     delta light behind a smooth dielectric (``mitsuba_ref._emitters``).
     """
-    from translucency_addon.sh import fibonacci_directions, sh_basis
+    from translucency_addon.scene.sh import fibonacci_directions, sh_basis
 
     if lobe not in _LOBE_FACING_IRRADIANCE:
         raise ValueError(f"lobe must be 0, 1 or 2 (SH order <= 2), got {lobe}")
@@ -409,7 +409,7 @@ def sphere_env(
 
 
 def _framed_mesh(path, size_mm, mm_per_unit, view_direction, up, margin):
-    from translucency_addon.meshio import load_obj
+    from translucency_addon.geometry.meshio import load_obj
 
     V, F = load_obj(path)
     lo, hi = V.min(axis=0), V.max(axis=0)

@@ -28,8 +28,8 @@ from bench.reference.mitsuba_ref import render_mask, render_reference  # noqa: E
 from bench.reference.raster import rasterize  # noqa: E402
 from bench.reference.scene import Camera, mesh_sky, mesh_sun, sky_environment, sphere_env  # noqa: E402
 from data import mesh_path  # noqa: E402
-from translucency_addon.fields import FieldSpec  # noqa: E402
-from translucency_addon.materials import Material, Medium, material_from_preset, preset  # noqa: E402
+from translucency_addon.scene.fields import FieldSpec  # noqa: E402
+from translucency_addon.scene.materials import Material, Medium, material_from_preset, preset  # noqa: E402
 
 WHITE = Medium((0.0, 0.0, 0.0), (2.19, 2.62, 3.00), "white-marble")  # albedo 1, marble's sigma_s'
 

@@ -69,15 +69,16 @@ ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from translucency_addon import cache, meshio, primitives  # noqa: E402
-from translucency_addon.bake import BakeSettings, bake_mesh  # noqa: E402
-from translucency_addon.diffusion import DiffusionSolver, SolveOptions  # noqa: E402
+from translucency_addon import cache  # noqa: E402
+from translucency_addon.geometry import meshio, primitives  # noqa: E402
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh  # noqa: E402
+from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions  # noqa: E402
 from translucency_addon.errors import CacheError, GraphTooLarge, MaterialError, MeshError  # noqa: E402
-from translucency_addon.fields import FieldSpec, evaluate_field  # noqa: E402
-from translucency_addon.lights import Environment, Light  # noqa: E402
-from translucency_addon.graph import graph_components  # noqa: E402,F401 - the engine's own, also used by test_hard_cases
+from translucency_addon.scene.fields import FieldSpec, evaluate_field  # noqa: E402
+from translucency_addon.scene.lights import Environment, Light  # noqa: E402
+from translucency_addon.diffusion.graph import graph_components  # noqa: E402,F401 - the engine's own, also used by test_hard_cases
 from data import mesh_path  # noqa: E402
-from translucency_addon.materials import Material, Medium, material_from_preset  # noqa: E402
+from translucency_addon.scene.materials import Material, Medium, material_from_preset  # noqa: E402
 
 
 TOL = 1e-5  # relative residual of every iterative solve here (the GPU tests' tolerance)
@@ -733,7 +734,7 @@ def residual_floor(run: Run, level: int) -> float:
     """
     if not run.solver_name.startswith("gpu"):
         return TOL
-    from translucency_addon.spectral import spectral_bounds
+    from translucency_addon.diffusion.spectral import spectral_bounds
 
     lam_min, _ = spectral_bounds(run.solver.systems[level])
     return max(TOL, 2.0 * FP32_EPS / float(np.min(lam_min)))

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
-"""Hard cases of the cavity exchange (``translucency_addon/cavity.py``; issue 35, contract in ``passes.py``).
+"""Hard cases of the cavity exchange (``translucency_addon/inner_parts/cavity.py``; issue 35, contract in ``passes.py``).
 
 An object with a closed hollow is baked as a QuadGraph of the outer surface plus the cavity turned inside
 out (``composite_bake.bake_composite``); the exchange between the hollow's wall nodes is solved by GMRES
@@ -25,14 +25,14 @@ import functools
 
 import numpy as np
 
-from translucency_addon import primitives
-from translucency_addon.bake import BakeSettings
-from translucency_addon.cavity import exchange_power, solve_with_cavities
-from translucency_addon.composite import CompositeObject, InnerPart
-from translucency_addon.composite_bake import bake_composite
-from translucency_addon.diffusion import DiffusionSolver, SolveOptions
-from translucency_addon.lights import Light
-from translucency_addon.materials import Material, Medium
+from translucency_addon.geometry import primitives
+from translucency_addon.quadgraph.bake import BakeSettings
+from translucency_addon.inner_parts.cavity import exchange_power, solve_with_cavities
+from translucency_addon.scene.composite import CompositeObject, InnerPart
+from translucency_addon.inner_parts.bake import bake_composite
+from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
+from translucency_addon.scene.lights import Light
+from translucency_addon.scene.materials import Material, Medium
 
 from .passes import Bound, Outcome, PassCase, finite_nonnegative
 

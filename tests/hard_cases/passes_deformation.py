@@ -19,14 +19,14 @@ from functools import lru_cache
 
 import numpy as np
 
-from translucency_addon import primitives
-from translucency_addon.bake import BakeSettings, bake_mesh
-from translucency_addon.deformation import FOLD_VOLUME, STRETCH_LIMIT, DeformationRig
-from translucency_addon.deformation_frames import DeformationFrames, pose_solver
-from translucency_addon.diffusion import SolveOptions
+from translucency_addon.geometry import primitives
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh
+from translucency_addon.deformation.pose import FOLD_VOLUME, STRETCH_LIMIT, DeformationRig
+from translucency_addon.deformation.frames import DeformationFrames, pose_solver
+from translucency_addon.diffusion.solver import SolveOptions
 from translucency_addon.errors import GraphFolded
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import material_from_preset
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import material_from_preset
 
 from .passes import Bound, Outcome, PassCase, finite_nonnegative
 
@@ -61,7 +61,7 @@ def solve(bake, lights=None, environment=ENV):
 
 
 def pose_solver_for(bake):
-    from translucency_addon.diffusion import DiffusionSolver
+    from translucency_addon.diffusion.solver import DiffusionSolver
 
     return DiffusionSolver(bake, MARBLE, options=SolveOptions(tol=TOL))
 

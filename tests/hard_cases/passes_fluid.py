@@ -21,8 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from translucency_addon.fluid import FluidOptions, FluidSolver
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import material_from_preset
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import material_from_preset
 
 from .passes import Bound, Outcome, PassCase, finite_nonnegative
 

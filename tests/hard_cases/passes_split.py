@@ -23,11 +23,11 @@ from functools import lru_cache
 
 import numpy as np
 
-from translucency_addon.diffusion import DiffusionSolver, SolveOptions
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material, Medium
+from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material, Medium
 from translucency_addon.planner import ALBEDO_MIN, plan_object
-from translucency_addon.single_scattering.closed_form import HalfSpaceSplit, half_space_split  # noqa: F401
+from translucency_addon.diffusion.split import HalfSpaceSplit, half_space_split  # noqa: F401
 
 from .passes import Bound, Outcome, PassCase, finite_nonnegative
 

@@ -23,10 +23,10 @@ import functools
 
 import numpy as np
 
-from translucency_addon import primitives
-from translucency_addon.composite import CompositeObject, InnerPart
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material, Medium
+from translucency_addon.geometry import primitives
+from translucency_addon.scene.composite import CompositeObject, InnerPart
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material, Medium
 from translucency_addon.voxel_number_map import VNMSettings, VoxelNumberMapEvaluator, bake_voxel_number_map
 from translucency_addon.voxel_number_map.bake import choose_resolution
 

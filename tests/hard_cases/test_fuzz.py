@@ -28,12 +28,13 @@ import numpy as np
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from translucency_addon import cache, primitives
-from translucency_addon.bake import BakeSettings, bake_mesh, mesh_key
+from translucency_addon import cache
+from translucency_addon.geometry import primitives
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh, mesh_key
 from translucency_addon.errors import CacheError
-from translucency_addon.fields import FieldSpec, evaluate_field
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material, Medium
+from translucency_addon.scene.fields import FieldSpec, evaluate_field
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material, Medium
 
 from . import cases as hc
 

@@ -21,7 +21,7 @@ import numpy as np
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from translucency_addon import primitives
+from translucency_addon.geometry import primitives
 from translucency_addon.errors import TranslucencyError
 
 from . import passes_deformation as pd

@@ -20,11 +20,11 @@ import numpy as np
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from translucency_addon import primitives
-from translucency_addon.composite import CompositeObject, InnerPart
+from translucency_addon.geometry import primitives
+from translucency_addon.scene.composite import CompositeObject, InnerPart
 from translucency_addon.errors import TranslucencyError
-from translucency_addon.lights import Environment, Light
-from translucency_addon.materials import Material, Medium
+from translucency_addon.scene.lights import Environment, Light
+from translucency_addon.scene.materials import Material, Medium
 from translucency_addon.voxel_number_map import VNMSettings, bake_voxel_number_map
 
 from . import passes_cavity as pc

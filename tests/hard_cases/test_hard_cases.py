@@ -85,7 +85,7 @@ def _report(metrics: dict, extra: str = "") -> str:
 
 @pytest.mark.parametrize("case", _params(CPU_CASES), indirect=True)
 def test_our_scheme_on_the_cpu(case):
-    from translucency_addon.quadgraph import check_invariants
+    from translucency_addon.quadgraph.levels import check_invariants
 
     problems = []
     for scn in case:
@@ -199,8 +199,8 @@ def _chebyshev_bound(system, tol):
     from scipy.sparse import diags
     from scipy.sparse.linalg import eigsh
 
-    from translucency_addon.assembly import sparse_matrix
-    from translucency_addon.spectral import gershgorin_upper
+    from translucency_addon.diffusion.assembly import sparse_matrix
+    from translucency_addon.diffusion.spectral import gershgorin_upper
 
     worst = 0.0
     for c in range(3):
@@ -303,8 +303,8 @@ def test_grazing_light_adds_almost_nothing_to_the_grazed_face(grazing_light):
 def test_light_inside_is_not_a_surface_source(light_inside, thin_shell):
     """A light inside contributes nothing (with a warning); just outside it lights as usual;
     in the hollow of the shell it is outside the medium and lights the inner wall."""
-    from translucency_addon.diffusion import DiffusionSolver, SolveOptions
-    from translucency_addon.lights import Light
+    from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
+    from translucency_addon.scene.lights import Light
 
     torus = next(s for s in light_inside if s.variant.startswith("torus"))
     inside = torus.lights[0]
@@ -393,7 +393,7 @@ def test_rejected_with_a_message(case):
 def test_texture_limit_splits_into_layers():
     """Under a 64-texel limit the finest level is split over array-texture layers and still solves."""
     from gpu_shaders.solver import GPUDiffusionSolver
-    from translucency_addon.diffusion import SolveOptions
+    from translucency_addon.diffusion.solver import SolveOptions
 
     scn = hc.build_no_lights()[0]
     scn = replace(scn, case="texture_limit", variant="split", lights=[hc.SUN], environment=hc.ENV1,
@@ -414,7 +414,7 @@ def test_texture_limit_splits_into_layers():
 @pytest.mark.gpu
 def test_texture_limit_falls_back_to_the_cpu_with_the_reason():
     import gpu_shaders
-    from translucency_addon.diffusion import DiffusionSolver, SolveOptions
+    from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
 
     b = hc.baked("sphere", 10.0)
     s, backend, msg = gpu_shaders.make_solver(b, hc.MARBLE, None, SolveOptions(), max_texture_size=32, max_layers=2)
@@ -499,7 +499,7 @@ BAD_MESHES = {
 
 
 def _nan_sphere():
-    from translucency_addon import primitives
+    from translucency_addon.geometry import primitives
 
     V, F = primitives.icosphere(1.0, 2)
     V = V.copy()
@@ -604,7 +604,7 @@ def test_blender_two_pieces_solve(blender, addon, cache_dir):
     import bpy
 
     from test_ops_bake import activate, add_light, radiance
-    from translucency_addon import primitives
+    from translucency_addon.geometry import primitives
 
     V, F = primitives.merge(primitives.icosphere(1.0, 2, center=(-2.0, 0.0, 0.0)),
                             primitives.icosphere(0.5, 2, center=(2.0, 0.0, 0.0)))
@@ -638,7 +638,7 @@ def test_a_level_without_light_solves_to_exactly_zero_whatever_the_warm_start():
     """A light grazing the surface can light the coarse level's nodes and none of the finest's (the
     fuzz found one: a spot on the unit sphere).  The finest level's answer is then exactly 0, not the
     upsampled coarse solution the relative stopping test (|b| = 0) would accept."""
-    from translucency_addon.diffusion import DiffusionSolver, SolveOptions
+    from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
 
     b = hc.baked("sphere", 10.0)
     solver = DiffusionSolver(b, hc.MARBLE, options=SolveOptions(solver="fast"))
@@ -653,9 +653,9 @@ def test_a_solve_that_breaks_the_maximum_principle_is_redone_directly():
     """The FV solution lies in [0, max 4q/(1 - F_dr)]; an iterate outside is refused and the level is
     solved by sparse LU, with a warning that says so (the derandomised fuzz found a near-singular
     mix -- no absorption in one channel -- where Chebyshev wandered to 1e185 at a residual of 1e-5)."""
-    from translucency_addon import iterative
-    from translucency_addon.diffusion import DiffusionSolver, SolveOptions
-    from translucency_addon.iterative import BALANCE_TOL, energy_imbalance, outside_maximum_principle
+    from translucency_addon.diffusion import iterative
+    from translucency_addon.diffusion.solver import DiffusionSolver, SolveOptions
+    from translucency_addon.diffusion.iterative import BALANCE_TOL, energy_imbalance, outside_maximum_principle
 
     b = hc.baked("sphere", 10.0)
     q = [np.full((lv.n_surface, 3), 1.0) for lv in b.levels]

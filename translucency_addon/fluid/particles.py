@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ParticleError, RadiusError
-from ..meshio import DEFAULT_MEMORY_BUDGET_BYTES
+from ..geometry.meshio import DEFAULT_MEMORY_BUDGET_BYTES
 
 MAX_RADIUS_SPACING = 4.0  # radius / spacing beyond which cells would have hundreds of neighbours
 BYTES_PER_PARTICLE = 8_000  # peak bytes per particle over a frame (pairs, faces, graph, system): 7.4 kB measured at 262k (bench_fluid.md)
@@ -91,7 +91,7 @@ def suggest_radius(points) -> float:
 
 def check_radius(radius) -> float:
     """The particle radius as a float, or :class:`ParticleError`: a finite number > 0 of object units."""
-    from ..materials import check_positive
+    from ..scene.materials import check_positive
 
     return check_positive(radius, "the particle radius (object units)", ParticleError)
 

@@ -29,12 +29,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..diffusion import DiffusionSolver, SolveOptions, SolveResult
+from ..diffusion.solver import DiffusionSolver, SolveOptions, SolveResult
 from ..errors import MaterialError, MeshError
-from ..materials import check_mm_per_unit
-from ..meshio import DEFAULT_MEMORY_BUDGET_BYTES, vertex_normals
-from ..radiance import outgoing_radiance
-from ..spectral import gershgorin_upper
+from ..scene.materials import check_mm_per_unit
+from ..geometry.meshio import DEFAULT_MEMORY_BUDGET_BYTES, vertex_normals
+from ..diffusion.radiance import outgoing_radiance
+from ..diffusion.spectral import gershgorin_upper
 from .cellgraph import FluidGraph, build_graph
 from .cells import build_cells
 from .occluder import BallOccluder
@@ -80,7 +80,7 @@ class FluidDiffusionSolver(DiffusionSolver):
     shadow rays start and the inside test of lights are the fluid's (a union of balls, not a mesh)."""
 
     def shadow_bvh(self, occluders=None):
-        from ..raycast import TriangleBVH
+        from ..geometry.raycast import TriangleBVH
 
         occ = self.bake.occluder
         if occluders is None:

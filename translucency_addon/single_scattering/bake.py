@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .. import sh as shmod
+from ..scene import sh as shmod
 from ..errors import MaterialError
 from . import optical_depth as od
 from .data import SampleGrid, SingleScatteringData
@@ -90,7 +90,7 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
                            keep_volume: bool = False) -> SingleScatteringData:
     """Bake single-scattering samples for the closed mesh ``(V, F)`` (object space).
 
-    ``material``: :class:`~translucency_addon.materials.Material` (or anything
+    ``material``: :class:`~translucency_addon.scene.materials.Material` (or anything
     with ``.coefficients(field_values, n=...)`` and ``.heterogeneous``).
     ``field(points) -> values in [0, 1]`` mixes a two-medium material (a
     Blender texture sampler, or ``lambda p: evaluate_field(spec, p)``).
@@ -99,8 +99,8 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
     ``keep_volume``: attach the voxel volume as ``data.volume`` (not stored by ``to_arrays``).
     Raises :class:`MeshError` / :class:`MaterialError` for bad input.
     """
-    from ..meshio import validate_mesh
-    from ..raycast import TriangleBVH
+    from ..geometry.meshio import validate_mesh
+    from ..geometry.raycast import TriangleBVH
 
     s = (settings or SingleScatteringSettings()).validated()
     rng = np.random.default_rng(int(s.seed))

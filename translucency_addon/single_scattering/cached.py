@@ -1,4 +1,4 @@
-"""Single scattering baked beside a QuadGraph :class:`~translucency_addon.bake.Bake`: keys and staleness.
+"""Single scattering baked beside a QuadGraph :class:`~translucency_addon.quadgraph.bake.Bake`: keys and staleness.
 
 ``bake_single_scattering_for(bake, material, field, settings)`` bakes the RBF
 optical-depth samples of the bake's mesh at its ``mm_per_unit`` and records
@@ -77,7 +77,7 @@ def material_fingerprint(material) -> dict:
 
 
 def fingerprint_field(field, material=None):
-    """A string for a :class:`~translucency_addon.fields.FieldSpec`, a given string, or None.
+    """A string for a :class:`~translucency_addon.scene.fields.FieldSpec`, a given string, or None.
 
     None for a homogeneous material (the field does not enter) and for None.
     Callables have no fingerprint of their own: pass ``field_fingerprint=`` to
@@ -122,7 +122,7 @@ def expected_key(bake, settings=None, material=None, field=None, *, field_fp=Non
 
 
 def _default_material():
-    from ..materials import material_from_preset
+    from ..scene.materials import material_from_preset
 
     return material_from_preset("marble")
 
@@ -158,9 +158,9 @@ def bake_single_scattering_for(bake, material=None, field=None, settings: Single
                                volume=None, mesh=None, extra_inputs=None):
     """Bake single scattering for the mesh and scale of a QuadGraph ``bake``.
 
-    ``material``: a :class:`~translucency_addon.materials.Material` (default:
+    ``material``: a :class:`~translucency_addon.scene.materials.Material` (default:
     the marble preset).  ``field``: None, a
-    :class:`~translucency_addon.fields.FieldSpec`, or ``field(points) ->
+    :class:`~translucency_addon.scene.fields.FieldSpec`, or ``field(points) ->
     values`` (give ``field_fingerprint=`` to make its staleness checkable;
     otherwise a digest of the values it returns is recorded).  ``progress``,
     ``blockers``, ``volume``: as :func:`~.bake.bake_single_scattering` (an object with inner
@@ -172,7 +172,7 @@ def bake_single_scattering_for(bake, material=None, field=None, settings: Single
     :class:`~.data.SingleScatteringData` with ``stats["inputs"]`` and
     ``stats["key"]`` filled in; :func:`attach` puts it into the bake.
     """
-    from ..fields import evaluate_field
+    from ..scene.fields import evaluate_field
 
     material = material if material is not None else _default_material()
     s = (settings or SingleScatteringSettings()).validated()

@@ -101,7 +101,7 @@ class SingleScatteringData:
 
     Units: ``centers``, ``sigma``, ``support``, ``poisson_radius`` in object
     units; ``sigma_s`` per mm (RGB); ``sh`` dimensionless, ``(N, K, 3)`` with
-    K = (order+1)^2 real orthonormal SH (``translucency_addon.sh`` order and
+    K = (order+1)^2 real orthonormal SH (``translucency_addon.scene.sh`` order and
     signs).  The RBF of sample i is ``weight_i * exp(-a_i |x - b_i|^2)``,
     ``a_i = 1 / (2 sigma_i^2)``, zero beyond ``support_i`` (= 2.5 sigma_i).
     """

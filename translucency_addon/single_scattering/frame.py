@@ -39,8 +39,8 @@ class FrameEvaluator:
 
     def __init__(self, data, V, F, normals=None, *, points=None, point_normals=None, integrator=None,
                  far_clip: bool = True):
-        from ..meshio import vertex_normals
-        from ..raycast import TriangleBVH
+        from ..geometry.meshio import vertex_normals
+        from ..geometry.raycast import TriangleBVH
 
         self.data = data
         self.V = np.asarray(V, dtype=np.float64)
@@ -64,7 +64,7 @@ class FrameEvaluator:
     @property
     def bvh(self):
         if self._bvh is None:
-            from ..raycast import TriangleBVH
+            from ..geometry.raycast import TriangleBVH
 
             self._bvh = TriangleBVH(self.V, self.F)
         return self._bvh

@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import sh as shmod
+from ..scene import sh as shmod
 
 
 class Lattice:

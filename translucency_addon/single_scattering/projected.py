@@ -205,7 +205,7 @@ def exit_distances(bins: ImageBins, V, F, origins, dirs, tmin: float, max_pairs:
     The closest hit of ``TriangleBVH.intersect`` with the same ``tmin`` (same Moller-Trumbore
     arithmetic, ``raycast.ray_triangle``), found among the triangles whose image box holds the ray.
     """
-    from ..raycast import ray_triangle
+    from ..geometry.raycast import ray_triangle
 
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)

@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import sh as shmod
-from ..lights import light_irradiance
+from ..scene import sh as shmod
+from ..scene.lights import light_irradiance
 from .runtime import entry_transmittance
 from .volume import trilinear
 
@@ -181,7 +181,7 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
 def reference_vertices(volume, V, F, normals, lights, environment, eta: float, *, camera_position=None,
                        view_dir=None, vertices=None, bvh=None, far_clip: bool = True, **kw) -> np.ndarray:
     """Outgoing radiance at vertices from the brute-force reference (same exit factor as ``render_vertices``)."""
-    from ..raycast import TriangleBVH
+    from ..geometry.raycast import TriangleBVH
     from .runtime import exit_factor
 
     V = np.asarray(V, dtype=np.float64)

@@ -58,9 +58,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import sh as shmod
-from ..fresnel import diffuse_reflectance_external, fresnel_transmittance, check_eta
-from ..lights import light_irradiance
+from ..scene import sh as shmod
+from ..scene.fresnel import diffuse_reflectance_external, fresnel_transmittance, check_eta
+from ..scene.lights import light_irradiance
 from .projected import ImageBins, exit_distances
 from .ray_pairs import all_ray_sample_pairs, projected_pairs, ray_sample_pairs
 
@@ -210,7 +210,7 @@ def view_rays(V, F, normals, *, camera_position=None, view_dir=None, view_dirs=N
     lie inside the object, so this differs only by the tails beyond the far
     side and by re-entries of concave shapes, and costs no ray cast.
     """
-    from ..raycast import TriangleBVH
+    from ..geometry.raycast import TriangleBVH
 
     V = np.asarray(V, dtype=np.float64)
     if far_clip and bvh is None:
@@ -223,7 +223,7 @@ def rays_from_points(P, normals, *, camera_position=None, view_dir=None, view_di
                      bvh=None) -> ViewRays:
     """View rays from arbitrary surface points ``P`` with ``normals`` (e.g. the vertices of a
     mesh other than the baked one): like :func:`view_rays`, clipped by ``bvh`` (a
-    :class:`~translucency_addon.raycast.TriangleBVH` of the baked surface) or, when it is
+    :class:`~translucency_addon.geometry.raycast.TriangleBVH` of the baked surface) or, when it is
     None, integrated to infinity.  ``points`` restricts the rays to a subset of indices.
     """
     P_all = np.asarray(P, dtype=np.float64).reshape(-1, 3)
@@ -330,7 +330,7 @@ def render_vertices(data, V, F, normals, lights, environment, material, mm_per_u
     sum).  Vertices facing away from the viewer get 0.  ``vertices``
     restricts the evaluation to a subset of vertex indices (e.g. a decimated
     set); the others get 0.  ``far_clip``: see :func:`view_rays`.  ``material`` is a
-    :class:`~translucency_addon.materials.Material` (for eta) or eta itself.
+    :class:`~translucency_addon.scene.materials.Material` (for eta) or eta itself.
     The exit factor is ``F_t(n . w_o, eta) / eta^2``.  psi_i toward the viewer
     is evaluated per sample (toward the camera) unless ``per_ray_psi`` or
     ``view_dirs`` ask for each ray's own direction.

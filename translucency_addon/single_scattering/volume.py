@@ -125,7 +125,7 @@ def trilinear(grid: np.ndarray, origin, h: float, points) -> np.ndarray:
 def column_inside(bvh, origin, h: float, shape, max_crossings: int = 512) -> np.ndarray:
     """Inside test of every voxel centre by crossing parity along grid columns, 3-axis vote.
 
-    ``bvh`` is a :class:`~translucency_addon.raycast.TriangleBVH`; returns a
+    ``bvh`` is a :class:`~translucency_addon.geometry.raycast.TriangleBVH`; returns a
     bool array of ``shape``.
     """
     shape = tuple(int(s) for s in shape)
@@ -203,8 +203,8 @@ def voxelise(
     ``fine`` also computes the medium test at half-voxel resolution, which the
     sample placement uses to keep sample centres inside the mesh.
     """
-    from ..meshio import validate_mesh
-    from ..raycast import TriangleBVH
+    from ..geometry.meshio import validate_mesh
+    from ..geometry.raycast import TriangleBVH
 
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
@@ -281,10 +281,10 @@ def _coefficients(material, field, pts):
 
 def voxelise_composite(composite, *, resolution=48, mm_per_unit: float = 1.0, bvh=None,
                        fine: bool = False, walls: bool = True) -> VoxelVolume:
-    """Voxelise a :class:`~translucency_addon.composite.CompositeObject`: the outer mesh and its inner parts.
+    """Voxelise a :class:`~translucency_addon.scene.composite.CompositeObject`: the outer mesh and its inner parts.
 
     Every voxel gets the coefficients of the part it lies in (nesting, touching
-    and clipping resolved by :func:`~translucency_addon.composite.label_voxels`):
+    and clipping resolved by :func:`~translucency_addon.scene.composite.label_voxels`):
     the outer material (mixed by ``composite.field``) in the outer medium, the
     part's medium in a medium part, 0 in a cavity, and ``BLOCKER_SIGMA_T``
     (``blocked``) in an opaque part.  ``components`` holds, per voxel, the
@@ -292,10 +292,10 @@ def voxelise_composite(composite, *, resolution=48, mm_per_unit: float = 1.0, bv
     two media, then each medium part), so ``sigma_t = sum_c w_c sigma_t,c``:
     a quantity linear in the coefficients (an optical depth) can be baked once
     per component and weighted by coefficients chosen later.  ``walls``: see
-    :func:`~translucency_addon.composite.label_voxels`.
+    :func:`~translucency_addon.scene.composite.label_voxels`.
     """
-    from ..composite import check_parts_against_outer, label_voxels
-    from ..raycast import TriangleBVH
+    from ..scene.composite import check_parts_against_outer, label_voxels
+    from ..geometry.raycast import TriangleBVH
 
     mm_per_unit = float(mm_per_unit)
     if not np.isfinite(mm_per_unit) or mm_per_unit <= 0:

@@ -2,7 +2,7 @@
 using Voxel Number Map"): cavities and several media inside one object, bpy-free.
 
 Precomputation (:func:`bake_voxel_number_map`): voxelise the whole
-:class:`~translucency_addon.composite.CompositeObject` with the
+:class:`~translucency_addon.scene.composite.CompositeObject` with the
 single-scattering voxeliser (``voxelise_composite``), extract and number the
 surface voxels (:mod:`.surface`), and march every chord between two surface
 voxels through the voxels, storing its length in each component medium as a

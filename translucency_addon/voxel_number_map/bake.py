@@ -212,7 +212,7 @@ def choose_resolution(V, F, settings: VNMSettings, media: int = 2):
             raise MeshError(f"Voxel Number Map at resolution {res}: {budget_message(n, media, s.max_surface_voxels)}; "
                             f"lower the resolution to about {fit} or use 'auto'")
         return res, n, warnings
-    from ..meshio import triangle_areas
+    from ..geometry.meshio import triangle_areas
 
     area = float(triangle_areas(np.asarray(V), np.asarray(F)).sum())
     target = min(s.target, s.max_surface_voxels)
@@ -245,7 +245,7 @@ def map_key(composite, settings: VNMSettings, resolution: int, field_fingerprint
 
 def bake_voxel_number_map(composite, settings: VNMSettings | None = None, *, mm_per_unit: float = 1.0,
                           progress=None, field_fingerprint: str = "") -> VoxelNumberMap:
-    """Bake the Voxel Number Map of a :class:`~translucency_addon.composite.CompositeObject`.
+    """Bake the Voxel Number Map of a :class:`~translucency_addon.scene.composite.CompositeObject`.
 
     Everything that can be refused (bad parts, overlaps, open cavities, the
     budget) is refused before the long stages; nothing is written here (the
@@ -253,9 +253,9 @@ def bake_voxel_number_map(composite, settings: VNMSettings | None = None, *, mm_
     ``field_fingerprint``: identifies the outer material's mixing field (for a
     two-medium material), so a cache can tell when the field changed.
     """
-    from ..meshio import vertex_normals
-    from ..raycast import TriangleBVH
-    from ..sh import fibonacci_directions
+    from ..geometry.meshio import vertex_normals
+    from ..geometry.raycast import TriangleBVH
+    from ..scene.sh import fibonacci_directions
 
     s = (settings or VNMSettings()).validated()
     t_all = time.perf_counter()

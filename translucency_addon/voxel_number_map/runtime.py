@@ -30,9 +30,9 @@ import time
 
 import numpy as np
 
-from ..fresnel import fresnel_transmittance
-from ..lights import light_irradiance, shadow_visibility
-from ..radiance import outgoing_radiance
+from ..scene.fresnel import fresnel_transmittance
+from ..scene.lights import light_irradiance, shadow_visibility
+from ..diffusion.radiance import outgoing_radiance
 from .transport import Coefficients, environment_weights, prepare_kernel
 
 
@@ -43,14 +43,14 @@ def _light_key(light) -> tuple:
 class VoxelNumberMapEvaluator:
     """Radiance of one baked :class:`~.bake.VoxelNumberMap` for one material, frame after frame.
 
-    ``material``: the outer part's :class:`~translucency_addon.materials.Material`
+    ``material``: the outer part's :class:`~translucency_addon.scene.materials.Material`
     (the inner media come from the bake).  ``transmission``: an object with
     ``product(x) -> (n, 3)`` and ``set_coefficients(coef)`` running step 2 on
     another backend (``gpu_shaders.voxel_number_map``); None: numpy/BLAS.
     """
 
     def __init__(self, vnm, material, *, mm_per_unit: float | None = None, transmission=None):
-        from ..raycast import TriangleBVH
+        from ..geometry.raycast import TriangleBVH
 
         self.vnm = vnm
         self.mm_per_unit = float(vnm.mm_per_unit if mm_per_unit is None else mm_per_unit)
@@ -89,7 +89,7 @@ class VoxelNumberMapEvaluator:
 
     # -- step 1 ---------------------------------------------------------------------------------
     def _shadow_bvh(self, occluders):
-        from ..raycast import TriangleBVH
+        from ..geometry.raycast import TriangleBVH
 
         if occluders is None:
             return self.bvh, None
@@ -211,7 +211,7 @@ class VoxelNumberMapEvaluator:
     def power(self, J: np.ndarray, E_in: np.ndarray) -> dict:
         """Power (W per channel) that entered (``E_in`` from :meth:`sources`) and that leaves through the
         boundary, ``(1 - F_dr,int) J+`` over the surface voxels."""
-        from ..fresnel import diffuse_reflectance_internal
+        from ..scene.fresnel import diffuse_reflectance_internal
 
         a = self.vnm.surface.area * (self.mm_per_unit * 1e-3) ** 2
         return {"in": a @ E_in, "out": (1.0 - diffuse_reflectance_internal(self.eta)) * (a @ J)}

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..meshio import triangle_areas
+from ..geometry.meshio import triangle_areas
 
 
 @dataclass
@@ -149,8 +149,8 @@ def extend_into_surface_voxels(components: np.ndarray, blocked: np.ndarray, surf
 
 def vertex_weights(V, normals, surf: SurfaceVoxels, k: int = 6):
     """``(idx (n_v, k), w (n_v, k))``: each vertex's nearest patches, weighted like the QuadGraph's vertex map
-    (normal agreement squared over distance squared; :func:`translucency_addon.bake.vertex_mapping`)."""
-    from ..bake import vertex_mapping
+    (normal agreement squared over distance squared; :func:`translucency_addon.quadgraph.bake.vertex_mapping`)."""
+    from ..quadgraph.bake import vertex_mapping
 
     return vertex_mapping(np.asarray(V, dtype=np.float64), np.asarray(normals, dtype=np.float64), surf, k)
 

@@ -100,7 +100,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..fresnel import diffuse_reflectance_external, fresnel_transmittance
+from ..scene.fresnel import diffuse_reflectance_external, fresnel_transmittance
 from . import lut as lutmod
 
 MU_NODES = np.array([0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.7, 1.0])

@@ -123,15 +123,15 @@ import numpy as np
 
 from . import kernels
 from .assembly import assemble, node_coefficients
-from .errors import MaterialError, TranslucencyError
-from .fresnel import diffuse_reflectance_internal
+from ..errors import MaterialError, TranslucencyError
+from ..scene.fresnel import diffuse_reflectance_internal
 from .graph import SolverInput
 from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, energy_imbalance, outside_maximum_principle,
                         solve_direct)
-from .lights import environment_flux, incident_flux, shadow_visibility
-from .materials import Material
+from ..scene.lights import environment_flux, incident_flux, shadow_visibility
+from ..scene.materials import Material
 from .radiance import clamp_scale, outgoing_radiance
-from .single_scattering.closed_form import albedo, half_space_split
+from .split import albedo, half_space_split
 
 SOLVERS = ("fast", "paper", "direct", "jacobi")
 
@@ -145,7 +145,7 @@ class SolveOptions:
     coarse_tol: float | None = None  # tolerance on coarser levels (default: tol)
     levels: str = "all"  # "all": multi-resolution warm start; "finest": single level
     sky_occlusion: bool = True  # use the bake's sky visibility (when baked) for environment light
-    # The first-scatter split (single_scattering/closed_form.py): closed-form single scattering added to the
+    # The first-scatter split (diffusion/split.py): closed-form single scattering added to the
     # output, the diffusion's boundary source reduced to what scatters more, so the two add up.  True: every
     # channel; a solve's ``single=`` (the planner's channels) overrides it.
     single_scattering: bool = False
@@ -256,7 +256,7 @@ class DiffusionSolver:
         :class:`~.raycast.TriangleBVH` of the whole scene.  The combined BVH is
         cached and rebuilt only when the occluder arrays change.
         """
-        from .raycast import TriangleBVH
+        from ..geometry.raycast import TriangleBVH
 
         if isinstance(occluders, TriangleBVH):
             return occluders
@@ -339,7 +339,7 @@ class DiffusionSolver:
         cand = [light for light in lights if light.kind != "sun"]
         if not cand:
             return []
-        from .raycast import inside_mesh
+        from ..geometry.raycast import inside_mesh
 
         cache = self.cache.setdefault("inside", {})
         keys = [tuple(float(x) for x in light.position) for light in cand]
@@ -441,7 +441,7 @@ class DiffusionSolver:
         """``(diffusion source per level, incident q per level or None, channels)`` of the split.
 
         In the channels of ``single`` (default: all when ``options.single_scattering``) the light that
-        entered, q, is split over the local half-space (:mod:`.single_scattering.closed_form`): the part
+        entered, q, is split over the local half-space (:mod:`.diffusion.split`): the part
         ``s(alpha) q`` that leaves after one scattering is the closed-form single-scattering term the output
         adds (:meth:`split_radiance_at`), and the diffusion solves for ``m(alpha) q`` (``m <= 1 - s``), the
         source whose half-space return is the multiple scattering M(alpha); alpha is each surface node's.
@@ -468,7 +468,7 @@ class DiffusionSolver:
 
         ``L`` is the diffusion's isotropic output there (:func:`.radiance.outgoing_radiance`, CPU or the
         GPU's ``radiance.glsl``).  In the split's channels it leaves with the angular shape of multiple
-        scattering (eq. 4 of :mod:`.single_scattering.closed_form`, same power) and the closed-form single
+        scattering (eq. 4 of :mod:`.diffusion.split`, same power) and the closed-form single
         scattering (eq. 2) is added; without a split ``L`` is returned as it is.
         """
         if result.q_incident is None or not any(result.single) or result.q_incident[-1] is None:

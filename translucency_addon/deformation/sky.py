@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import CacheError
+from ..errors import CacheError
 
 
 class DeformedSky:
@@ -99,7 +99,7 @@ class DeformedSky:
 def _quadratic_fit(environment):
     """``(10, 3)`` coefficients of ``L(x) = [1, x, y, z, xx, yy, zz, xy, xz, yz] . coef`` reproducing
     the environment exactly on the sphere, or None when it is not of degree <= 2 (SH order > 2)."""
-    from .sh import fibonacci_directions
+    from ..scene.sh import fibonacci_directions
 
     if environment.sh is not None and np.asarray(environment.sh).shape[0] > 9:
         return None

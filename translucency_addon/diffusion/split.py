@@ -114,8 +114,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..fresnel import boundary_A, check_eta, diffuse_reflectance_internal, fresnel_transmittance
-from ..kernels import outgoing_partial_current
+from ..scene.fresnel import boundary_A, check_eta, diffuse_reflectance_internal, fresnel_transmittance
+from .kernels import outgoing_partial_current
 
 N_QUAD = 64
 N_ALPHA = 513

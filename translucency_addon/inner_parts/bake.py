@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import CacheError, MaterialError
+from ..errors import CacheError, MaterialError
 
 PARTS_CHECK_RESOLUTION = 48  # voxels along the longest side for the parts' checks of a bake without the VNM
 OPAQUE_SIGMA_A = 1.0e3  # per mm: a mean free path of 1 um, phi vanishes within the first node of an opaque part
@@ -128,7 +128,7 @@ def diffusion_material(material, info: CompositeInfo | None, field_values=None):
 
 def node_labels(composite, points) -> np.ndarray:
     """0 for the outer medium, 1 + k inside part k (the innermost part containing the point wins)."""
-    from .raycast import TriangleBVH, inside_mesh
+    from ..geometry.raycast import TriangleBVH, inside_mesh
 
     P = np.asarray(points, dtype=np.float64)
     lab = np.zeros(len(P), dtype=np.int16)
@@ -148,7 +148,7 @@ def node_labels(composite, points) -> np.ndarray:
 
 def bake_composite(composite, settings, vnm_settings=None, *, progress=None, field_fingerprint: str = ""):
     """QuadGraph + cavity exchange + node labels (+ Voxel Number Map) for a composite object (module docstring)."""
-    from .bake import bake_mesh
+    from ..quadgraph.bake import bake_mesh
     from .cavity import build_cavity_exchange
 
     def sub(lo, hi):
@@ -158,12 +158,12 @@ def bake_composite(composite, settings, vnm_settings=None, *, progress=None, fie
     vnm = None
     # Refusals (parts outside or overlapping, open cavities, the budget) come before the long QuadGraph bake.
     if vnm_settings is not None:
-        from .voxel_number_map import bake_voxel_number_map
+        from ..voxel_number_map import bake_voxel_number_map
 
         vnm = bake_voxel_number_map(composite, vnm_settings, mm_per_unit=settings.mm_per_unit,
                                     progress=sub(0.0, 0.3), field_fingerprint=field_fingerprint)
     elif composite.parts:
-        from .single_scattering.volume import voxelise_composite
+        from ..single_scattering.volume import voxelise_composite
 
         voxelise_composite(composite, resolution=PARTS_CHECK_RESOLUTION, mm_per_unit=settings.mm_per_unit,
                            walls=False)
@@ -191,9 +191,9 @@ def composite_from_files(V, F, material, inner_specs, field=None):
     """A :class:`~.composite.CompositeObject` from the outer mesh and ``PART.obj:ROLE`` strings."""
     import os
 
-    from .composite import CompositeObject, InnerPart, parse_role
-    from .errors import TranslucencyError
-    from .meshio import load_obj
+    from ..scene.composite import CompositeObject, InnerPart, parse_role
+    from ..errors import TranslucencyError
+    from ..geometry.meshio import load_obj
 
     parts = []
     for spec in inner_specs or ():
@@ -213,7 +213,7 @@ def solve_voxel_number_map(bake, material, lights, environment, view=None, *, sh
     its statistics, for ``python -m translucency_addon solve``."""
     import time
 
-    from .voxel_number_map import VoxelNumberMapEvaluator
+    from ..voxel_number_map import VoxelNumberMapEvaluator
 
     vnm = bake.voxel_number_map
     t0 = time.perf_counter()

@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import MaterialError, MeshError, TranslucencyError
+from ..errors import MaterialError, MeshError, TranslucencyError
 from .materials import Material, Medium, check_medium
 
 ROLES = ("medium", "cavity", "opaque")
@@ -132,7 +132,7 @@ class CompositeObject:
     field: object = None
 
     def __post_init__(self):
-        from .meshio import validate_mesh
+        from ..geometry.meshio import validate_mesh
 
         self.V = np.asarray(self.V, dtype=np.float64)
         self.F = np.asarray(self.F, dtype=np.int64)
@@ -215,7 +215,7 @@ def check_part_closed(part, report=None) -> None:
     outer mesh's check).  Crossings: :func:`.meshio.self_intersections` (each
     edge cast against the part's own BVH; the docstring says what it misses).
     """
-    from .meshio import hole_loops, self_intersections
+    from ..geometry.meshio import hole_loops, self_intersections
 
     loops = list(report.hole_edges) if report is not None else hole_loops(part.V, part.F)
     if loops:
@@ -244,7 +244,7 @@ def check_parts_against_outer(outer_bvh, parts, tol: float) -> list:
     refused as enclosing it).  Some outside: a cavity is an open hole
     (refused); a medium or opaque part is clipped (a warning with the share).
     """
-    from .raycast import inside_mesh
+    from ..geometry.raycast import inside_mesh
 
     warnings = []
     for p in parts:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import MeshError
+from ..errors import MeshError
 
 # Face k is opposite vertex k.  (Outward normals are computed against the
 # opposite vertex wherever they are needed, not from this vertex order.)

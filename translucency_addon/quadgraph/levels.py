@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import MeshError
-from .tetra import FACE_VERTS, TetTopology, signed_volumes, tet_quality, topology
+from ..errors import MeshError
+from ..geometry.tetra import FACE_VERTS, TetTopology, signed_volumes, tet_quality, topology
 
 BLOCK_SIZE = 32  # r of sec. 5.1: blocks of r x r texels
 
@@ -188,7 +188,7 @@ def greedy_bfs_blocks(adjacency, n: int, block: int, seed_order=None) -> np.ndar
 
 
 def _morton_order(p: np.ndarray) -> np.ndarray:
-    from .raycast import _morton_codes
+    from ..geometry.raycast import _morton_codes
 
     return np.argsort(_morton_codes(p), kind="stable")
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fresnel import fresnel_transmittance
+from ..scene.fresnel import fresnel_transmittance
 from .kernels import partial_current
 
 

@@ -27,7 +27,7 @@ import tokenize
 
 import numpy as np
 
-from ..errors import ParticleError, RadiusError, TranslucencyError
+from .errors import ParticleError, RadiusError, TranslucencyError
 
 
 NPY_MAGIC = b"\x93NUMPY"  # the first bytes of every .npy file (numpy.lib.format)
@@ -89,10 +89,10 @@ def run_fluid(a, material, lights, environment, field_spec=None) -> int:
     the arguments and that the outputs' folders are writable; every output is written at the end, all or
     nothing (:func:`~..cache.write_files`).
     """
-    from ..cache import write_files
-    from ..fields import evaluate_field
-    from ..meshio import load_obj
-    from .solver import FluidOptions, FluidSolver
+    from .cache import write_files
+    from .scene.fields import evaluate_field
+    from .geometry.meshio import load_obj
+    from .fluid.solver import FluidOptions, FluidSolver
 
     if a.surface_out and not a.surface:
         raise TranslucencyError("--surface-out needs --surface MESH.obj")
@@ -106,8 +106,8 @@ def run_fluid(a, material, lights, environment, field_spec=None) -> int:
     ids = np.arange(frames.shape[1])
     outs, vertex, points_out, stats = [], [], [], []
     state = None
-    from ..frame import fluid_radiance, view_directions
-    from ..planner import plan_fluid
+    from .frame import fluid_radiance, view_directions
+    from .planner import plan_fluid
 
     view = ("PERSP", tuple(a.camera)) if getattr(a, "camera", None) is not None else None
     t0 = time.perf_counter()
@@ -175,7 +175,7 @@ def run_fluid(a, material, lights, environment, field_spec=None) -> int:
 
 def _absent_frame(n: int, n_vertices: int | None):
     """The result of a frame in which none of the ``n`` particles exists (every row NaN): radiance 0."""
-    from .solver import FluidResult
+    from .fluid.solver import FluidResult
 
     z = np.zeros((n, 3))
     warning = f"none of the {n:,} particles exists in this frame (every row is NaN): radiance 0"

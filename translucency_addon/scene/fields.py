@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .errors import MaterialError
+from ..errors import MaterialError
 
 KINDS = ("uniform", "checker", "layers", "marble", "sphere", "noise")
 

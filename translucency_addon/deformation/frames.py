@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bake import Bake
-from .deformation import STRETCH_LIMIT, DeformationReport, DeformationRig, DeformedPose
-from .errors import DeformationError, GraphFolded
+from ..quadgraph.bake import Bake
+from .pose import STRETCH_LIMIT, DeformationReport, DeformationRig, DeformedPose
+from ..errors import DeformationError, GraphFolded
 
 
 def carry_spectral_bounds(previous, solver) -> None:
@@ -27,7 +27,7 @@ def carry_spectral_bounds(previous, solver) -> None:
     still damps (its polynomial stays below 1 there), only more slowly: this changes speed,
     never stability, and the solution checks of :mod:`.iterative` stay in force.
     """
-    from .spectral import gershgorin_upper
+    from ..diffusion.spectral import gershgorin_upper
 
     for old, new in zip(previous.systems, solver.systems):
         if old.lam_min is not None and new.lam_max is None and old.scheme == new.scheme:
@@ -43,7 +43,7 @@ def pose_solver(pose: DeformedPose, material, field_values=None, options=None, p
     frame's solver on the same bake (rest or deformed) lends its spectral bounds
     (:func:`carry_spectral_bounds`).
     """
-    from .diffusion import DiffusionSolver
+    from ..diffusion.solver import DiffusionSolver
 
     solver = DiffusionSolver(pose.bake, material, field_values, options)
     if previous is not None:

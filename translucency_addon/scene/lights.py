@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import LightError
+from ..errors import LightError
 from .fresnel import diffuse_reflectance_external, fresnel_transmittance
 
 KINDS = ("point", "spot", "sun", "area")

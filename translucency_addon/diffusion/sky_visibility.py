@@ -44,9 +44,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import BakeCancelled, CacheError
-from .fresnel import diffuse_reflectance_external, fresnel_transmittance
-from .sh import fibonacci_directions
+from ..errors import BakeCancelled, CacheError
+from ..scene.fresnel import diffuse_reflectance_external, fresnel_transmittance
+from ..scene.sh import fibonacci_directions
 
 RAY_CHUNK = 400_000  # rays per BVH call (memory)
 DEFAULT_DIRECTIONS = 64  # what the add-on bakes; 128 changed the bunny's error by < 0.1 % (docs/accuracy.md)
@@ -170,7 +170,7 @@ def compute_sky_visibility(bake, n_directions: int = 64, bvh=None, progress=None
     index when the solver asks (:meth:`LevelSky.weight`).
     ``progress(fraction)`` returning False cancels (:class:`BakeCancelled`).
     """
-    from .raycast import TriangleBVH
+    from ..geometry.raycast import TriangleBVH
 
     if n_directions < 8:
         raise ValueError(f"n_directions must be at least 8, got {n_directions}")

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import MaterialError
+from ..errors import MaterialError
 from .fresnel import check_eta
 
 # Upper bound on any coefficient: 1e4 / mm is a mean free path of 0.1 um,

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .environment_map import sample_equirect
-from .errors import TranslucencyError
+from ..errors import TranslucencyError
 
 
 class WorldNodeError(TranslucencyError):

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import MeshError
+from ..errors import MeshError
 
 # A bake is refused when its estimated peak memory exceeds this, unless the
 # caller passes another budget.  The estimate is deliberately pessimistic.

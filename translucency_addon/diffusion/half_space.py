@@ -1,6 +1,6 @@
 r"""Light transport in a half-space, solved exactly in 1D: what diffusion gets wrong at low albedo.
 
-The first-scatter split (:mod:`.closed_form`) hands the diffusion solve the light that scatters two or
+The first-scatter split (:mod:`.split`) hands the diffusion solve the light that scatters two or
 more times.  Calibrated with the diffusion's own half-space solution (eq. 3 there), it inherits
 diffusion's error for that light: +8 % at albedo 0.68, +4 % at 0.84 (eta = 1.3) against a random walk
 (``tests/test_scattering_split.py``) -- skin1's blue and green, the largest model errors in
@@ -24,7 +24,7 @@ and crosses with ``T_in(m)``::
 
     L_in(m) = alpha/(4 pi) int_0^inf (phi_0 + phi_s)(z) e^{-z/m} dz/m                                  (2)
 
-Light scattered once is the ``phi_0`` part of (2), the closed form of :mod:`.closed_form` eq. 1; light
+Light scattered once is the ``phi_0`` part of (2), the closed form of :mod:`.split` eq. 1; light
 scattered two or more times is the ``phi_s`` part, whose power M and angular shape the split needs.
 
 Discretisation: phi_s constant on cells of a depth grid graded from 0.002 mean free paths at the
@@ -36,7 +36,7 @@ reflected part splits into the total internal reflection below the critical cosi
 ``m_c = sqrt(1 - 1/eta^2)`` (``R_in = 1``: again E_2, scaled by m_c) and the Fresnel part above it
 (Gauss-Legendre in m, smooth).  The uncollided source is averaged over each cell.  The error is second
 order in the cell size (0.6 % of M at alpha 0.999 on the default grid, 0.16 % at half the cells'
-size), so :mod:`.closed_form` extrapolates from two grids.  Against the random walk
+size), so :mod:`.split` extrapolates from two grids.  Against the random walk
 (``tests/test_scattering_split.py``): every scattering order to the walk's noise.
 
 Hand-written: scipy has no radiative-transfer solver; the linear system is ``scipy.linalg.lu_factor``
@@ -75,7 +75,7 @@ def _e1_abs_antiderivative(t) -> np.ndarray:
 class HalfSpaceTransport:
     """Eq. (1)-(2) for one eta on a fixed depth grid; :meth:`solve` for one alpha and entering distribution.
 
-    ``transmittance_in(m)``: ``T_in`` at inside cosines m (``closed_form.inside_transmittance``).
+    ``transmittance_in(m)``: ``T_in`` at inside cosines m (``split.inside_transmittance``).
     """
 
     def __init__(self, eta: float, transmittance_in, edges: np.ndarray | None = None):

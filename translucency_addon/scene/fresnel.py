@@ -25,7 +25,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from .errors import MaterialError
+from ..errors import MaterialError
 
 
 def check_eta(eta: float) -> float:

@@ -50,9 +50,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .errors import CacheError, TranslucencyError
-from .fresnel import diffuse_reflectance_external, diffuse_reflectance_internal
-from .kernels import partial_current
+from ..errors import CacheError, TranslucencyError
+from ..scene.fresnel import diffuse_reflectance_external, diffuse_reflectance_internal
+from ..diffusion.kernels import partial_current
 
 
 @dataclass
@@ -147,7 +147,7 @@ def build_cavity_exchange(bake, composite, progress=None) -> CavityExchange:
     point sees every other one that faces it; a non-convex cavity casts one
     ray per pair (m^2 rays, seconds per thousand nodes).
     """
-    from .raycast import TriangleBVH
+    from ..geometry.raycast import TriangleBVH
 
     lv = bake.finest
     V, F = np.asarray(bake.mesh_vertices), np.asarray(bake.mesh_faces)
@@ -222,14 +222,14 @@ def build_cavity_exchange(bake, composite, progress=None) -> CavityExchange:
 def wall_partial_current(solver, result, nodes) -> np.ndarray:
     """What leaves the wall nodes into the hollow, as the in-medium current J+ of eq. 1 (linear in the
     solution): the diffusion's unclamped J+ = (phi - 2 q) / (2 (1 + F_dr)), plus, in the first-scatter
-    split's channels, the light that leaves after one scattering, ``s(alpha) q_incident`` (closed_form's
+    split's channels, the light that leaves after one scattering, ``s(alpha) q_incident`` (the split's
     s; an exitance, so divided by the 1 - F_dr that eq. 1 multiplies J+ by).  Without the second term
     the split's share of the wall's light would vanish in the hollow."""
     lv = solver.bake.finest
     phi_s = result.phi[-1][lv.n_inner + nodes]
     jp = partial_current(phi_s, result.q[-1][nodes], solver.fdr)
     if result.q_incident is not None and any(result.single):
-        from .single_scattering.closed_form import half_space_split
+        from ..diffusion.split import half_space_split
 
         s = half_space_split(solver.eta).single_escape(solver.surface_albedo[-1][nodes])
         jp = jp + np.where(np.array(result.single), s, 0.0) * result.q_incident[-1][nodes] / (1.0 - solver.fdr)
@@ -249,7 +249,7 @@ def hollow_lights(solver, lights) -> list:
     """The point, spot and area lights inside a cavity: inside the outer mesh (its faces come first in the
     bake's mesh, ``CompositeObject.diffusion_mesh``) but not inside the medium (``DiffusionSolver.lights_inside``,
     whose ray parity counts the cavity's wall too)."""
-    from .raycast import TriangleBVH, inside_mesh
+    from ..geometry.raycast import TriangleBVH, inside_mesh
 
     cand = [light for light in lights or () if light.kind != "sun"]
     n_outer = getattr(getattr(solver.bake, "composite", None), "n_outer_vertices", None)

@@ -27,10 +27,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import kernels
-from .errors import MaterialError, TranslucencyError
-from .fresnel import boundary_A, diffuse_reflectance_internal
+from ..errors import MaterialError, TranslucencyError
+from ..scene.fresnel import boundary_A, diffuse_reflectance_internal
 from .graph import DiffusionGraph, check_graph
-from .materials import Material, diffusion_coefficient
+from ..scene.materials import Material, diffusion_coefficient
 
 SCHEMES = ("fv", "paper")
 

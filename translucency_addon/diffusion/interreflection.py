@@ -37,7 +37,7 @@ direct sparse LU of the 2N system.
 channels): the diffusion's source is ``m q`` (m = m(alpha) per surface node and channel, 1 where
 the split is off) and the vertex radiance adds the closed-form single scattering ``sigma_v (P q)``,
 sigma_v = clip(P alpha) F_t h / (4 pi eta^2) along the normal
-(:meth:`.single_scattering.closed_form.HalfSpaceSplit.single_radiance`), which is linear in q, and
+(:meth:`.diffusion.split.HalfSpaceSplit.single_radiance`), which is linear in q, and
 the diffusion's part leaves with the angular shape of multiple scattering, ``c_v = c(P alpha, 1)``
 along the normal (eq. 4 there), so G becomes ``G_c = B diag(c_v) P`` per channel.  The
 bounce is then ``q_b = G_c (phi0_s - 2 m q) + H q`` with ``H = B' diag(sigma_v) P`` (B' the bounce sum
@@ -84,7 +84,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import kernels
-from .fresnel import fresnel_transmittance
+from ..scene.fresnel import fresnel_transmittance
 from .iterative import LevelSolve, solve_chebyshev
 from .spectral import deflation, spectral_bounds
 from .sweeps import SweepOperator
@@ -250,7 +250,7 @@ class BouncedSystem:
 def bounced_system(solver, cols, single=(False, False, False)) -> BouncedSystem:
     """(1) of the finest level for the channels ``cols`` -- (1') where ``single`` (the split's channels)
     has any -- cached on the solver (per material, eta and split)."""
-    from .single_scattering.closed_form import half_space_split
+    from .split import half_space_split
 
     base = solver.systems[-1].subset(cols)
     cache = solver.cache.setdefault("bounced", {})
@@ -274,7 +274,7 @@ def bounced_system(solver, cols, single=(False, False, False)) -> BouncedSystem:
 
 def one_solve_applies(solver) -> str:
     """'' when ``DiffusionSolver.solve(bounced=True)`` can run for this solver, else why not (for the result's note)."""
-    from .diffusion import DiffusionSolver
+    from .solver import DiffusionSolver
 
     if solver.sky is None:
         return "no sky visibility in the bake"

@@ -29,11 +29,12 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from . import meshio, tetra
-from .errors import BakeCancelled, MeshError
-from .materials import check_mm_per_unit
-from .quadgraph import BLOCK_SIZE, GraphLevel, build_level
-from .raycast import TriangleBVH
+from ..geometry import meshio
+from ..geometry import tetra
+from ..errors import BakeCancelled, MeshError
+from ..scene.materials import check_mm_per_unit
+from .levels import BLOCK_SIZE, GraphLevel, build_level
+from ..geometry.raycast import TriangleBVH
 
 BAKE_FORMAT = 1
 
@@ -405,7 +406,7 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
                 mesh_normals=normals, shadow_vertices=Vb, shadow_faces=Fb, settings=s,
                 mm_per_unit=float(s.mm_per_unit), key=key)
     if s.sky_directions:
-        from .sky_visibility import compute_sky_visibility
+        from ..diffusion.sky_visibility import compute_sky_visibility
 
         pr.stage("sky visibility")
         bake.sky = compute_sky_visibility(bake, s.sky_directions, bvh=bvh,

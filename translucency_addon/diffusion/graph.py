@@ -43,7 +43,7 @@ from typing import Protocol
 
 import numpy as np
 
-from .errors import TranslucencyError
+from ..errors import TranslucencyError
 
 
 class DiffusionGraph(Protocol):

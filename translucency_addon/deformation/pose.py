@@ -105,12 +105,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import scipy.sparse as sp
 
-from .bake import Bake
-from .deformed_sky import DeformedSky
-from .errors import DeformationError, GraphFolded
-from .mesh_attachment import SurfaceAttachment, TriangleGeometry, triangle_frames, unit
-from .quadgraph import FACE_VERTS, GraphLevel, link_lengths, tet_face_vectors
-from .tetra import signed_volumes
+from ..quadgraph.bake import Bake
+from .sky import DeformedSky
+from ..errors import DeformationError, GraphFolded
+from .attachment import SurfaceAttachment, TriangleGeometry, triangle_frames, unit
+from ..quadgraph.levels import FACE_VERTS, GraphLevel, link_lengths, tet_face_vectors
+from ..geometry.tetra import signed_volumes
 
 STRETCH_LIMIT = 3.0  # a link longer than 3x or shorter than 1/3 of its rest length refuses the pose
 FLAT_FRACTION = 1e-6  # a tet at or below this fraction of its rest volume counts as inverted
@@ -325,7 +325,7 @@ class DeformationRig:
                 "mesh); re-bake the object to deform it without a re-bake per frame")
         if not (np.isfinite(stretch_limit) and stretch_limit > 1.0):
             raise DeformationError(f"the stretch limit must be a number > 1, got {stretch_limit}")
-        from .raycast import TriangleBVH
+        from ..geometry.raycast import TriangleBVH
 
         t0 = time.perf_counter()
         self.bake = bake
@@ -478,7 +478,7 @@ class DeformationRig:
 def deform_from_obj(bake: Bake, path) -> DeformedPose:
     """The bake deformed to the pose in an OBJ file with the baked mesh's vertices and faces (the CLI's
     ``solve --deformed``).  Raises :class:`DeformationError` when its topology differs."""
-    from .meshio import load_obj
+    from ..geometry.meshio import load_obj
 
     V, F = load_obj(path)
     rig = DeformationRig(bake)
