@@ -37,7 +37,7 @@ class BakeCounter:
         self.real = 0
 
     def __call__(self, V, F, settings, progress=None):
-        from translucency.translucency_addon import bake as bake_mod
+        from translucency.translucency_addon.quadgraph import bake as bake_mod
 
         self.calls += 1
         key = bake_mod.mesh_key(V, F, settings)
@@ -56,7 +56,7 @@ class BakeCounter:
 @pytest.fixture
 def memo_bakes(monkeypatch):
     """Memoised engine bakes (same mesh + settings -> the same graph, no fTetWild)."""
-    from translucency.translucency_addon import bake as bake_mod
+    from translucency.translucency_addon.quadgraph import bake as bake_mod
 
     counter = BakeCounter(bake_mod.bake_mesh, memo=True)
     monkeypatch.setattr(bake_mod, "bake_mesh", counter)
@@ -66,7 +66,7 @@ def memo_bakes(monkeypatch):
 @pytest.fixture
 def real_bakes(monkeypatch):
     """Counts real engine bakes."""
-    from translucency.translucency_addon import bake as bake_mod
+    from translucency.translucency_addon.quadgraph import bake as bake_mod
 
     counter = BakeCounter(bake_mod.bake_mesh, memo=False)
     monkeypatch.setattr(bake_mod, "bake_mesh", counter)

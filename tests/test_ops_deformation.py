@@ -41,7 +41,7 @@ def _settings(obj, sky=False):
 
 def bar(name="Bar"):
     """The engine's 4 x 1 x 1 bar (16 x 4 x 4 divisions, triangles) as a Blender mesh object."""
-    from translucency.translucency_addon import primitives
+    from translucency.translucency_addon.geometry import primitives
 
     V, F = primitives.box((4.0, 1.0, 1.0), n=(16, 4, 4))
     mesh = bpy.data.meshes.new(name)
@@ -150,7 +150,7 @@ def test_armature_bend_solves_on_the_deformed_graph(blender, addon, cache_dir, m
     the pose, equals the engine's DeformationFrames on Blender's posed mesh, and is as close to a
     fresh bake of the posed mesh as the engine's own test allows (8 %)."""
     from translucency.ops import live, state, status
-    from translucency.translucency_addon import bake as bake_mod
+    from translucency.translucency_addon.quadgraph import bake as bake_mod
     from translucency.translucency_addon.diffusion.solver import DiffusionSolver
 
     obj, rig = baked_bar()
@@ -191,7 +191,7 @@ def test_shape_key_squashes_a_sphere(blender, addon, cache_dir, memo_bakes):
     through the rest pose's map (``frame.mesh_mapping``), as at rest.
     """
     from translucency.ops import live, state
-    from translucency.translucency_addon import primitives
+    from translucency.translucency_addon.geometry import primitives
 
     obj = sphere(subsurf=1)
     _settings(obj)

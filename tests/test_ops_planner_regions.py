@@ -23,7 +23,7 @@ SS_ATTR = "translucency_radiance_ss"
 
 def finned_sphere_object(name="Finned"):
     """The engine's finned sphere as a Blender mesh object, 15 mm across through the scene's unit scale."""
-    from translucency.translucency_addon import primitives
+    from translucency.translucency_addon.geometry import primitives
 
     V, F = primitives.finned_sphere()  # radius 1, fin 0.04 units thick
     me = bpy.data.meshes.new(name)
