@@ -354,7 +354,8 @@ def _follow(solver, exchange, first, q_cav, op, tol, max_solves, t0, kw):
     each solve of the whole q warm-started from the last.  A small change of the lights needs a few cheap
     solves where GMRES would start over; the contraction per step is the wall's return ratio (< 1)."""
     nodes = exchange.nodes
-    q_ext = list(first.q)
+    # the light that entered, before the first-scatter split (each solve below splits its own q again)
+    q_ext = list(first.q if first.q_incident is None else first.q_incident)
     last, solves, change = first, 1, np.inf
     scale = max(float(np.abs(q_cav).max()), 1e-300)
     while solves < max_solves:
