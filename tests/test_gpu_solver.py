@@ -230,7 +230,7 @@ def test_extension_package_imports_its_own_engine(addon):
     import importlib
 
     mod = importlib.import_module(addon.__name__ + ".gpu_shaders.solver")
-    base = importlib.import_module(addon.__name__ + ".translucency_addon.diffusion")
+    base = importlib.import_module(addon.__name__ + ".translucency_addon.diffusion.solver")
     assert issubclass(mod.GPUDiffusionSolver, base.DiffusionSolver)
     assert not issubclass(mod.GPUDiffusionSolver, diffusion.DiffusionSolver)
 
