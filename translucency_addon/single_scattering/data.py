@@ -121,6 +121,9 @@ class SingleScatteringData:
     voxel_size: float = 0.0
     voxel_shape: np.ndarray = field(default_factory=lambda: np.zeros(3, dtype=np.int64))
     stats: dict = field(default_factory=dict)
+    # Arrays the ray-pair loops derive from the samples once (``ray_pairs._cache``: cell-ordered centres, the
+    # Gaussians' constants), keyed by the arrays they came from; never saved, not part of equality.
+    ray_cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def n_samples(self) -> int:
@@ -138,7 +141,7 @@ class SingleScatteringData:
         K = (order + 1) ** 2
         import dataclasses
 
-        kw = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        kw = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "ray_cache"}
         kw.update(sh=np.ascontiguousarray(self.sh[:, :K]), order=order)
         out = SingleScatteringData(**kw)
         if hasattr(self, "volume"):

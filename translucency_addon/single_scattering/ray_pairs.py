@@ -183,7 +183,7 @@ def chord_integrals(data, rays: dict, r, s):
 def _cache(data):
     """Per-data arrays for the pair loops: int64 cell items, cell-ordered float32 centres, sample
     constants, centres about their mean as separate contiguous coordinates."""
-    c = getattr(data, "_ray_cache", None)
+    c = data.ray_cache.get("pairs")
     key = (id(data.centers), id(data.grid.cell_items), id(data.weight), id(data.sigma))
     if c is None or c["key"] != key:
         items = data.grid.cell_items.astype(np.int64)
@@ -197,7 +197,7 @@ def _cache(data):
              "coef": np.asarray(data.weight, dtype=np.float64) * 0.5 * np.sqrt(np.pi) / np.sqrt(alpha),
              "origin": origin, "bx": np.ascontiguousarray(b[:, 0]), "by": np.ascontiguousarray(b[:, 1]),
              "bz": np.ascontiguousarray(b[:, 2]), "b2": (b * b).sum(axis=1)}
-        data._ray_cache = c
+        data.ray_cache["pairs"] = c
     return c
 
 
