@@ -322,7 +322,9 @@ def test_damaged_bytes_anywhere_are_a_corrupt_cache(tmp_path, compressed):
     """Flipped bytes are said as a corrupt cache wherever they land, in every member's ``.npy``
     header included: numpy parses a header before the zip's CRC is checked, and a damaged
     header raised the tokenizer's ``TokenError`` through the add-on (a CI run's corrupt-bytes
-    case, whose flips depend on the bake's bytes).  Every member, stored or deflated, is hit."""
+    case, whose flips depend on the bake's bytes).  Every member, stored or deflated, is hit.  A flip in bits
+    a deflate stream does not use (seen once in a fresh-clone CI: the bake's bytes differ run to run) changes
+    nothing: then the bake must come back whole."""
     import zipfile
 
     bake = baked("spot")
@@ -333,6 +335,7 @@ def test_damaged_bytes_anywhere_are_a_corrupt_cache(tmp_path, compressed):
     with zipfile.ZipFile(path) as zf:
         infos = zf.infolist()
     bad_path = tmp_path / "bad.npz"
+    raised = unchanged = 0
     for info in infos:
         # the member's data starts after its local header (30 bytes, name, extra field)
         n_name = int.from_bytes(data[info.header_offset + 26: info.header_offset + 28], "little")
@@ -344,8 +347,18 @@ def test_damaged_bytes_anywhere_are_a_corrupt_cache(tmp_path, compressed):
             bad = bytearray(data)
             bad[start + offset] ^= 0x5A
             bad_path.write_bytes(bytes(bad))
-            with pytest.raises(CacheError, match="corrupt or truncated"):
-                cache.load_bake(bad_path)
+            try:
+                back = cache.load_bake(bad_path)
+            except CacheError as exc:
+                assert "corrupt or truncated" in str(exc), exc
+                raised += 1
+            else:  # the flip hit bits the decompressor ignores (a block's padding): the arrays came back whole
+                np.testing.assert_array_equal(back.mesh_vertices, bake.mesh_vertices)
+                for a, b in zip(back.levels, bake.levels):
+                    for name in a.ARRAYS:
+                        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+                unchanged += 1
+    assert raised > 10 * unchanged, (raised, unchanged)
 
 
 def test_a_flat_tetrahedron_from_the_tetrahedralizer_is_made_again(monkeypatch):
