@@ -241,7 +241,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
                 g.upsample_from(prev)
             else:
                 g.clear_x()
-            tol = opts.tol if i == n_lv - 1 else (opts.coarse_tol or opts.tol)
+            tol = self.level_tolerance(i)
             bn = np.sqrt(kernels.squared_norms(g.stored_rhs()))
             bn = np.where(bn > 0, bn, 1.0)
             if opts.solver == "fast":

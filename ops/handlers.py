@@ -199,8 +199,9 @@ def on_load_post(*_args):
             continue
         in_scene = scene is not None and obj.name in scene.objects
         found = cache_files.check_cache(obj, depsgraph if in_scene else None)
-        state.set_cache_problem(obj.name, None if found.startswith("Baked") else found)  # the .blend is not modified
-        if not found.startswith("Baked"):
+        baked = found.startswith("Baked")
+        state.set_cache_problem(obj.name, None if baked else found)  # shown by the panel; the .blend is not modified
+        if not baked:
             state.log(f"'{obj.name}': {found}")
 
 

@@ -167,6 +167,15 @@ def test_cache_errors(tmp_path):
     with pytest.raises(CacheError, match=r"format version 999, written by Translucency 9\.9\.9; this version "
                                          r"\(Translucency 0\.1\.0\) reads 1, 2\. Install the same extension version"):
         cache.load_bake(wrong)
+    # a member that is not an array (no cache writes one)
+    extra = tmp_path / "extra.npz"
+    extra.write_bytes(data)
+    import zipfile
+
+    with zipfile.ZipFile(extra, "a") as zf:
+        zf.writestr("notes.txt", "hello")
+    with pytest.raises(CacheError, match="its member 'notes.txt' is not an array"):
+        cache.load_bake(extra)
     # a pickled object array is refused, never executed
     arrays = cache.bake_to_arrays(bake)
     arrays["L0/position"] = np.array([object()], dtype=object)

@@ -88,13 +88,18 @@ SCENES = {
 }
 
 
+def _positions(obj) -> np.ndarray:
+    me = obj.data
+    co = np.empty(len(me.vertices) * 3)
+    me.vertices.foreach_get("co", co)
+    return co.reshape(-1, 3)
+
+
 def _attribute_field(obj, second: str) -> np.ndarray:
     """A heterogeneous material whose field is a float attribute (0 at the bottom, 1 at the top); the weights
     per vertex, as the CLI's --field-values takes them."""
     me = obj.data
-    co = np.empty(len(me.vertices) * 3)
-    me.vertices.foreach_get("co", co)
-    z = co.reshape(-1, 3)[:, 2]
+    z = _positions(obj)[:, 2]
     weights = (z - z.min()) / (z.max() - z.min())
     me.attributes.new("mix", 'FLOAT', 'POINT').data.foreach_set("value", weights.astype(np.float32))
     s = obj.translucency
@@ -141,10 +146,8 @@ def test_the_cli_renders_what_the_addon_renders(blender, addon, cache_dir, memo_
         from translucency_addon.cache import load_bake
 
         baked = load_bake(cache).mesh_vertices
-        me = obj.data
-        co = np.empty(len(me.vertices) * 3)
-        me.vertices.foreach_get("co", co)
-        np.testing.assert_allclose(baked[: len(me.vertices)], co.reshape(-1, 3), atol=1e-6)  # the same vertices
+        co = _positions(obj)
+        np.testing.assert_allclose(baked[: len(co)], co, atol=1e-6)  # the same vertices
         np.save(tmp_path / "weights.npy", weights)
         cmd += ["--mix-with", spec["mix_with"].lower(), "--field-values", str(tmp_path / "weights.npy")]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)

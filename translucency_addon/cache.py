@@ -156,7 +156,7 @@ def read_mesh_topology(path) -> tuple[int, np.ndarray]:
         _meta(z, path)
         try:
             return int(_member(z, "mesh/V", path).shape[0]), np.asarray(_member(z, "mesh/F", path), dtype=np.int64)
-        except (KeyError, zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as exc:
+        except KeyError as exc:  # every damaged byte is _member's CacheError already
             raise CacheError(f"bake cache {path!r} is corrupt or truncated: {exc}") from exc
 
 
@@ -188,9 +188,11 @@ def _member(z, key: str, path) -> np.ndarray:
     Reading the whole member first (``ZipFile.read`` verifies the CRC) turns every damaged byte
     into ``BadZipFile``, said as a corrupt cache.  ``KeyError`` (no such member) passes through.
     """
-    name = key if key.endswith(".npy") else key + ".npy"
-    if name not in z.zip.namelist():
+    if key not in z.files:
         raise KeyError(key)
+    name = key + ".npy"
+    if name not in z.zip.namelist():  # a member that is not an array: no cache writes one
+        raise CacheError(f"bake cache {os.fspath(path)!r} is corrupt or truncated: its member {key!r} is not an array")
     try:
         raw = z.zip.read(name)
         return np.lib.format.read_array(io.BytesIO(raw), allow_pickle=False)

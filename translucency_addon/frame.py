@@ -180,7 +180,8 @@ def diffuse(solver, bake, lights, environment, passes: FramePasses, *, tol: floa
     sky visibility (``DiffusionSolver.solve_interreflected``: the bounce comes from a first solve of
     the same frame, never an earlier one, so a frame depends only on its own inputs); through
     ``cavity.solve_with_cavities`` (the wall exchange, GMRES around the same solver, the split carried
-    into the hollow) when the bake has cavities, without the bounce.  ``bounce`` is None where none was solved; ``cavity_exchange`` is
+    into the hollow) when the bake has cavities, without the bounce.  ``bounce`` is None where none was
+    solved; ``cavity_exchange`` is
     the exchange's report (its GMRES residual and iterations), None without cavities.
     """
     lights = list(lights)

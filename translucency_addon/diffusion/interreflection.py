@@ -315,11 +315,11 @@ def solve_finest_bounced(solver, q_light, coarser, warm_start, cols, single) -> 
     qd = np.asarray(q_light)[:, list(cols)]
     B = system.rhs(qd)
     x1 = solver.initial_guess(fine, cols, coarser, warm_start)
-    prev0 = getattr(warm_start, "first_pass", None) if warm_start is not None else None
+    prev0 = getattr(warm_start, "first_pass", None)
     x0 = x1.copy() if prev0 is None else solver.initial_guess(fine, cols, previous=prev0)
     X = np.hstack([x0, x1])
     X[:, ~np.any(B != 0, axis=0)] = 0.0  # no light in a channel: the answer is exactly 0 (solve_systems)
-    x, info = solve_chebyshev(system, B, X, opts.tol, opts.max_iterations, opts.check_every)
+    x, info = solve_chebyshev(system, B, X, solver.level_tolerance(fine), opts.max_iterations, opts.check_every)
     C = len(cols)
     phi0, phi1 = x[:, :C], x[:, C:]
     q_tot = qd + system.bounce(phi0[base.level.n_inner:], qd)  # the light that entered, the bounce included
