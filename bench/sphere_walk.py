@@ -1,0 +1,128 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""An analogue random walk of a homogeneous sphere under a uniform white world: the reference the
+dark-sphere and albedo-sweep cases are judged against (issue 30).
+
+Independent of the engine on purpose: its own Fresnel formula, its own sphere intersection, no table,
+no diffusion.  The walk is the adjoint one: it starts where the camera looks, at a surface point seen
+along the outward normal at outside cosine ``cos_view``, and follows the path into the medium.  The
+world is uniform with radiance 1, so the radiance that leaves towards the camera is
+
+    L_o = T(mu_o) * E[ prod(albedo at every collision) * prod(R at every internal reflection) * T_exit ]
+
+(the eta^2 of radiance entering the denser medium cancels the 1/eta^2 of leaving it).  At each hit of the
+boundary from inside the weight splits: ``T`` of it leaves (and sees the world), ``R = 1 - T`` is
+reflected (all of it beyond the critical angle).  Free paths are exponential with unit sigma_t per mm;
+after a reflection a new free path is drawn from the boundary (the exponential is memoryless, so this is
+the same walk as finishing the old one).  Isotropic phase function.  Russian roulette below 1e-4 of the
+starting weight keeps it unbiased.
+
+The result is split by scattering order (0 = seen straight through) and by whether the path was
+reflected inside before it left, so that the single-scattering pass -- straight chords, one collision,
+no internal reflection -- can be compared with the walk's term of the same kind, and the rest named.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def fresnel_unpolarised(cos_i, eta_i: float, eta_t: float) -> np.ndarray:
+    """Fresnel reflectance of unpolarised light going from index ``eta_i`` into ``eta_t`` (1 beyond
+    the critical angle): the mean of the s and p reflectances."""
+    c = np.clip(np.abs(np.asarray(cos_i, dtype=np.float64)), 0.0, 1.0)
+    s2 = (eta_i / eta_t) ** 2 * (1.0 - c * c)
+    tir = s2 >= 1.0
+    ct = np.sqrt(np.clip(1.0 - s2, 0.0, 1.0))
+    rs = (eta_i * c - eta_t * ct) / np.maximum(eta_i * c + eta_t * ct, 1e-300)
+    rp = (eta_t * c - eta_i * ct) / np.maximum(eta_t * c + eta_i * ct, 1e-300)
+    return np.where(tir, 1.0, 0.5 * (rs * rs + rp * rp))
+
+
+@dataclass
+class WalkResult:
+    """Radiance towards the camera by order (rows: 0, 1, ..., the last row that order and above) and by
+    internal reflection (column 0: none before leaving, column 1: at least one), with its standard error."""
+
+    radiance: np.ndarray  # (orders, 2)
+    stderr: float  # of the total
+    n_paths: int
+
+    @property
+    def total(self) -> float:
+        return float(self.radiance.sum())
+
+    @property
+    def single_straight(self) -> float:
+        """One collision, no internal reflection: the single-scattering pass's term."""
+        return float(self.radiance[1, 0])
+
+    @property
+    def single(self) -> float:
+        return float(self.radiance[1].sum())
+
+    @property
+    def higher_orders(self) -> float:
+        return float(self.radiance[2:].sum())
+
+
+def sphere_walk(radius_mfp: float, albedo: float, eta: float, n: int = 200_000, seed: int = 1,
+                cos_view: float = 1.0, orders: int = 4, max_events: int = 10_000) -> WalkResult:
+    """L_o at a point of a sphere of radius ``radius_mfp`` mean free paths (sigma_t = 1) under a white
+    world of radiance 1, seen at outside cosine ``cos_view``; see the module docstring."""
+    rng = np.random.default_rng(seed)
+    R = float(radius_mfp)
+    mu_o = float(cos_view)
+    sin_in = np.sqrt(max(0.0, 1.0 - mu_o * mu_o)) / eta
+    cos_in = np.sqrt(1.0 - sin_in * sin_in)
+    p = np.tile([0.0, 0.0, R], (n, 1))
+    d = np.tile([sin_in, 0.0, -cos_in], (n, 1))
+    w = np.full(n, 1.0 - float(fresnel_unpolarised(mu_o, 1.0, eta)))
+    k = np.zeros(n, dtype=np.int64)
+    refl = np.zeros(n, dtype=np.int64)
+    alive = np.ones(n, dtype=bool)
+    score = np.zeros((n, orders, 2))
+    for _ in range(max_events):
+        idx = np.flatnonzero(alive)
+        if idx.size == 0:
+            break
+        pi, di = p[idx], d[idx]
+        b = np.einsum("ij,ij->i", pi, di)
+        c = np.einsum("ij,ij->i", pi, pi) - R * R
+        t_out = -b + np.sqrt(np.maximum(b * b - c, 0.0))
+        s = -np.log(rng.random(idx.size))
+        coll = s < t_out
+        ic, ib = idx[coll], idx[~coll]
+        # collision: albedo, isotropic new direction
+        p[ic] += s[coll, None] * d[ic]
+        w[ic] *= albedo
+        k[ic] += 1
+        u = rng.uniform(-1.0, 1.0, ic.size)
+        phi = rng.uniform(0.0, 2.0 * np.pi, ic.size)
+        r = np.sqrt(1.0 - u * u)
+        d[ic] = np.stack([r * np.cos(phi), r * np.sin(phi), u], axis=1)
+        # boundary: T leaves and sees the world, R is reflected
+        pb = p[ib] + t_out[~coll, None] * d[ib]
+        nb = pb / np.linalg.norm(pb, axis=1, keepdims=True)
+        cos_b = np.einsum("ij,ij->i", d[ib], nb)
+        Rf = fresnel_unpolarised(cos_b, eta, 1.0)
+        np.add.at(score, (ib, np.minimum(k[ib], orders - 1), np.minimum(refl[ib], 1)), w[ib] * (1.0 - Rf))
+        w[ib] *= Rf
+        refl[ib] += 1
+        d[ib] -= 2.0 * cos_b[:, None] * nb
+        p[ib] = pb * (1.0 - 1e-12)
+        small = np.flatnonzero(alive & (w < 1e-4))
+        keep = rng.random(small.size) < 0.1
+        w[small[keep]] *= 10.0
+        w[small[~keep]] = 0.0
+        alive[small[~keep]] = False
+    per_path = score.sum(axis=(1, 2))
+    return WalkResult(radiance=score.sum(axis=0) / n, stderr=float(per_path.std() / np.sqrt(n)), n_paths=n)
+
+
+if __name__ == "__main__":  # a quick look: python -m bench.sphere_walk
+    for eta in (1.0, 1.3):
+        res = sphere_walk(5.0, 0.2, eta, n=200_000)
+        print(f"eta {eta}: total {res.total:.5f} +- {res.stderr:.5f}; single straight {res.single_straight:.5f}, "
+              f"single reflected {res.radiance[1, 1]:.5f}, orders >= 2 {res.higher_orders:.5f}")
