@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from .runtime import CPUIntegrator, light_term, rays_from_points, view_term
+from .runtime import CPUIntegrator, light_term, medium_margin, rays_from_points, view_term
 
 
 def _view_key(view):
@@ -73,12 +73,13 @@ class FrameEvaluator:
         key = _view_key(view)
         if self._rays is None or self._rays_key != key:
             bvh = self.bvh if self.far_clip else None
+            margin = medium_margin(self.data.voxel_size)
             if view is None:
-                r = rays_from_points(self.points, self.normals, view_dirs=self.normals, bvh=bvh)
+                r = rays_from_points(self.points, self.normals, view_dirs=self.normals, bvh=bvh, margin=margin)
             elif view[0] == "ORTHO":
-                r = rays_from_points(self.points, self.normals, view_dir=view[1], bvh=bvh)
+                r = rays_from_points(self.points, self.normals, view_dir=view[1], bvh=bvh, margin=margin)
             else:
-                r = rays_from_points(self.points, self.normals, camera_position=view[1], bvh=bvh)
+                r = rays_from_points(self.points, self.normals, camera_position=view[1], bvh=bvh, margin=margin)
             self._rays, self._rays_key = r, key
         return self._rays
 

@@ -19,6 +19,10 @@ medium is the trilinear voxel field of :class:`~.volume.VoxelVolume` (the same
 model the bake reads); Fresnel and eta conventions are those of
 :mod:`.runtime` (``F_in`` at entry; the exit factor is applied by the caller).
 
+``reference_vertices`` starts each view ray outside the surface and ends it beyond the far side by
+:func:`.runtime.medium_margin`, so that it crosses the whole voxel field (its trilinear boundary ramp
+lies half outside the mesh), as the RBF pass's rays do.
+
 The result is the in-medium radiance at x, directly comparable with
 :func:`.runtime.integrate_view_rays`.  Cost: rays x steps x (lights + env
 directions) x shadow steps trilinear lookups; meant for tests and benches.
@@ -182,7 +186,7 @@ def reference_vertices(volume, V, F, normals, lights, environment, eta: float, *
                        view_dir=None, vertices=None, bvh=None, far_clip: bool = True, **kw) -> np.ndarray:
     """Outgoing radiance at vertices from the brute-force reference (same exit factor as ``render_vertices``)."""
     from ..geometry.raycast import TriangleBVH
-    from .runtime import exit_factor
+    from .runtime import extend_rays, exit_factor, medium_margin
 
     V = np.asarray(V, dtype=np.float64)
     idx = np.arange(len(V)) if vertices is None else np.asarray(vertices, dtype=np.int64)
@@ -206,6 +210,7 @@ def reference_vertices(volume, V, F, normals, lights, environment, eta: float, *
         t_exit = np.where(tri >= 0, t, 0.0)
     else:
         t_exit = np.full(int(vis.sum()), np.inf)
-    L = reference_radiance(volume, P[vis], -wo[vis], t_exit, lights, environment, eta, **kw)
+    o, t_exit = extend_rays(P[vis], -wo[vis], t_exit, medium_margin(volume.h))  # the whole voxel field's ramp
+    L = reference_radiance(volume, o, -wo[vis], t_exit, lights, environment, eta, **kw)
     out[idx[vis]] = L * exit_factor(cos_o[vis], eta)[:, None]
     return out
