@@ -80,8 +80,16 @@ def cmd_solve(a) -> int:
                                has_voxel_number_map=bake.voxel_number_map is not None,
                                all_passes=a.pass_planning == "all")
     name = os.path.splitext(os.path.basename(a.cache))[0]
+    why = {}  # what forced each override off, in the command line's words (the plan says it)
+    if "single" in overrides and not overrides["single"]:
+        why["single"] = ("by --no-single-scattering" if a.no_single_scattering else
+                         "because the cache holds no single-scattering data (bake with --single-scattering)"
+                         if bake.single_scattering is None else
+                         "because single scattering is baked in the rest pose and not deformed (--deformed)")
+    if overrides.get("voxel_number_map") is False:
+        why["voxel_number_map"] = "by --no-voxel-number-map"
     plan = plan_object(bake, outer_material, lights, env, field_values=field_values, has_single_scattering=has_ss,
-                       overrides=overrides, name=name)
+                       overrides=overrides, name=name, override_reasons=why)
     passes = passes_for(plan, bake)
     solver = None
     if passes.use_ms:
@@ -128,7 +136,10 @@ def cmd_solve(a) -> int:
                     "diffusion": t_diff - t1,
                     "single_scattering": 0.0 if ss_stats is None else ss_stats["seconds"]["total"],
                     "voxel_number_map": vnm_stats["seconds"]["total"] if vnm_stats["enabled"] else 0.0,
+                    "orders_after_the_first": frame.seconds["orders_after_the_first"],
                     "total": t2 - t0},
+        "orders_after_the_first_mean": (frame.terms.orders.mean(axis=0).tolist()
+                                        if frame.terms.orders is not None else None),
         "voxel_number_map": vnm_stats,
         "cavity_exchange": cavity_info,
         "single_scattering": ss_stats if ss_stats is not None else {

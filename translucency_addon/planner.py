@@ -89,7 +89,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .scene.lights import Environment
-from .scene.materials import Material
+from .scene.materials import Material, reduced_albedo
 from .planner_changes import ChangeTracker, FrameWork, ObjectState, fingerprint, light_fingerprint
 from .planner_facts import fluid_thickness, light_reaching, object_thickness, surface_thickness, unlit_misses
 from .planner_messages import (CHANNELS, MEASURED_INNER_PARTS, SS_HINT, advice_text, describe_plan, plan_reason_text,
@@ -146,6 +146,9 @@ class Plan:
     advice: list = field(default_factory=list)  # what a better result would need (panel, CLI)
     voxel_number_map: PassDecision | None = None  # Mochida et al., when baked (inner parts)
     why: Reason | None = None  # ``reason`` as data (planner_rules.Why: runs, disabled, unlit, ...)
+    # (n_surface, 3) reduced albedo at the finest level's surface nodes, as the rules measured it: what the
+    # orders after the first scale with where a pass replaces diffusion (frame.orders_after_the_first).
+    surface_albedo: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def passes(self) -> dict:
@@ -154,6 +157,15 @@ class Plan:
     def channel_mask(self, name: str) -> np.ndarray:
         p = self.passes.get(name)
         return np.array(p.channels if (p is not None and self.run) else (False, False, False))
+
+    def replaces_diffusion(self, name: str) -> tuple:
+        """The channels in which pass ``name`` (single scattering or the Voxel Number Map) runs because it
+        replaces diffusion (everywhere or in a region), not because an override forced it on."""
+        p = self.passes.get(name)
+        if p is None or not self.run:
+            return (False, False, False)
+        kinds = (Why.REPLACES, Why.REPLACES_IN_REGION)
+        return tuple(bool(p.channels[c] and c < len(p.why) and p.why[c].what in kinds) for c in range(3))
 
     def vertex_weights(self, name: str, idx, w) -> np.ndarray:
         """(n, 3) weight of pass ``name`` at points mapped onto the finest surface nodes.
@@ -367,7 +379,7 @@ def _plan(o: PlanInputs, lights, environment, overrides: dict, override_reasons:
     if vnm is not None and vnm.runs:
         cost += o.inner.vnm_cost
     return Plan(o.name, True, "runs", multiple, single_p, estimated_ms=cost, facts=facts, advice=advice,
-                voxel_number_map=vnm_p, why=Reason(Why.RUNS))
+                voxel_number_map=vnm_p, why=Reason(Why.RUNS), surface_albedo=reduced_albedo(*o.surface))
 
 
 def inner_parts(bake) -> dict:

@@ -99,6 +99,19 @@ with eq. 4 at alpha = 0.999, eta = 1; at eta = 1.3, where Fresnel shapes both al
 noise either way.  This is the shape under diffuse light; under a sun it depends on the incidence (head-on
 light leaves more head-on), which the tables do not carry.
 
+**Where diffusion is invalid** (reduced albedo below the planner's 0.5, or too thin) the single-scattering
+pass replaces it, and the orders after the first would be missing (17 % of the light of a 10 mm sphere at
+albedo 0.2, eta 1.3, against a random walk; 39 % at 0.45).  The half-space gives their ratio to the
+once-scattered light, direction by direction::
+
+    rho(alpha, m) = L_ms(m) / L_ss(m) = 4 M(alpha) c(alpha, m) / ((1 - F_dr) alpha h(m))                  (5)
+
+with ``h(m) = sum_j p_j/(m + nu_j)`` of eq. (1).  The pass's radiance times ``1 + rho`` is the frame's term
+there (``frame.orders_after_the_first``): the pass carries the object's shape (a 10 mm sphere returns 25 %
+more once-scattered light than a half-space, and 30-40 % more of the rest), the ratio the local depth
+distribution of the orders, which is where the half-space and the sphere agree best (0.19 against the
+walk's 0.21 at alpha 0.2, eta 1.3).  It vanishes in proportion to alpha as alpha -> 0.
+
 Against transport (eta = 1.3, diffuse light; the corrected random walk of the tests): total returned
 light at alpha = 0.68, 0.84, 0.96 (skin1's B, G, R) is 0.1255, 0.2287, 0.4628; diffusion alone gives
 0.1285, 0.2445, 0.4805 (+2.4 %, +6.9 %, +3.8 %), the split 0.1253, 0.2290, 0.4633 (within 0.2 %).  On
@@ -295,6 +308,24 @@ class HalfSpaceSplit:
         hi = (1 - tm) * T[i + 1, j] + tm * T[i + 1, j + 1]
         out = (1 - tu) * lo + tu * hi
         return np.where((c > 0)[:, None], out, 1.0)
+
+    def multiple_over_single(self, alpha, cos_o) -> np.ndarray:
+        """Eq. (5): the half-space's radiance of light scattered two or more times over its once-scattered
+        radiance, seen at outside cosine ``cos_o``,
+
+            rho(alpha, m) = L_ms / L_ss = 4 M(alpha) c(alpha, m) / ((1 - F_dr) alpha h(m))
+
+        (eq. 4's output ``F_t M q c/((1 - F_dr) pi eta^2)`` over eq. 2's ``F_t alpha q h(m)/(4 pi eta^2)``;
+        q and the exit factor cancel).  Where diffusion is invalid the single-scattering pass, which sees
+        the object's real shape, times rho stands in for the orders after the first.  ``alpha`` (n, 3);
+        ``cos_o`` (n,); 0 where the point faces away or nothing scatters.
+        """
+        a = np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0)
+        c = np.asarray(cos_o, dtype=np.float64)
+        m = refracted_cosine(np.clip(c, 0.0, 1.0), self.eta)
+        num = 4.0 * self.multiple_escape(a) * self.multiple_shape(a, c)
+        den = (1.0 - self.fdr) * a * self._h(m)[:, None]
+        return np.where((c > 0)[:, None] & (den > 1e-300), num / np.maximum(den, 1e-300), 0.0)
 
     def single_radiance(self, q, alpha, cos_o) -> np.ndarray:
         """Eq. (2): outgoing single-scattering radiance (W/(m^2 sr)) for entering light q (W/m^2).
