@@ -179,8 +179,8 @@ def test_cli_plan_of_ketchup_under_a_sun_says_why_per_channel_and_what_to_change
     ms = lines[head + 1:][:3]
     assert ms[0].startswith("    R: diffusion valid (reduced albedo 0.747, ") and "transport mean free paths" in ms[0]
     for line, (C, albedo) in zip(ms[1:], (("G", "0.07"), ("B", "0.02"))):
-        assert line == (f"    {C}: diffusion invalid (reduced albedo {albedo} < 0.5) and it returns < 0.01 % of the "
-                        "brightest channel"), out
+        assert line == (f"    {C}: diffusion invalid (reduced albedo {albedo} < 0.5); left out: its half-space return "
+                        "is < 0.01 % of the brightest channel, so what it returns on the object is its error"), out
     hint = [line for line in lines if line.startswith("  better: ")]
     assert hint == ["  better: GB: single scattering would be more accurate on 100 % of the surface (low albedo); "
                     "bake it to use it (bake single scattering: in Blender turn on Single Scattering and press Bake "
