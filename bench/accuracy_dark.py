@@ -1,0 +1,211 @@
+"""Media where diffusion fails (issue 30): a sphere of a dark medium, and an albedo sweep across the
+planner's threshold, against an analogue random walk of the same sphere.
+
+    python -m bench.accuracy_dark [--out docs/accuracy.md] [--quick]
+
+Scene: a sphere of radius 5 mm (10 mm across, an icosphere of 2,562 vertices), unit extinction
+(sigma_s' = albedo, sigma_a = 1 - albedo per mm), under a uniform white world of radiance 1, every vertex
+seen along its normal -- what a new user gets from the command line with default settings
+(``bake --single-scattering``, ``solve --env 1,1,1``; the add-on bakes single scattering by default for
+such a medium).  The frame is the engine's (``frame.render_frame`` through ``python -m translucency_addon
+solve``, in-process).
+
+Reference: ``bench/sphere_walk.py``, an analogue random walk of the same sphere (its own Fresnel,
+total internal reflection, every order), split into the once-scattered light that leaves without an
+internal reflection (what the single-scattering pass models) and the rest.  By symmetry the exact
+radiance is the same at every vertex, so the per-vertex error is ours alone; the noise floor is the
+walk's standard error.
+
+Columns: the mean over the vertices and the per-vertex relative RMS against the walk's total; the
+single-scattering term alone against the walk's straight once-scattered light; the orders after the
+first (``frame.orders_after_the_first``) against the walk's; the frame's cost (solve, single scattering,
+the orders) on two shared CPU cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench.sphere_walk import sphere_walk  # noqa: E402
+
+HEADING = "## Media where diffusion fails (issue 30): a dark sphere and an albedo sweep\n"
+RADIUS_MM = 5.0
+DARK = [(0.2, 1.3), (0.2, 1.0)]
+SWEEP = [0.1, 0.2, 0.3, 0.4, 0.45, 0.49, 0.51, 0.55, 0.6, 0.7, 0.8, 0.9]
+
+
+def _cli(args) -> None:
+    from translucency_addon.__main__ import main
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+        rc = main([str(a) for a in args])
+    if rc:
+        raise RuntimeError(f"translucency_addon {' '.join(map(str, args))} failed ({rc}):\n{out.getvalue()[-2000:]}")
+
+
+def run_case(work: Path, mesh: Path, albedo: float, eta: float, n_walk: int) -> dict:
+    a, b = albedo, 1.0 - albedo
+    material = ["--sigma-s", f"{a},{a},{a}", "--sigma-a", f"{b},{b},{b}", "--eta", repr(eta)]
+    cache = work / f"sphere_{a}_{eta}.npz"
+    t0 = time.perf_counter()
+    _cli(["bake", mesh, "-o", cache, "--single-scattering", *material])
+    t_bake = time.perf_counter() - t0
+    out, ss_out, stats = work / "L.npy", work / "ss.npy", work / "stats.json"
+    _cli(["solve", cache, "-o", out, *material, "--env", "1,1,1", "--ss-output", ss_out, "--stats", stats])
+    st = json.loads(stats.read_text())
+    L = np.load(out)[:, 0].astype(np.float64)
+    ss = np.load(ss_out)[:, 0].astype(np.float64) if st["single_scattering"]["enabled"] else np.zeros_like(L)
+    orders = float((st.get("orders_after_the_first_mean") or [0.0])[0])
+    walk = sphere_walk(RADIUS_MM, a, eta, n=n_walk, seed=7)
+    ref = walk.total
+    sec = st["seconds"]
+    return {
+        "albedo": a, "eta": eta, "mean": float(L.mean() / ref - 1.0),
+        "rms": float(np.sqrt(np.mean((L / ref - 1.0) ** 2))),
+        "single": float(ss.mean() / walk.single_straight - 1.0) if ss.any() else None,
+        "orders": float(orders / (ref - walk.single_straight) - 1.0) if orders > 0 else None,
+        "walk": ref, "walk_single": walk.single_straight, "walk_rest": ref - walk.single_straight,
+        "noise": walk.stderr / ref, "ours": float(L.mean()),
+        "plan": "diffusion + split" if "multiple scattering [RGB]" in st["plan"] else "single scattering + rest",
+        "seconds": {"frame": sec["total"] - sec["load"], "single_scattering": sec["single_scattering"],
+                    "orders": sec.get("orders_after_the_first", 0.0), "diffusion": sec["diffusion"],
+                    "bake": t_bake},
+    }
+
+
+def _pct(x) -> str:
+    return "" if x is None else f"{100 * x:+.1f} %"
+
+
+def markdown(results: dict, command: str) -> str:
+    lines = [HEADING, f"From one run of `{command}` ({results['date']}, engine {results['commit']}; two shared CPU "
+             "cores, no GPU).  A sphere 10 mm across, unit extinction per mm, under a white world, seen along "
+             "the normals; reference: `bench/sphere_walk.py`, an analogue random walk of the same sphere "
+             "(Fresnel boundary, total internal reflection, every order).  *mean*: our mean over the "
+             "vertices against the walk; *RMS*: per vertex (the exact radiance is the same at every vertex, "
+             "so this includes our vertex-to-vertex noise); *single*: the single-scattering term against the "
+             "walk's once-scattered light that leaves without an internal reflection; *rest*: the orders "
+             "after the first against the walk's rest.  Noise floor: the walk's standard error.\n",
+             "| albedo | IOR | passes | mean | RMS | single | rest | noise floor | frame (s) | of it: single, "
+             "rest (ms) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results["dark"] + results["sweep"]:
+        s = r["seconds"]
+        lines.append(f"| {r['albedo']:.2f} | {r['eta']} | {r['plan']} | {_pct(r['mean'])} | {100 * r['rms']:.1f} % | "
+                     f"{_pct(r['single'])} | {_pct(r['orders'])} | {100 * r['noise']:.2f} % | {s['frame']:.2f} | "
+                     f"{1e3 * s['single_scattering']:.0f}, {1e3 * s['orders']:.1f} |")
+    return "\n".join(lines) + "\n\n" + findings(results) + "\n"
+
+
+def findings(results: dict) -> str:
+    """What the table says, with the numbers of the same run; the 'before' figures are the CLI's at
+    3fe77a8 (the engine before the margin and the orders after the first), measured with this bench."""
+    rows = {(r["albedo"], r["eta"]): r for r in results["dark"] + results["sweep"]}
+    d13, d10 = rows.get((0.2, 1.3)), rows.get((0.2, 1.0))
+    ss_side = [r for r in results["sweep"] + results["dark"][:1] if r["plan"] != "diffusion + split"]
+    df_side = [r for r in results["sweep"] if r["plan"] == "diffusion + split"]
+    out = ["Findings:\n"]
+    if d13 and d10:
+        out.append(f"* **The dark sphere** is {_pct(d13['mean'])} at IOR 1.3 and {_pct(d10['mean'])} at IOR 1 "
+                   "(targets 10 % and 5 %); before this issue's work the same commands gave -22 % and -24 %, "
+                   "and the add-on with default settings rendered it black (single scattering was not baked). "
+                   "Two causes, each measured: view rays that started at the vertex missed half of the voxel "
+                   "model's boundary ramp (the pass alone was -12 % at IOR 1; rays now cross the whole baked "
+                   "medium), and the orders after the first were missing where the pass replaces diffusion "
+                   f"({100 * d13['walk_rest'] / d13['walk']:.0f} % of this sphere's light; now eq. (5) of "
+                   "`diffusion/split.py`).")
+    if d13:
+        out.append(f"* **What is left at IOR 1.3** is the single-scattering term's {_pct(d13['single'])}: its "
+                   "chords run straight through the boundary, so the light enters over the whole hemisphere "
+                   "instead of the critical cone (issue 30, item 3, not built). At IOR 1 the same term is "
+                   f"{_pct(d10['single']) if d10 else '?'}.")
+    if ss_side and df_side:
+        worst_ss = max(ss_side, key=lambda r: abs(r["mean"]))
+        worst_df = max(df_side, key=lambda r: r["rms"])
+        lo = max((r for r in ss_side), key=lambda r: r["albedo"])
+        hi = min((r for r in df_side), key=lambda r: r["albedo"])
+        over = [r for r in ss_side + df_side if r["rms"] > 0.10]
+        over_txt = ", ".join(f"{100 * r['rms']:.1f} % at {r['albedo']:.2f}" for r in sorted(over, key=lambda r: r["albedo"]))
+        out.append(f"* **The sweep**: every mean within {100 * max(abs(r['mean']) for r in ss_side + df_side):.1f} % "
+                   f"of the walk at its own albedo; across the planner's threshold the error goes from "
+                   f"{_pct(lo['mean'])} at {lo['albedo']:.2f} to {_pct(hi['mean'])} at {hi['albedo']:.2f}: no black "
+                   "band, no jump of the old factor of three. The per-vertex RMS is over 10 % only just above the "
+                   f"threshold ({over_txt or 'nowhere'}; diffusion near its limit varies over the sphere, "
+                   f"worst {100 * worst_df['rms']:.1f} %); the worst single-scattering-side mean is "
+                   f"{_pct(worst_ss['mean'])} at {worst_ss['albedo']:.2f}.")
+        ms = [1e3 * r["seconds"]["single_scattering"] for r in ss_side]
+        mo = [1e3 * r["seconds"]["orders"] for r in ss_side]
+        out.append(f"* **Cost**: the single-scattering pass is {min(ms):.0f}-{max(ms):.0f} ms of the frame here, the "
+                   f"orders after the first {min(mo):.1f}-{max(mo):.1f} ms (one table lookup per vertex); the first "
+                   "row's frame includes the split tables' one-time set-up.")
+    return "\n".join(out)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default=None, help="markdown file whose section is (re)written")
+    ap.add_argument("--quick", action="store_true", help="the two dark spheres only, a short walk")
+    ap.add_argument("--walk-paths", type=int, default=400_000)
+    ap.add_argument("--from-json", action="store_true",
+                    help="rewrite the section from bench/data/dark_results.json without running")
+    a = ap.parse_args(argv)
+    if a.from_json:
+        results = json.loads((ROOT / "bench" / "data" / "dark_results.json").read_text())
+        return _write(results, "python -m bench.accuracy_dark" + (f" --out {a.out}" if a.out else ""), a.out)
+    import subprocess
+
+    from translucency_addon.geometry import meshio, primitives
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                            text=True).stdout.strip()
+    results = {"date": time.strftime("%Y-%m-%d"), "commit": commit, "dark": [], "sweep": []}
+    n_walk = 50_000 if a.quick else a.walk_paths
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        mesh = work / "sphere.obj"
+        V, F = primitives.icosphere(RADIUS_MM, 4)
+        meshio.save_obj(mesh, V, F)
+        for albedo, eta in DARK:
+            results["dark"].append(run_case(work, mesh, albedo, eta, n_walk))
+            print(results["dark"][-1], file=sys.stderr)
+        for albedo in ([] if a.quick else SWEEP):
+            if albedo == 0.2:
+                continue  # the first dark row
+            results["sweep"].append(run_case(work, mesh, albedo, 1.3, n_walk))
+            print(results["sweep"][-1], file=sys.stderr)
+    results["sweep"].sort(key=lambda r: r["albedo"])
+    command = "python -m bench.accuracy_dark" + (" --quick" if a.quick else "") + (
+        f" --out {a.out}" if a.out else "")
+    (ROOT / "bench" / "data").mkdir(exist_ok=True)
+    if not a.quick:
+        (ROOT / "bench" / "data" / "dark_results.json").write_text(json.dumps(results, indent=1) + "\n")
+    return _write(results, command, a.out)
+
+
+def _write(results: dict, command: str, out_path) -> int:
+    text = markdown(results, command)
+    print(text)
+    if out_path:
+        from bench.accuracy_text import replace_section
+
+        out = Path(out_path)
+        old = out.read_text() if out.exists() else ""
+        out.write_text(replace_section(old, HEADING, text[len(HEADING):]))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
