@@ -32,13 +32,13 @@ def surface_thickness(bake) -> np.ndarray:
     cached = _THICKNESS.get(key)
     if cached is not None and cached[0] is lv.position:
         return cached[1]
-    from .geometry.raycast import TriangleBVH
+    from .geometry.raycast import mesh_bvh
 
     V = np.asarray(bake.mesh_vertices, dtype=np.float64)
     diag = float(np.linalg.norm(np.ptp(V, axis=0)))
     n = np.asarray(lv.normal, dtype=np.float64)
     p = np.asarray(lv.surface_position, dtype=np.float64)
-    bvh = TriangleBVH(V, bake.mesh_faces)
+    bvh = mesh_bvh(V, bake.mesh_faces)
     # Enter from just outside and measure entry to exit: a node that sits a hair outside the mesh
     # (placement round-off; seen at 3e-5 units on the unit sphere) would otherwise measure ~0.
     eps = 1e-4 * diag

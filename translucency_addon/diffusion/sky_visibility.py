@@ -170,13 +170,13 @@ def compute_sky_visibility(bake, n_directions: int = 64, bvh=None, progress=None
     index when the solver asks (:meth:`LevelSky.weight`).
     ``progress(fraction)`` returning False cancels (:class:`BakeCancelled`).
     """
-    from ..geometry.raycast import TriangleBVH
+    from ..geometry.raycast import mesh_bvh
 
     if n_directions < 8:
         raise ValueError(f"n_directions must be at least 8, got {n_directions}")
     V = np.asarray(bake.mesh_vertices, dtype=np.float64)
     F = np.asarray(bake.mesh_faces, dtype=np.int64)
-    bvh = TriangleBVH(V, F) if bvh is None else bvh
+    bvh = mesh_bvh(V, F) if bvh is None else bvh
     diag = float(np.linalg.norm(np.ptp(V, axis=0)))
     dirs = fibonacci_directions(int(n_directions))
     total = max(sum(lv.n_surface for lv in bake.levels), 1)

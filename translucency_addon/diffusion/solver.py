@@ -256,13 +256,13 @@ class DiffusionSolver:
         :class:`~.raycast.TriangleBVH` of the whole scene.  The combined BVH is
         cached and rebuilt only when the occluder arrays change.
         """
-        from ..geometry.raycast import TriangleBVH
+        from ..geometry.raycast import TriangleBVH, mesh_bvh
 
         if isinstance(occluders, TriangleBVH):
             return occluders
         if occluders is None:
             if self._shadow_bvh is None:
-                self._shadow_bvh = TriangleBVH(self.bake.mesh_vertices, self.bake.mesh_faces)
+                self._shadow_bvh = mesh_bvh(self.bake.mesh_vertices, self.bake.mesh_faces)
             return self._shadow_bvh
         Vo, Fo = (np.ascontiguousarray(a) for a in occluders)
         key = (Vo.shape, Fo.shape, hash(Vo.tobytes()), hash(Fo.tobytes()))

@@ -40,7 +40,7 @@ class FrameEvaluator:
     def __init__(self, data, V, F, normals=None, *, points=None, point_normals=None, integrator=None,
                  far_clip: bool = True):
         from ..geometry.meshio import vertex_normals
-        from ..geometry.raycast import TriangleBVH
+        from ..geometry.raycast import mesh_bvh
 
         self.data = data
         self.V = np.asarray(V, dtype=np.float64)
@@ -53,7 +53,7 @@ class FrameEvaluator:
                                       dtype=np.float64)
         else:
             # Points off the baked surface (another mesh's vertices) start from the closest surface point.
-            self._bvh = TriangleBVH(self.V, self.F)
+            self._bvh = mesh_bvh(self.V, self.F)
             self.points = self._bvh.closest_point(np.asarray(points, dtype=np.float64))[0]
             self.normals = np.asarray(point_normals, dtype=np.float64).reshape(-1, 3)
         self.integrator = integrator if integrator is not None else CPUIntegrator(data)
@@ -64,9 +64,9 @@ class FrameEvaluator:
     @property
     def bvh(self):
         if self._bvh is None:
-            from ..geometry.raycast import TriangleBVH
+            from ..geometry.raycast import mesh_bvh
 
-            self._bvh = TriangleBVH(self.V, self.F)
+            self._bvh = mesh_bvh(self.V, self.F)
         return self._bvh
 
     def rays(self, view):

@@ -234,11 +234,11 @@ def view_rays(V, F, normals, *, camera_position=None, view_dir=None, view_dirs=N
     lie inside the object, so this differs only by the tails beyond the far
     side and by re-entries of concave shapes, and costs no ray cast.
     """
-    from ..geometry.raycast import TriangleBVH
+    from ..geometry.raycast import mesh_bvh
 
     V = np.asarray(V, dtype=np.float64)
     if far_clip and bvh is None:
-        bvh = TriangleBVH(V, F)
+        bvh = mesh_bvh(V, F)
     return rays_from_points(V, normals, camera_position=camera_position, view_dir=view_dir, view_dirs=view_dirs,
                             points=vertices, bvh=bvh if far_clip else None, margin=margin)
 

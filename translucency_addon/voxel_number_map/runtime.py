@@ -50,11 +50,11 @@ class VoxelNumberMapEvaluator:
     """
 
     def __init__(self, vnm, material, *, mm_per_unit: float | None = None, transmission=None):
-        from ..geometry.raycast import TriangleBVH
+        from ..geometry.raycast import mesh_bvh
 
         self.vnm = vnm
         self.mm_per_unit = float(vnm.mm_per_unit if mm_per_unit is None else mm_per_unit)
-        self.bvh = TriangleBVH(vnm.mesh_vertices, vnm.mesh_faces)
+        self.bvh = mesh_bvh(vnm.mesh_vertices, vnm.mesh_faces)
         self.diag = float(np.linalg.norm(np.ptp(vnm.mesh_vertices, axis=0)))
         self.transmission = transmission
         self._shadows: dict = {}
