@@ -34,7 +34,7 @@ from ..geometry import tetra
 from ..errors import BakeCancelled, MeshError
 from ..scene.materials import check_mm_per_unit
 from .levels import BLOCK_SIZE, GraphLevel, build_level
-from ..geometry.raycast import TriangleBVH
+from ..geometry.raycast import mesh_bvh
 
 BAKE_FORMAT = 1
 
@@ -343,7 +343,7 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
     used[F.ravel()] = True
     Fo = F
     normals = meshio.vertex_normals(V, Fo)
-    bvh = TriangleBVH(V, Fo)
+    bvh = mesh_bvh(V, Fo)
 
     pr.stage("resample")
     # Independently tetrahedralised levels, coarse to fine: base / 4^k triangles.
@@ -352,7 +352,13 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
         targets = [s.base_triangles * 4**k for k in range(n_indep)]
     else:
         targets = [max(20, s.base_triangles // 4 ** (n_indep - 1 - k)) for k in range(n_indep)]
-    surfaces = [resample_surface(V, Fo, t) for t in targets]
+    # Finest first, each coarser surface decimated from the finer one: the user's mesh is decimated
+    # once (of 1.3 M triangles, 3.9 s a call here), and a quadric collapse of a collapse is the
+    # same kind of surface as a collapse of the original.
+    surfaces = [None] * len(targets)
+    src = (V, Fo)
+    for k in sorted(range(len(targets)), key=lambda k: -targets[k]):
+        surfaces[k] = src = resample_surface(*src, targets[k])
     Vb, Fb = surfaces[-1]
 
     pr.stage("tetrahedralize")
