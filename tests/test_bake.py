@@ -176,6 +176,17 @@ def test_cache_errors(tmp_path):
         zf.writestr("notes.txt", "hello")
     with pytest.raises(CacheError, match="its member 'notes.txt' is not an array"):
         cache.load_bake(extra)
+    # the mesh's triangle tree kept with the bake: read back as written, refused when it is not one
+    assert bake.mesh_bvh_order is not None
+    np.testing.assert_array_equal(cache.load_bake(path).mesh_bvh_order, bake.mesh_bvh_order)
+    arrays = cache.bake_to_arrays(bake)
+    order = arrays["mesh/bvh_order"].copy()
+    order.flat[np.flatnonzero(order.ravel() >= 0)[:2]] = order.flat[np.flatnonzero(order.ravel() >= 0)[0]]
+    arrays["mesh/bvh_order"] = order  # one triangle twice, another missing
+    tree = tmp_path / "tree.npz"
+    np.savez(tree, **arrays)
+    with pytest.raises(CacheError, match="triangle tree does not match the mesh .*exactly once.*re-bake"):
+        cache.load_bake(tree)
     # a pickled object array is refused, never executed
     arrays = cache.bake_to_arrays(bake)
     arrays["L0/position"] = np.array([object()], dtype=object)

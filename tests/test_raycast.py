@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from translucency_addon.geometry import primitives
-from translucency_addon.geometry.raycast import LEAF, TriangleBVH, _balanced_order, closest_point_on_triangles
+from translucency_addon.geometry.raycast import (
+    LEAF, TriangleBVH, _balanced_order, check_order, closest_point_on_triangles, mesh_bvh)
 
 
 def _brute_hits(V, F, o, d):
@@ -65,3 +66,28 @@ def test_median_split_order_is_a_balanced_tree():
     first, second = perm[:512], perm[512:]
     assert c[first, 0].max() <= c[second[second >= 0], 0].min()  # root split along x, the longest axis
     assert np.sum(second < 0) == 24  # padding sorts into the upper half
+
+
+def test_a_kept_order_gives_the_same_tree_and_a_wrong_one_is_refused():
+    V, F = primitives.icosphere(2.0, 3)
+    F = F[:-3]
+    built = TriangleBVH(V, F)
+    check_order(built.leaf_tris, len(F))
+    again = TriangleBVH.from_order(V, F, built.leaf_tris.astype(np.int32))
+    for name in ("lo", "hi", "v0", "e1", "e2", "valid", "split_axis", "second_is_plus"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(built, name))
+    bad = built.leaf_tris.copy()
+    bad[0, 0] = bad[0, 1]
+    with pytest.raises(ValueError, match="exactly once"):
+        check_order(bad, len(F))
+    with pytest.raises(ValueError, match="expected"):
+        check_order(built.leaf_tris[:-1], len(F))
+
+
+def test_mesh_bvh_is_shared_by_content_not_by_identity():
+    V, F = primitives.icosphere(1.0, 2)
+    a = mesh_bvh(V, F)
+    assert mesh_bvh(V.copy(), F.copy()) is a  # the same mesh in other arrays
+    V2 = V.copy()
+    V2[0, 0] += 1e-3
+    assert mesh_bvh(V2, F) is not a  # an edited mesh never gets the old tree

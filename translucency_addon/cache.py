@@ -63,6 +63,8 @@ def bake_to_arrays(bake: Bake) -> dict:
     d["vmap/idx"], d["vmap/w"] = bake.vertex_map
     d["mesh/V"] = bake.mesh_vertices
     d["mesh/F"] = bake.mesh_faces
+    if getattr(bake, "mesh_bvh_order", None) is not None:
+        d["mesh/bvh_order"] = np.asarray(bake.mesh_bvh_order, dtype=np.int32)
     d["mesh/N"] = bake.mesh_normals
     d["shadow/V"] = bake.shadow_vertices
     d["shadow/F"] = bake.shadow_faces
@@ -261,6 +263,7 @@ def load_bake(path, expected_key: str | None = None) -> Bake:
             shadow_vertices=arrays["shadow/V"], shadow_faces=arrays["shadow/F"], settings=settings,
             mm_per_unit=float(meta["mm_per_unit"]), key=meta["key"], stats=meta["stats"],
             single_scattering=ss, sky=sky, voxel_number_map=vnm, composite=comp,
+            mesh_bvh_order=arrays.get("mesh/bvh_order"),  # absent in caches written before it was kept
         )
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise CacheError(f"bake cache {os.fspath(path)!r} is incomplete or inconsistent: {exc}") from exc
@@ -294,5 +297,13 @@ def _check_consistency(bake: Bake, path) -> None:
     idx, w = bake.vertex_map
     if len(idx) != len(bake.mesh_vertices) or (idx.size and idx.max() >= bake.levels[-1].n_surface):
         raise CacheError(f"bake cache {os.fspath(path)!r}: vertex mapping does not match the mesh")
+    if bake.mesh_bvh_order is not None:
+        from .geometry.raycast import check_order
+
+        try:
+            check_order(bake.mesh_bvh_order, len(bake.mesh_faces))
+        except ValueError as exc:
+            raise CacheError(f"bake cache {os.fspath(path)!r}: the mesh's triangle tree does not match the mesh "
+                             f"({exc}); re-bake the object") from None
     if bake.sky is not None and [s.n_surface for s in bake.sky.levels] != [lv.n_surface for lv in bake.levels]:
         raise CacheError(f"bake cache {os.fspath(path)!r}: sky visibility does not match the graph")

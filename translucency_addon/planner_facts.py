@@ -38,7 +38,7 @@ def surface_thickness(bake) -> np.ndarray:
     diag = float(np.linalg.norm(np.ptp(V, axis=0)))
     n = np.asarray(lv.normal, dtype=np.float64)
     p = np.asarray(lv.surface_position, dtype=np.float64)
-    bvh = mesh_bvh(V, bake.mesh_faces)
+    bvh = mesh_bvh(V, bake.mesh_faces, getattr(bake, "mesh_bvh_order", None))
     # Enter from just outside and measure entry to exit: a node that sits a hair outside the mesh
     # (placement round-off; seen at 3e-5 units on the unit sphere) would otherwise measure ~0.
     eps = 1e-4 * diag

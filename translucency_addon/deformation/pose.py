@@ -325,14 +325,15 @@ class DeformationRig:
                 "mesh); re-bake the object to deform it without a re-bake per frame")
         if not (np.isfinite(stretch_limit) and stretch_limit > 1.0):
             raise DeformationError(f"the stretch limit must be a number > 1, got {stretch_limit}")
-        from ..geometry.raycast import TriangleBVH
+        from ..geometry.raycast import mesh_bvh
 
         t0 = time.perf_counter()
         self.bake = bake
         self.stretch_limit = float(stretch_limit)
         self.V = np.asarray(bake.mesh_vertices, dtype=np.float64)
         self.F = np.asarray(bake.mesh_faces, dtype=np.int64)
-        self.bvh = bake.surface_bvh if bake.surface_bvh is not None else TriangleBVH(self.V, self.F)
+        self.bvh = bake.surface_bvh if bake.surface_bvh is not None else mesh_bvh(
+            self.V, self.F, getattr(bake, "mesh_bvh_order", None))
         self.geo = TriangleGeometry.of(self.V, self.F)
         self.used = np.unique(self.F)
         nv, nf = len(self.V), len(self.F)

@@ -262,7 +262,8 @@ class DiffusionSolver:
             return occluders
         if occluders is None:
             if self._shadow_bvh is None:
-                self._shadow_bvh = mesh_bvh(self.bake.mesh_vertices, self.bake.mesh_faces)
+                self._shadow_bvh = mesh_bvh(self.bake.mesh_vertices, self.bake.mesh_faces,
+                                            getattr(self.bake, "mesh_bvh_order", None))
             return self._shadow_bvh
         Vo, Fo = (np.ascontiguousarray(a) for a in occluders)
         key = (Vo.shape, Fo.shape, hash(Vo.tobytes()), hash(Fo.tobytes()))
