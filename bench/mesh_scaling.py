@@ -111,6 +111,15 @@ def markdown(results: dict, command: str) -> str:
                  f"{big['stages']['bake (command)'] / ref['stages']['bake (command)']:.1f}x, frame "
                  f"{big['stages']['frame (command)'] / ref['stages']['frame (command)']:.1f}x (targets 2x and "
                  "1.3x).")
+    grows = sorted(((s, big["stages"][s]) for s in big["stages"] if "(command)" not in s
+                    and (exponent(rows, s) or 0) > 0.7 and big["stages"][s] > 0.2), key=lambda x: -x[1])
+    if grows:
+        lines.append("")
+        lines.append("What still grows with the mesh at the largest size: " + "; ".join(
+            f"{s} {t:.1f} s" for s, t in grows) + ".  In the bake's validation that is the triangle BVH of the "
+            "full mesh (built once per bake and kept in the cache for the frames) and the mesh checks; in "
+            "the decimation, one quadric collapse of the full mesh (fast_simplification); the rest is reading "
+            "the OBJ, writing the cache and the per-vertex output.")
     old = results.get("compare")
     if old:
         o = old["rows"][-1]["stages"]
