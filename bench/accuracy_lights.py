@@ -217,7 +217,8 @@ def section(res: dict) -> str:
          "exactly pi L (a/d)^2 cos = I cos / d^2 with d in metres, which is the engine's `light_irradiance`; the "
          "two differ only in the penumbra and near the terminator;",
          "* a one-sided square emitter of area A <-> an **area light** of intensity L A [W/sr] along its normal "
-         "(Blender: power pi L A), which the engine treats as a point with a cosine lobe;",
+         "(Blender: power pi L A) with the square's edges, which the engine integrates over the square (16 "
+         "Lambertian patches, `scene.lights.emitter_samples`; before, a point with a cosine lobe);",
          "* *near*: the emitter's centre 2.5 object radii from the object's centre (sphere: 30 mm, 18 mm from its "
          "surface), radius 0.3 x that distance; *far*: 10x further and 10x larger (the same angular size); "
          "L = 11.1 makes the irradiance at the object's centre pi W/m^2. Light from the right, above and in front.",
@@ -276,10 +277,11 @@ def findings(res: dict) -> list:
             em = rec["emitter"]
             d = em["distance_mm"] - LS.OBJECT_RADIUS_MM[name.split("_")[0]]
             R = 2.0 * em["radius_mm"] / math.sqrt(math.pi)  # the disc of the square's area
-            line += (f" The engine's area light is a far-field model (a point with a cosine lobe): on the axis of "
-                     f"a Lambertian disc of radius R at distance d the exact irradiance is pi L R^2 / (R^2 + d^2), "
+            line += (f" The engine integrates the area light over the square (`scene.lights.emitter_samples`, "
+                     f"16 patches; until this run it was a far-field point with a cosine lobe): on the axis of a "
+                     f"Lambertian disc of radius R at distance d the exact irradiance is pi L R^2 / (R^2 + d^2), "
                      f"the point's pi L R^2 / d^2, so at the sphere's nearest point (d = {d:.0f} mm, R = {R:.1f} mm) "
-                     f"the engine's light is {100 * (R / d) ** 2:.0f} % too bright: the model, not the units.")
+                     f"the far-field point was {100 * (R / d) ** 2:.0f} % too bright.")
         if "quartiles" in conv:
             line += (" Mean ours / reference by quartile of the reference's brightness, darkest first: "
                      + ", ".join(f"{x:.2f}" for x in conv["quartiles"]) + ".")

@@ -226,8 +226,16 @@ def convert_light(data, light_matrix, to_object, metres_per_bu: float, name: str
         intensity = power / math.pi
         if not getattr(data, "normalize", True):
             intensity *= area_light_area(data, light_matrix)
+        # The emitter's full edges in object space (Blender scales an area light with its object),
+        # integrated over by the engine (scene.lights.emitter_samples).
+        sx = data.size
+        sy = data.size_y if data.shape in {'RECTANGLE', 'ELLIPSE'} else data.size
+        m3 = to_object.to_3x3() @ light_matrix.to_3x3()
+        ex, ey = m3 @ Vector((sx, 0.0, 0.0)), m3 @ Vector((0.0, sy, 0.0))
         return Light("area", color=color, intensity=intensity * falloff, position=position,
-                     direction=direction, name=name)
+                     direction=direction, name=name,
+                     shape="ellipse" if data.shape in {'DISK', 'ELLIPSE'} else "rectangle",
+                     edge_x=(float(ex.x), float(ex.y), float(ex.z)), edge_y=(float(ey.x), float(ey.y), float(ey.z)))
     return None
 
 

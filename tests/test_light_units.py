@@ -97,10 +97,14 @@ def _pixel_points(sub=1) -> np.ndarray:
     return P.reshape(RES, sub, RES, sub, 3).transpose(0, 2, 1, 3, 4).reshape(RES, RES, sub * sub, 3)
 
 
-def _predicted(addon, plane, scene) -> np.ndarray:
-    """cos * E / pi per pixel (red channel) from the converted lights and world."""
+def _predicted(addon, plane, scene, far_field: bool = False) -> np.ndarray:
+    """cos * E / pi per pixel (red channel) from the converted lights and world; an area light integrated
+    over its surface as every pass does (``emitter_samples``), or, ``far_field``, as the one point with a
+    cosine lobe it used to be."""
+    import dataclasses
+
     from translucency.ops import scene_inputs
-    from translucency.translucency_addon.scene.lights import light_irradiance
+    from translucency.translucency_addon.scene.lights import emitter_samples, light_irradiance
 
     depsgraph = bpy.context.evaluated_depsgraph_get()
     matrix = plane.matrix_world.copy()
@@ -108,6 +112,7 @@ def _predicted(addon, plane, scene) -> np.ndarray:
     assert warning is None
     m_per_bu = scene_inputs.metres_per_world_unit(plane, scene, mm)
     lights = scene_inputs.collect_lights(depsgraph, matrix, m_per_bu)
+    lights = [dataclasses.replace(x, samples=1) for x in lights] if far_field else emitter_samples(lights)
     env, env_warning, world_sun = scene_inputs.world_environment(scene.world)
     assert env_warning is None and world_sun == ()
     W = _pixel_points()
@@ -184,6 +189,21 @@ def test_area_light_is_lambertian_power_over_pi(blender, addon, tmp_path, normal
     if not normalize:
         light.data.energy = 500.0 / (0.15 * 0.15)  # the same emitted power, given per unit area
     _compare(_render_red(scene), _predicted(addon, plane, scene), 0.02, 0.06)
+
+
+@pytest.mark.parametrize("shape, size, size_y", [('RECTANGLE', 1.6, 0.9), ('DISK', 1.4, 1.4)])
+def test_a_near_area_light_is_integrated_over_its_surface(blender, addon, tmp_path, shape, size, size_y):
+    """A large area light close to the plane (its size about its height): the far-field point the engine
+    used to make of it is 10 % or more off Cycles there, the integral over the emitter is not."""
+    scene = _scene(tmp_path, samples=64)
+    plane = _white_plane()
+    _light(scene, 'AREA', location=(-0.1, 0.1, 0.9), rotation=(math.radians(20), 0.0, math.radians(15)),
+           energy=300.0, size=size, size_y=size_y, shape=shape)
+    rendered = _render_red(scene)
+    lit = _predicted(addon, plane, scene) > 0.1 * _predicted(addon, plane, scene).max()
+    far = _predicted(addon, plane, scene, far_field=True)
+    assert np.percentile(np.abs(rendered[lit] / far[lit] - 1.0), 95) > 0.10  # the far field is wrong here
+    _compare(rendered, _predicted(addon, plane, scene), 0.02, 0.06)
 
 
 def test_sun_strength_is_irradiance(blender, addon, tmp_path):

@@ -180,8 +180,9 @@ class RefEmitter:
       the sphere's solid angle.
     * ``"rectangle"``: a one-sided Lambertian square of side ``2 * radius`` at ``position``,
       emitting towards ``direction``.  Radiant intensity I(w) = L A cos(w, n) with A its area in
-      m^2: the engine's ``area`` light (far field, ``intensity = L A`` along the normal; a Blender
-      area light of power P has I = P / pi along its normal, so P = pi L A).
+      m^2: the engine's ``area`` light with the square's edges (``intensity = L A`` along the normal,
+      integrated over the square; a Blender area light of power P has I = P / pi along its normal, so
+      P = pi L A).
     * ``"shaded_sphere"``: the sphere inside a black spherical shade of radius ``shade_radius``
       with a circular opening of full angle ``cone_deg`` around ``direction``: a spot light with a
       hard edge (Blender's spot with blend 0) blurred by a penumbra of about
@@ -215,8 +216,14 @@ class RefEmitter:
         if self.kind == "sphere":
             return Light("point", color=col, intensity=np.pi * a_m * a_m, position=pos, name="sphere emitter")
         if self.kind == "rectangle":
-            return Light("area", color=col, intensity=(2.0 * a_m) ** 2, position=pos,
-                         direction=tuple(_unit(self.direction, "emitter direction")), name="rectangle emitter")
+            # the square's edges as the reference places it (mitsuba_ref._area_emitter: look_at with this
+            # up vector, then scaled by the half side): the engine integrates over them
+            d = _unit(self.direction, "emitter direction")
+            up = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+            left = _unit(np.cross(up, d), "emitter edge")
+            ex, ey = 2.0 * self.radius * left, 2.0 * self.radius * np.cross(d, left)
+            return Light("area", color=col, intensity=(2.0 * a_m) ** 2, position=pos, direction=tuple(d),
+                         edge_x=tuple(map(float, ex)), edge_y=tuple(map(float, ey)), name="rectangle emitter")
         return Light("spot", color=col, intensity=np.pi * a_m * a_m, position=pos,
                      direction=tuple(_unit(self.direction, "emitter direction")),
                      spot_size=float(np.radians(self.cone_deg)), spot_blend=0.0, name="shaded sphere emitter")

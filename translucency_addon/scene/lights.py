@@ -13,8 +13,10 @@ measured against Cycles in the tests.
   along ``direction``;
 * sun: ``irradiance`` [W/m^2] (RGB) on a plane facing the sun, light
   travelling along ``direction``;
-* area: a one-sided Lambertian emitter approximated, far field, as a point
-  with intensity ``intensity * max(0, cos)`` around ``direction``;
+* area: a one-sided Lambertian emitter of intensity ``intensity * max(0, cos)``
+  around ``direction`` (W/sr along the normal, = L A); with its edges
+  ``edge_x``, ``edge_y`` (object units; ``shape`` rectangle or ellipse) it is
+  integrated over its surface (:func:`emitter_samples`), else a point;
 * environment: uniform radiance [W/(m^2 sr)] (RGB), optionally a real
   spherical-harmonic projection of the world (order 2, 9 x RGB coefficients).
 
@@ -24,7 +26,7 @@ environment with no occlusion, q = L pi (1 - F_dr,ext) exactly.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -42,6 +44,7 @@ def _vec3(v, what: str) -> np.ndarray:
 
 
 FLOAT32_TINY = float(np.finfo(np.float32).tiny)
+EMITTER_SAMPLES = 16  # points over an area light's surface (Light.samples)
 
 
 @dataclass(frozen=True)
@@ -55,6 +58,10 @@ class Light:
     spot_size: float = np.pi / 4  # full cone angle, radians
     spot_blend: float = 0.15
     name: str = ""
+    shape: str = "rectangle"  # area: "rectangle" (Blender's Square, Rectangle) or "ellipse" (Disk, Ellipse)
+    edge_x: tuple[float, float, float] = (0.0, 0.0, 0.0)  # area: its full edges in object units; 0 = a point
+    edge_y: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    samples: int = EMITTER_SAMPLES  # points over the emitter's surface (emitter_samples)
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -69,6 +76,18 @@ class Light:
         d = _vec3(self.direction, f"light {self.name!r} direction")
         if np.linalg.norm(d) == 0:
             raise LightError(f"light {self.name!r} has a zero direction")
+        if self.shape not in ("rectangle", "ellipse"):
+            raise LightError(f"light {self.name!r} shape must be 'rectangle' or 'ellipse', got {self.shape!r}")
+        _vec3(self.edge_x, f"light {self.name!r} edge_x")
+        _vec3(self.edge_y, f"light {self.name!r} edge_y")
+        if not (isinstance(self.samples, (int, np.integer)) and 1 <= self.samples <= 4096):
+            raise LightError(f"light {self.name!r} samples must be an integer from 1 to 4096, got {self.samples!r}")
+
+    @property
+    def is_extended(self) -> bool:
+        """Whether :func:`emitter_samples` integrates it over its surface (an area light with edges)."""
+        return (self.samples >= 2 and self.kind == "area" and bool(np.any(self.edge_x))
+                and bool(np.any(self.edge_y)))
 
     @property
     def rgb(self) -> np.ndarray:
@@ -118,6 +137,100 @@ class Environment:
 
             L += evaluate(np.asarray(self.sh, dtype=np.float64), dirs)
         return L
+
+
+def emitter_samples(lights) -> list:
+    """The lights with every extended emitter replaced by ``light.samples`` point emitters over its
+    surface, each an ``area`` light (a Lambertian patch) carrying its share of the intensity; others as
+    they are.  Every pass that lights the object (q of eq. 3, single scattering's light term, the Voxel
+    Number Map's) sums over these, so the near field follows from the sum; q casts one shadow ray per
+    quadrant of patches (:func:`shadow_groups`), the Voxel Number Map one per patch.
+
+    * area light, edges ``edge_x``/``edge_y``: a rectangle by a k x m Gauss-Legendre rule (k m =
+      samples, as square as the edges allow), an ellipse by Gauss rings (:func:`_ellipse_points`); each
+      patch its weight's share of ``intensity`` along the light's normal.  16 patches are within 1 % of
+      the integral wherever the receiver is farther than half the emitter's size (tests/test_area_lights.py),
+      about 3 % at a third; nearer, raise ``Light.samples``.  The far-field point it
+      replaced was 25 % too bright 18 mm from a square of 8 mm (docs/accuracy.md).
+    * a point or spot light stays a point: a uniform sphere's irradiance is exactly the point's wherever
+      the sphere lies wholly above the surface's horizon (docs/accuracy.md, local lights), and patches over
+      a sphere light converge slowly near it (16 patches: 19 % low 1.5 radii from its centre).
+
+    Deterministic (no random numbers): a frame depends on the frame only.
+    """
+    out = []
+    for light in lights or ():
+        if not light.is_extended:
+            out.append(light)
+            continue
+        n = int(light.samples)
+        p0 = np.asarray(light.position, dtype=np.float64)
+        ex, ey = np.asarray(light.edge_x, dtype=np.float64), np.asarray(light.edge_y, dtype=np.float64)
+        uv = _ellipse_points(n) if light.shape == "ellipse" else _rectangle_points(
+            n, np.linalg.norm(ex) / max(np.linalg.norm(ey), 1e-300))
+        for u, v, w in uv:
+            out.append(replace(light, position=tuple(p0 + u * ex + v * ey), intensity=light.intensity * w,
+                               edge_x=(0.0, 0.0, 0.0), edge_y=(0.0, 0.0, 0.0), samples=1))
+    return out
+
+
+SHADOW_GROUPS = 4  # shadow rays per extended emitter in q (incident_flux): one per quadrant of its patches
+
+
+def shadow_groups(light) -> list:
+    """``[(representative, patches)]``: an extended emitter's patches (:func:`emitter_samples`) in
+    SHADOW_GROUPS quadrants of the emitter, each with a representative point light at its patches'
+    intensity-weighted centre.  :func:`incident_flux` sums every patch's irradiance (the near field) but
+    casts one shadow ray per group (the penumbra in four steps): 16 shadow passes per light cost 5x a
+    frame's whole light pass at Preview."""
+    patches = emitter_samples([light])
+    if len(patches) <= SHADOW_GROUPS:
+        return [(x, [x]) for x in patches]
+    p0 = np.asarray(light.position, dtype=np.float64)
+    ex, ey = np.asarray(light.edge_x, dtype=np.float64), np.asarray(light.edge_y, dtype=np.float64)
+    rel = np.array([x.position for x in patches]) - p0
+    quadrant = 2 * (rel @ ex > 0) + (rel @ ey > 0)
+    out = []
+    for g in np.unique(quadrant):
+        members = [x for x, k in zip(patches, quadrant) if k == g]
+        w = np.array([x.intensity for x in members])
+        centre = (np.array([x.position for x in members]) * w[:, None]).sum(axis=0) / w.sum()
+        out.append((replace(members[0], position=tuple(centre), intensity=float(w.sum())), members))
+    return out
+
+
+def _rectangle_points(n: int, aspect: float) -> list:
+    """``(u, v, weight)`` over [-1/2, 1/2]^2: the tensor Gauss-Legendre rule of k x m nodes, k m <= n
+    as close to n as the aspect ratio (x over y) allows (16 nodes, half a side from a square: 0.3 %
+    where the midpoint rule of a 4 x 4 grid is 1.6 % off)."""
+    best = None
+    for k in range(1, n + 1):
+        m = max(1, n // k)
+        score = (k * m, -abs(np.log(max(aspect, 1e-9) * m / k)))
+        if best is None or score > best[0]:
+            best = (score, k, m)
+    _, k, m = best
+    (xu, wu), (xv, wv) = np.polynomial.legendre.leggauss(k), np.polynomial.legendre.leggauss(m)
+    return [(0.5 * a, 0.5 * b, 0.25 * wa * wb) for a, wa in zip(xu, wu) for b, wb in zip(xv, wv)]
+
+
+def _ellipse_points(n: int) -> list:
+    """``(u, v, weight)`` over the ellipse inscribed in [-1/2, 1/2]^2: K rings (K ~ sqrt(n / pi)) at the
+    Gauss-Legendre nodes of the area coordinate s = r^2 with its weights, points in each ring in
+    proportion to its radius, alternate rings turned by half a step.  Seen from the axis the integrand
+    is a function of s alone, which Gauss integrates well where a midpoint rule or a sunflower pattern
+    does not (16 points, 0.9 diameters away, off the axis: 0.4 % against 7 % for the sunflower)."""
+    K = max(1, int(round(np.sqrt(n / np.pi))))
+    x, w = np.polynomial.legendre.leggauss(K)
+    sk, wk = 0.5 * (x + 1.0), 0.5 * w  # nodes and weights in s = (r / R)^2 over [0, 1]
+    rk = np.sqrt(sk)
+    counts = np.maximum(1, np.round(n * rk / rk.sum()).astype(int))
+    counts[-1] = max(1, counts[-1] + n - int(counts.sum()))
+    out = []
+    for k, (r, c) in enumerate(zip(rk, counts)):
+        t = (np.arange(c) + 0.5 * (k % 2)) / c * 2.0 * np.pi
+        out += [(0.5 * r * np.cos(a), 0.5 * r * np.sin(a), wk[k] / c) for a in t]
+    return out
 
 
 def spot_falloff(light: Light, cos_angle: np.ndarray) -> np.ndarray:
@@ -172,17 +285,29 @@ def incident_flux(
     p = np.asarray(points, dtype=np.float64)
     n = np.asarray(normals, dtype=np.float64)
     q = np.zeros((len(p), 3))
-    for light in lights or ():
-        E, to_light, dist = light_irradiance(light, p, mm_per_unit)
-        cos_i = np.einsum("ij,ij->i", n, to_light)
+
+    def visible(light, cos_i):
+        """Where ``light`` (a point, or a group's representative) is above the horizon and not shadowed."""
         lit = cos_i > 0
         if visibility is not None and lit.any():
+            _, to_light, dist = light_irradiance(light, p[lit], mm_per_unit)
             vis = np.zeros(len(p), dtype=bool)
-            idx = np.nonzero(lit)[0]
-            vis[idx] = visibility(p[idx], n[idx], to_light[idx], dist[idx])
+            vis[np.nonzero(lit)[0]] = visibility(p[lit], n[lit], to_light, dist)
             lit &= vis
-        w = np.where(lit, cos_i * fresnel_transmittance(cos_i, eta), 0.0)
-        q += E * w[:, None]
+        return lit
+
+    for light in lights or ():
+        # An extended emitter: every patch's irradiance, shadowed by the ray of its group (shadow_groups)
+        groups = shadow_groups(light) if light.is_extended else [(light, [light])]
+        for rep, patches in groups:
+            _, to_rep, _ = light_irradiance(rep, p, mm_per_unit)
+            shadow_free = visible(rep, np.einsum("ij,ij->i", n, to_rep)) if len(patches) > 1 else None
+            for patch in patches:
+                E, to_light, _ = light_irradiance(patch, p, mm_per_unit)
+                cos_i = np.einsum("ij,ij->i", n, to_light)
+                lit = visible(patch, cos_i) if shadow_free is None else (cos_i > 0) & shadow_free
+                w = np.where(lit, cos_i * fresnel_transmittance(cos_i, eta), 0.0)
+                q += E * w[:, None]
     if environment is not None and not environment.is_black:
         q += environment_flux(environment, n, eta)
     return q

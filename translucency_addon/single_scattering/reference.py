@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..scene import sh as shmod
-from ..scene.lights import light_irradiance
+from ..scene.lights import emitter_samples, light_irradiance
 from .runtime import entry_transmittance
 from .volume import trilinear
 
@@ -154,7 +154,7 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
         x = X[c0 : c0 + per_chunk]
         P = len(x)
         src, sdir, smax, weight = [], [], [], []
-        for light in lights or ():
+        for light in emitter_samples(lights):
             E, to_l, dist = light_irradiance(light, x, mm)
             src.append(x)
             sdir.append(to_l)

@@ -60,7 +60,7 @@ import numpy as np
 
 from ..scene import sh as shmod
 from ..scene.fresnel import diffuse_reflectance_external, fresnel_transmittance, check_eta
-from ..scene.lights import light_irradiance
+from ..scene.lights import emitter_samples, light_irradiance
 from .projected import ImageBins, exit_distances
 from .ray_pairs import all_ray_sample_pairs, projected_pairs, ray_sample_pairs
 
@@ -93,7 +93,7 @@ def light_term(data, lights, environment, eta: float, mm_per_unit: float | None 
     mm = data.mm_per_unit if mm_per_unit is None else float(mm_per_unit)
     b = data.centers
     acc = np.zeros((len(b), 3))
-    for light in lights or ():
+    for light in emitter_samples(lights):
         E, to_light, _ = light_irradiance(light, b, mm)
         if not np.any(E > 0):
             continue

@@ -31,7 +31,7 @@ import time
 import numpy as np
 
 from ..scene.fresnel import fresnel_transmittance
-from ..scene.lights import light_irradiance, shadow_visibility
+from ..scene.lights import emitter_samples, light_irradiance, shadow_visibility
 from ..diffusion.radiance import outgoing_radiance
 from .transport import Coefficients, environment_weights, prepare_kernel
 
@@ -129,7 +129,7 @@ class VoxelNumberMapEvaluator:
         phi = np.zeros((n, 3))
         local = np.zeros((n, 3))
         E_in = np.zeros((n, 3))
-        for light in lights or ():
+        for light in emitter_samples(lights):
             E, to_light, dist = light_irradiance(light, surf.position, self.mm_per_unit)
             mu = np.einsum("ij,ij->i", surf.normal, to_light)
             lit = (mu > 0) & np.any(E > 0, axis=1)

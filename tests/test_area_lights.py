@@ -1,0 +1,89 @@
+"""Area lights as areas (issue 31, item 2): ``scene.lights.emitter_samples`` against closed forms.
+
+On the axis of a uniform Lambertian disc of radius R (radiance L) at height h the irradiance on a plane
+parallel to it is exactly ``pi L R^2 / (R^2 + h^2)``; the far-field point the engine made of an area light
+gives ``pi L R^2 / h^2``, twice as much at h = R.  Off the axis and for rectangles the reference is the
+defining integral by the midpoint rule on a 600 x 600 grid.  The Cycles check of the same conversion is in
+tests/test_light_units.py."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from translucency_addon.errors import LightError
+from translucency_addon.scene.lights import Light, emitter_samples, incident_flux, light_irradiance
+
+
+def _irradiance(lights, points, normal):
+    E = 0.0
+    for light in emitter_samples(lights):
+        e, to_light, _ = light_irradiance(light, points, 1000.0)  # 1 unit = 1 m
+        E = E + e[:, 0] * np.maximum(to_light @ normal, 0.0)
+    return E
+
+
+def _integral(points, corners_uv, h, inside):
+    """E at points (z = 0, facing +z) under an emitter in the plane z = h, facing -z, radiance 1."""
+    m = 600
+    u = (np.arange(m) + 0.5) / m
+    U, V = np.meshgrid(u, u)
+    (x0, x1), (y0, y1) = corners_uv
+    X, Y = x0 + (x1 - x0) * U, y0 + (y1 - y0) * V
+    keep = inside(X, Y)
+    dA = (x1 - x0) * (y1 - y0) / m ** 2
+    return np.array([np.sum(h * h / ((X[keep] - p[0]) ** 2 + (Y[keep] - p[1]) ** 2 + h * h) ** 2) * dA for p in points])
+
+
+@pytest.mark.parametrize("h", [1.0, 2.0, 6.0])  # half, one and three diameters
+def test_disc_on_its_axis_is_the_closed_form(h):
+    R = 1.0
+    disc = Light("area", intensity=np.pi * R * R, position=(0, 0, h), direction=(0, 0, -1), shape="ellipse",
+                 edge_x=(2 * R, 0, 0), edge_y=(0, 2 * R, 0))
+    exact = np.pi * R * R / (R * R + h * h)
+    E = _irradiance([disc], np.zeros((1, 3)), np.array([0.0, 0.0, 1.0]))[0]
+    assert E == pytest.approx(exact, rel=0.01)  # 16 patches: within 1 % from half the emitter's size
+    far = _irradiance([dataclasses.replace(disc, samples=1)], np.zeros((1, 3)), np.array([0.0, 0.0, 1.0]))[0]
+    assert far == pytest.approx(np.pi * R * R / (h * h), rel=1e-9)  # what it was: (R/h)^2 too bright
+
+
+@pytest.mark.parametrize("shape", ["rectangle", "ellipse"])
+def test_near_field_off_the_axis_is_the_integral(shape):
+    a, b, h = 1.6, 0.9, 0.9  # the emitter larger than its height (h = 0.56 of its longer side)
+    light = Light("area", intensity=a * b * (np.pi / 4 if shape == "ellipse" else 1.0), position=(0, 0, h),
+                  direction=(0, 0, -1), shape=shape, edge_x=(a, 0, 0), edge_y=(0, b, 0))
+    g = np.linspace(-1.2, 1.2, 9)
+    P = np.array([(x, y, 0.0) for x in g for y in g])
+    inside = (lambda X, Y: (2 * X / a) ** 2 + (2 * Y / b) ** 2 <= 1) if shape == "ellipse" else (
+        lambda X, Y: np.ones_like(X, dtype=bool))
+    ref = _integral(P, ((-a / 2, a / 2), (-b / 2, b / 2)), h, inside)
+    E = _irradiance([light], P, np.array([0.0, 0.0, 1.0]))
+    lit = ref > 0.1 * ref.max()
+    err = np.abs(E[lit] / ref[lit] - 1.0)
+    assert np.percentile(err, 95) < 0.01, np.percentile(err, 95)
+    far = _irradiance([dataclasses.replace(light, samples=1)], P, np.array([0.0, 0.0, 1.0]))
+    assert np.percentile(np.abs(far[lit] / ref[lit] - 1.0), 95) > 0.15  # the far-field point is not this
+
+
+def test_patches_carry_the_power_and_shadows_fall_by_quadrant():
+    light = Light("area", intensity=2.0, position=(0, 0, 5), direction=(0, 0, -1), edge_x=(1, 0, 0),
+                  edge_y=(0, 0.5, 0), samples=12)
+    patches = emitter_samples([light])
+    assert len(patches) == 12 and sum(p.intensity for p in patches) == pytest.approx(2.0)
+    assert emitter_samples([light]) == patches  # deterministic: a frame depends on the frame only
+    assert emitter_samples([dataclasses.replace(light, samples=1)]) == [dataclasses.replace(light, samples=1)]
+    # a blocker that hides the emitter's x > 0 half from the point halves q (a penumbra, not all or nothing)
+    p, n = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
+    full = incident_flux([light], None, p, n, 1.3, 1000.0)
+    half = incident_flux([light], None, p, n, 1.3, 1000.0,
+                         visibility=lambda pts, nrm, to_l, dist: to_l[:, 0] <= 0)
+    assert half[0, 0] == pytest.approx(0.5 * full[0, 0], rel=1e-6)
+
+
+def test_bad_emitters_are_refused_by_name():
+    with pytest.raises(LightError, match="shape must be"):
+        Light("area", name="A", shape="triangle")
+    with pytest.raises(LightError, match="samples must be"):
+        Light("area", name="A", samples=0)
+    with pytest.raises(LightError, match="edge_x"):
+        Light("area", name="A", edge_x=(np.nan, 0, 0))
