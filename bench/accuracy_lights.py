@@ -215,7 +215,9 @@ def section(res: dict) -> str:
          "of radiant intensity I = pi a^2 L [W/sr, a in metres] (power 4 pi I; Blender: a point light of that "
          "power). Outside the sphere, wherever it lies wholly above a surface point's horizon, its irradiance is "
          "exactly pi L (a/d)^2 cos = I cos / d^2 with d in metres, which is the engine's `light_irradiance`; the "
-         "two differ only in the penumbra and near the terminator;",
+         "two differ only in the penumbra and near the terminator, which the engine's light now has too: it "
+         "carries the radius a (Blender's Radius) and shades with four points of the disc facing each receiver "
+         "(`scene.lights.sphere_visibility`; until this run a bare point);",
          "* a one-sided square emitter of area A <-> an **area light** of intensity L A [W/sr] along its normal "
          "(Blender: power pi L A) with the square's edges, which the engine integrates over the square (16 "
          "Lambertian patches, `scene.lights.emitter_samples`; before, a point with a cosine lobe);",
@@ -286,14 +288,14 @@ def findings(res: dict) -> list:
             line += (" Mean ours / reference by quartile of the reference's brightness, darkest first: "
                      + ", ".join(f"{x:.2f}" for x in conv["quartiles"]) + ".")
         if patches is not None and prev is not None:
-            line += (f" The point light against the emitter as {PATCHES} area lights on its surface (Preview): "
+            line += (f" The sphere light against the emitter as {PATCHES} area lights on its surface (Preview): "
                      f"{_pct(prev['debiased'])} -> {_pct(patches['debiased'])} debiased, mean "
                      + ", ".join(f"{x:.3f}" for x in prev["mean_ratio"]) + " -> "
                      + ", ".join(f"{x:.3f}" for x in patches["mean_ratio"])
                      + ("; by brightness quartile " + ", ".join(f"{x:.2f}" for x in prev["quartiles"]) + " -> "
                         + ", ".join(f"{x:.2f}" for x in patches["quartiles"])
                         if "quartiles" in prev and "quartiles" in patches else "")
-                     + ": that part of the error is the point light standing in for an emitter of this size "
+                     + ": what is left of that difference is the four-point disc standing in for the emitter "
                      "(its penumbra, and the light it sends past the horizon of the surface points near the "
                      "terminator); the rest is the transport model and the discretisation.")
         out.append(line)

@@ -215,13 +215,16 @@ def convert_light(data, light_matrix, to_object, metres_per_bu: float, name: str
     kind = data.type
     if kind == 'SUN':
         return Light("sun", color=color, irradiance=power, direction=direction, name=name)
+    # Blender's Radius (world units) in object units: a sphere light's soft shadow and horizon
+    scale = to_object.to_scale()
+    radius = float(getattr(data, "shadow_soft_size", 0.0)) * (abs(scale.x) + abs(scale.y) + abs(scale.z)) / 3.0
     if kind == 'POINT':
         return Light("point", color=color, intensity=power / (4.0 * math.pi) * falloff,
-                     position=position, direction=direction, name=name)
+                     position=position, direction=direction, name=name, radius=radius)
     if kind == 'SPOT':
         return Light("spot", color=color, intensity=power / (4.0 * math.pi) * falloff,
                      position=position, direction=direction, spot_size=float(data.spot_size),
-                     spot_blend=float(data.spot_blend), name=name)
+                     spot_blend=float(data.spot_blend), name=name, radius=radius)
     if kind == 'AREA':
         intensity = power / math.pi
         if not getattr(data, "normalize", True):

@@ -87,3 +87,49 @@ def test_bad_emitters_are_refused_by_name():
         Light("area", name="A", samples=0)
     with pytest.raises(LightError, match="edge_x"):
         Light("area", name="A", edge_x=(np.nan, 0, 0))
+
+
+def test_a_sphere_light_is_the_point_above_the_horizon_and_soft_at_it():
+    """A point light with a radius (Blender's Radius): unshadowed and above the horizon, exactly the point's
+    q (eta 1: no Fresnel variation across the disc); past the terminator it still lights, up to the
+    sphere's angular radius; a straight occluder edge gives a penumbra, not a step."""
+    R, D = 1.0, 3.0
+    sphere = Light("point", intensity=1.0, position=(0, 0, D), radius=R)
+    point = dataclasses.replace(sphere, radius=0.0)
+    P = np.array([[x, 0.0, 0.0] for x in (0.0, 1.0, 2.0, 5.0)])
+    N = np.tile([0.0, 0.0, 1.0], (len(P), 1))
+    np.testing.assert_allclose(incident_flux([sphere], None, P, N, 1.0, 1000.0),
+                               incident_flux([point], None, P, N, 1.0, 1000.0), rtol=1e-12)
+    # normals turned away from the centre by 90 + t degrees: in this plane the disc's points reach
+    # atan(0.5 R / D) = 9.5 degrees past the horizon (the sphere's angular radius is 19.5)
+    t = np.radians([-5.0, 4.0, 8.0, 25.0])
+    Nh = np.stack([np.sin(np.pi / 2 + t), np.zeros_like(t), np.cos(np.pi / 2 + t)], axis=1)
+    q = incident_flux([sphere], None, np.zeros((4, 3)), Nh, 1.0, 1000.0)[:, 0]
+    qp = incident_flux([point], None, np.zeros((4, 3)), Nh, 1.0, 1000.0)[:, 0]
+    assert qp[1] == qp[2] == qp[3] == 0.0 and q[1] > 0 and q[2] > 0 and q[3] == 0.0
+    # an occluder covering x > c as seen from the receiver at the origin: the fraction of the disc's points
+    xs = np.linspace(-1.0, 1.0, 9)
+    frac = [incident_flux([sphere], None, np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), 1.0, 1000.0,
+                          visibility=lambda pts, nrm, to_l, dist, c=c: to_l[:, 0] * D / to_l[:, 2] < c)[0, 0]
+            for c in xs] / incident_flux([point], None, np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), 1.0,
+                                         1000.0)[0, 0]
+    assert frac[0] == 0.0 and frac[-1] == pytest.approx(1.0) and np.all(np.diff(frac) >= 0)
+    assert 0.0 < frac[4] < 1.0  # the edge through the centre: a penumbra
+
+
+def test_the_addon_passes_the_radius_and_the_edges(blender, addon):
+    import bpy
+    from mathutils import Matrix
+
+    from translucency.ops import scene_inputs
+
+    point = bpy.data.lights.new("p", 'POINT')
+    point.energy, point.shadow_soft_size = 100.0, 0.2
+    area = bpy.data.lights.new("a", 'AREA')
+    area.energy, area.shape, area.size, area.size_y = 100.0, 'RECTANGLE', 0.4, 0.1
+    to_object = Matrix.Diagonal((2.0, 2.0, 2.0, 1.0))  # the object half as large: lengths double
+    lp = scene_inputs.convert_light(point, Matrix.Translation((0, 0, 1)), to_object, 1.0)
+    la = scene_inputs.convert_light(area, Matrix.Translation((0, 0, 1)), to_object, 1.0)
+    assert lp.radius == pytest.approx(0.4)
+    assert la.shape == "rectangle" and np.linalg.norm(la.edge_x) == pytest.approx(0.8)
+    assert np.linalg.norm(la.edge_y) == pytest.approx(0.2) and la.is_extended

@@ -306,3 +306,16 @@ def test_field_values_are_checked_before_the_solve(files, tmp_path):
     assert not (tmp_path / "L.npy").exists()
     out = cli(*base, "--material", "marble", "--mix-with", "skin1", "--field-values", w)
     assert out.returncode == 0, out.stderr
+
+
+def test_point_light_takes_an_optional_radius():
+    import argparse
+
+    from translucency_addon import cli_args
+
+    assert cli_args.point("1,2,3:10") == ((1.0, 2.0, 3.0), 10.0, 0.0)
+    pos, watts, radius = cli_args.point("1,2,3:10:0.5")
+    assert radius == 0.5 and watts == 10.0
+    for bad, why in (("1,2,3:10:-1", "radius must be >= 0"), ("1,2,3:10:1:2", "expected X,Y,Z:W or X,Y,Z:W:R")):
+        with pytest.raises(argparse.ArgumentTypeError, match=why):
+            cli_args.point(bad)

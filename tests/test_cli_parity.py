@@ -64,7 +64,7 @@ def _cli_options(frame) -> list[str]:
             out.append(f"--sun={d}:{light.irradiance!r}")
         elif light.kind == "point":
             p = ",".join(repr(float(x)) for x in light.position)
-            out.append(f"--point={p}:{4.0 * math.pi * light.intensity!r}")
+            out.append(f"--point={p}:{4.0 * math.pi * light.intensity!r}:{light.radius!r}")
         else:
             raise AssertionError(f"a {light.kind} light has no CLI option yet")
     env = frame.environment

@@ -8,11 +8,11 @@
                                       (ROLE: a preset name, cavity or opaque)
     python -m translucency_addon fluid POINTS.npy -o PHI.npz --radius R --mm-per-unit S
                                       (--material NAME | --sigma-a R,G,B --sigma-s R,G,B --eta X)
-                                      [--env R,G,B] [--sun DX,DY,DZ:E] [--point X,Y,Z:W]
+                                      [--env R,G,B] [--sun DX,DY,DZ:E] [--point X,Y,Z:W[:R]]
                                       [--surface MESH.obj --surface-out L.npy] [--stats STATS.json]
     python -m translucency_addon solve CACHE.npz -o OUT.npy [--deformed POSED.obj]
                                       [--material marble | --sigma-a R,G,B --sigma-s R,G,B --eta X]
-                                      [--env R,G,B] [--sun DX,DY,DZ:E] [--point X,Y,Z:W]
+                                      [--env R,G,B] [--sun DX,DY,DZ:E] [--point X,Y,Z:W[:R]]
                                       [--camera X,Y,Z] [--no-single-scattering] [--ss-output SS.npy]
                                       [--solver paper|fast|direct] [--tol 1e-4] [--stats STATS.json]
                                       [--no-voxel-number-map]
@@ -105,8 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sun light DX,DY,DZ:E -- direction the light travels (object space, not 0,0,0) and "
                         "irradiance in W/m^2, >= 0 (repeatable)")
     s.add_argument("--point", type=arg.point, action="append", default=[],
-                   help="point light X,Y,Z:W -- position (object units) and radiant power in W, >= 0 (isotropic; "
-                        "repeatable)")
+                   help="point light X,Y,Z:W[:R] -- position (object units), radiant power in W, >= 0 (isotropic), "
+                        "and optionally its radius R in object units (a sphere light: soft shadows, Blender's "
+                        "Radius; repeatable)")
     s.add_argument("--solver", choices=["paper", "fast", "direct"], default="fast",
                    help="paper: Jacobi relaxation (eqs. 8-9, slow on fine graphs); fast: Chebyshev (default); "
                         "direct: sparse LU (exact, memory grows fast)")
@@ -153,8 +154,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sun light DX,DY,DZ:E -- direction the light travels (object space, not 0,0,0) and "
                         "irradiance in W/m^2, >= 0 (repeatable)")
     p.add_argument("--point", type=arg.point, action="append", default=[],
-                   help="point light X,Y,Z:W -- position (object units) and radiant power in W, >= 0 (isotropic; "
-                        "repeatable)")
+                   help="point light X,Y,Z:W[:R] -- position (object units), radiant power in W, >= 0 (isotropic), "
+                        "and optionally its radius R in object units (a sphere light: soft shadows, Blender's "
+                        "Radius; repeatable)")
     p.add_argument("--mm-per-unit", type=arg.mm_per_unit, default=None,
                    help="override the baked scene scale: millimetres per mesh unit, a finite number > 0")
     return ap
@@ -178,7 +180,8 @@ def _fluid_parser(sub) -> None:
     f.add_argument("--sun", type=arg.sun, action="append", default=[],
                    help="sun DX,DY,DZ:E -- direction (not 0,0,0) and irradiance in W/m^2, >= 0 (repeatable)")
     f.add_argument("--point", type=arg.point, action="append", default=[],
-                   help="point light X,Y,Z:W -- position (object units) and power in W, >= 0 (repeatable)")
+                   help="point light X,Y,Z:W[:R] -- position (object units), power in W, >= 0, optional radius "
+                        "(object units; repeatable)")
     f.add_argument("--camera", type=arg.camera, default=None,
                    help="perspective camera position X,Y,Z (object units): view-dependent radiance toward it "
                         "(default: along the normals)")

@@ -87,11 +87,14 @@ def sun(text):
 
 
 def point(text):
-    try:
-        p, w = text.split(":")
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--point: expected X,Y,Z:W, got {text!r}") from None
-    return floats(p, 3, "--point position"), floats(w, 1, "--point power")[0]
+    """``X,Y,Z:W[:R]``: position, power and (optional) radius in object units (Blender's Radius)."""
+    parts = text.split(":")
+    if len(parts) not in (2, 3):
+        raise argparse.ArgumentTypeError(f"--point: expected X,Y,Z:W or X,Y,Z:W:R, got {text!r}")
+    radius = floats(parts[2], 1, "--point radius")[0] if len(parts) == 3 else 0.0
+    if radius < 0:
+        raise argparse.ArgumentTypeError(f"--point radius must be >= 0, got {radius}")
+    return floats(parts[0], 3, "--point position"), floats(parts[1], 1, "--point power")[0], radius
 
 
 def field(text):
@@ -140,8 +143,8 @@ def lights_from_args(a):
     lights = []
     for d, e in a.sun:
         lights.append(Light("sun", irradiance=e, direction=d, name="sun"))
-    for pos, watts in a.point:
-        lights.append(Light("point", intensity=watts / (4.0 * np.pi), position=pos, name="point"))
+    for pos, watts, radius in a.point:
+        lights.append(Light("point", intensity=watts / (4.0 * np.pi), position=pos, radius=radius, name="point"))
     env = Environment(a.env) if a.env is not None else None
     return lights, env
 

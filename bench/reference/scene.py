@@ -214,7 +214,8 @@ class RefEmitter:
         col = tuple(float(c) for c in self.radiance)
         pos = tuple(float(x) for x in self.position)
         if self.kind == "sphere":
-            return Light("point", color=col, intensity=np.pi * a_m * a_m, position=pos, name="sphere emitter")
+            return Light("point", color=col, intensity=np.pi * a_m * a_m, position=pos, radius=float(self.radius),
+                         name="sphere emitter")
         if self.kind == "rectangle":
             # the square's edges as the reference places it (mitsuba_ref._area_emitter: look_at with this
             # up vector, then scaled by the half side): the engine integrates over them

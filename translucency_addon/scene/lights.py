@@ -17,6 +17,8 @@ measured against Cycles in the tests.
   around ``direction`` (W/sr along the normal, = L A); with its edges
   ``edge_x``, ``edge_y`` (object units; ``shape`` rectangle or ellipse) it is
   integrated over its surface (:func:`emitter_samples`), else a point;
+* point / spot with ``radius`` > 0: a sphere; its irradiance is the point's (exact wherever the sphere is
+  above the horizon), its shadow and its horizon soft (:func:`sphere_visibility`);
 * environment: uniform radiance [W/(m^2 sr)] (RGB), optionally a real
   spherical-harmonic projection of the world (order 2, 9 x RGB coefficients).
 
@@ -62,6 +64,7 @@ class Light:
     edge_x: tuple[float, float, float] = (0.0, 0.0, 0.0)  # area: its full edges in object units; 0 = a point
     edge_y: tuple[float, float, float] = (0.0, 0.0, 0.0)
     samples: int = EMITTER_SAMPLES  # points over the emitter's surface (emitter_samples)
+    radius: float = 0.0  # point / spot: the sphere's radius (Blender's Radius), object units; 0 = a point
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -78,6 +81,8 @@ class Light:
             raise LightError(f"light {self.name!r} has a zero direction")
         if self.shape not in ("rectangle", "ellipse"):
             raise LightError(f"light {self.name!r} shape must be 'rectangle' or 'ellipse', got {self.shape!r}")
+        if not (np.isfinite(self.radius) and self.radius >= 0):
+            raise LightError(f"light {self.name!r} radius must be finite and >= 0, got {self.radius}")
         _vec3(self.edge_x, f"light {self.name!r} edge_x")
         _vec3(self.edge_y, f"light {self.name!r} edge_y")
         if not (isinstance(self.samples, (int, np.integer)) and 1 <= self.samples <= 4096):
@@ -172,6 +177,48 @@ def emitter_samples(lights) -> list:
             out.append(replace(light, position=tuple(p0 + u * ex + v * ey), intensity=light.intensity * w,
                                edge_x=(0.0, 0.0, 0.0), edge_y=(0.0, 0.0, 0.0), samples=1))
     return out
+
+
+def sphere_visibility(light, p, n, to_light, dist, eta: float, visibility=None) -> np.ndarray:
+    """``cos F_t`` of eq. 3 for a sphere light of ``light.radius``, (n,): the mean over SHADOW_GROUPS
+    points of the sphere's disc facing each receiver (at the disc's area-median radius, a quarter turn
+    apart) of ``max(0, cos_k) F_t(cos_k)`` times the shadow ray's answer towards that point.
+
+    Wherever the whole sphere is above the horizon and unshadowed this is the point light's
+    ``cos F_t`` (the points' mean cosine, scaled by their distance over the centre's, is the centre's;
+    only F_t's variation across the disc is second order), which is exact for a uniform sphere; a sphere partly below the horizon still lights the receiver (the
+    terminator moves past 90 degrees by atan(0.5 radius / distance) to atan(0.71 radius / distance),
+    about half the sphere's angular radius, as the four points lie), and an occluder that hides
+    part of the disc gives a penumbra in four steps.  Four shadow rays per light, as an area light's.
+    """
+    k = np.arange(SHADOW_GROUPS) + 0.5
+    phi = 2.0 * np.pi * k / SHADOW_GROUPS
+    rho = light.radius * np.sqrt(0.5)
+    # an orthonormal basis of the plane facing each receiver
+    helper = np.where(np.abs(to_light[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    u = np.cross(to_light, helper)
+    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
+    v = np.cross(to_light, u)
+    centre = np.asarray(light.position, dtype=np.float64)
+    w = np.zeros(len(p))
+    for f in phi:
+        d = centre + rho * (np.cos(f) * u + np.sin(f) * v) - p
+        r = np.linalg.norm(d, axis=1)
+        dk = d / np.maximum(r, 1e-300)[:, None]
+        cos_k = np.einsum("ij,ij->i", n, dk)
+        lit = (cos_k > 0) & (r > 0)
+        if visibility is not None and lit.any():
+            idx = np.nonzero(lit)[0]
+            lit[idx] = visibility(p[idx], n[idx], dk[idx], r[idx])
+        w += np.where(lit, cos_k * fresnel_transmittance(np.clip(cos_k, 0.0, 1.0), eta), 0.0)
+    # The points lie sqrt(D^2 + rho^2) away, off the axis by rho: the mean of their cosines is exactly
+    # cos_0 D / sqrt(D^2 + rho^2), which this undoes, so an unshadowed receiver gets the point's law.
+    w *= np.sqrt(dist * dist + rho * rho) / np.maximum(dist, 1e-300)
+    inside = dist <= light.radius  # a receiver within the sphere: the point's law, unshadowed
+    if inside.any():
+        c = np.einsum("ij,ij->i", n[inside], to_light[inside])
+        w[inside] = SHADOW_GROUPS * np.where(c > 0, c * fresnel_transmittance(np.clip(c, 0.0, 1.0), eta), 0.0)
+    return w / SHADOW_GROUPS
 
 
 SHADOW_GROUPS = 4  # shadow rays per extended emitter in q (incident_flux): one per quadrant of its patches
@@ -297,6 +344,10 @@ def incident_flux(
         return lit
 
     for light in lights or ():
+        if light.kind in ("point", "spot") and light.radius > 0 and light.samples >= 2:
+            E, to_light, dist = light_irradiance(light, p, mm_per_unit)
+            q += E * sphere_visibility(light, p, n, to_light, dist, eta, visibility)[:, None]
+            continue
         # An extended emitter: every patch's irradiance, shadowed by the ray of its group (shadow_groups)
         groups = shadow_groups(light) if light.is_extended else [(light, [light])]
         for rep, patches in groups:
