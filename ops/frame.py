@@ -105,7 +105,10 @@ def gather(obj, scene, depsgraph, st: ObjectState, use_camera: bool) -> FrameInp
     rendering = getattr(depsgraph, "mode", "VIEWPORT") == 'RENDER'
     environment, world_warning, world_sun = scene_inputs.world_environment(scene.world, matrix,
                                                                            not (rendering or off_main))
-    lights = tuple(scene_inputs.collect_lights(depsgraph, matrix, metres_per_bu)) + world_sun
+    from ..translucency_addon.frame import lights_at_quality
+
+    lights = lights_at_quality(tuple(scene_inputs.collect_lights(depsgraph, matrix, metres_per_bu)) + world_sun,
+                               st.bake.settings.quality)
     in_view = scene_inputs.in_camera_view(scene, depsgraph, obj) if use_camera else True
     plan = make_plan(obj.name, st, settings, material, lights, environment, mm, in_view)
 

@@ -133,3 +133,20 @@ def test_the_addon_passes_the_radius_and_the_edges(blender, addon):
     assert lp.radius == pytest.approx(0.4)
     assert la.shape == "rectangle" and np.linalg.norm(la.edge_x) == pytest.approx(0.8)
     assert np.linalg.norm(la.edge_y) == pytest.approx(0.2) and la.is_extended
+
+
+def test_draft_renders_every_light_as_a_point():
+    from translucency_addon.frame import lights_at_quality
+
+    area = Light("area", intensity=1.0, edge_x=(1, 0, 0), edge_y=(0, 1, 0))
+    sphere = Light("point", intensity=1.0, radius=0.5)
+    sun = Light("sun", irradiance=1.0)
+    draft = lights_at_quality((area, sphere, sun), "draft")
+    assert [x.samples for x in draft[:2]] == [1, 1] and draft[2] is sun
+    assert not draft[0].is_extended and len(emitter_samples([draft[0]])) == 1
+    p, n = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
+    moved = dataclasses.replace(sphere, position=(0, 0, 3))
+    blocked = lambda pts, nrm, to_l, dist: to_l[:, 0] < 0  # noqa: E731 - hides the disc's x > 0 half
+    assert incident_flux(lights_at_quality((moved,), "draft"), None, p, n, 1.0, 1000.0, visibility=blocked)[0, 0] == 0
+    assert incident_flux(lights_at_quality((moved,), "preview"), None, p, n, 1.0, 1000.0, visibility=blocked)[0, 0] > 0
+    assert lights_at_quality((area, sphere), "Final") == (area, sphere)

@@ -34,6 +34,9 @@ def cmd_solve(a) -> int:
             else f"the cache {a.cache} holds no single-scattering data (bake with --single-scattering)"))
     if a.mm_per_unit is not None:
         bake = bake.with_scale(a.mm_per_unit)
+    from .frame import lights_at_quality
+
+    lights = list(lights_at_quality(lights, bake.settings.quality))
     t_load = time.perf_counter() - t0
     field_values = None
     spec = None

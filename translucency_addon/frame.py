@@ -140,6 +140,18 @@ def passes_for(plan, bake, want_ms: bool = True) -> FramePasses:
         single_channels=plan.multiple.split if plan.multiple is not None else CHANNELS_OFF)
 
 
+def lights_at_quality(lights, quality: str) -> tuple:
+    """The lights as a frame of this bake quality renders them: at Draft every light is a point (one
+    shadow ray; ``Light.samples`` 1: an area light's 16 patches and 4 shadow rays, a sphere light's 4,
+    cost 3.4-3.7x a point's light pass), at Preview and Final as they are.  The add-on and the CLI both
+    call it, so a Draft frame is the same either way."""
+    if str(quality).lower() != "draft":
+        return tuple(lights)
+    from dataclasses import replace
+
+    return tuple(replace(x, samples=1) if x.kind != "sun" else x for x in lights)
+
+
 def single_scattering_needed(material, thickness_mm: float) -> str:
     """Why this material needs single scattering baked ('' when diffusion holds): the planner's own
     criteria (``planner.ALBEDO_MIN``, ``THICK_MIN``) on the material's media before any bake.

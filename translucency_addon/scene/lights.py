@@ -157,9 +157,10 @@ def emitter_samples(lights) -> list:
       the integral wherever the receiver is farther than half the emitter's size (tests/test_area_lights.py),
       about 3 % at a third; nearer, raise ``Light.samples``.  The far-field point it
       replaced was 25 % too bright 18 mm from a square of 8 mm (docs/accuracy.md).
-    * a point or spot light stays a point: a uniform sphere's irradiance is exactly the point's wherever
-      the sphere lies wholly above the surface's horizon (docs/accuracy.md, local lights), and patches over
-      a sphere light converge slowly near it (16 patches: 19 % low 1.5 radii from its centre).
+    * a point or spot light stays one point here: a uniform sphere's irradiance is exactly the point's
+      wherever the sphere lies wholly above the surface's horizon, and patches over a sphere converge
+      slowly near it (16 patches: 19 % low 1.5 radii from its centre); its radius softens q's horizon
+      and shadow instead (:func:`sphere_visibility`).
 
     Deterministic (no random numbers): a frame depends on the frame only.
     """
