@@ -155,8 +155,8 @@ def emitter_samples(lights) -> list:
       samples, as square as the edges allow), an ellipse by Gauss rings (:func:`_ellipse_points`); each
       patch its weight's share of ``intensity`` along the light's normal.  16 patches are within 1 % of
       the integral wherever the receiver is farther than half the emitter's size (tests/test_area_lights.py),
-      about 3 % at a third; nearer, raise ``Light.samples``.  The far-field point it
-      replaced was 25 % too bright 18 mm from a square of 8 mm (docs/accuracy.md).
+      about 3 % at a third; nearer, raise ``Light.samples``.  The far-field point it replaced was
+      25 % too bright 18 mm from a square of 16 mm side (docs/accuracy.md, local lights).
     * a point or spot light stays one point here: a uniform sphere's irradiance is exactly the point's
       wherever the sphere lies wholly above the surface's horizon, and patches over a sphere converge
       slowly near it (16 patches: 19 % low 1.5 radii from its centre); its radius softens q's horizon
@@ -187,10 +187,12 @@ def sphere_visibility(light, p, n, to_light, dist, eta: float, visibility=None) 
 
     Wherever the whole sphere is above the horizon and unshadowed this is the point light's
     ``cos F_t`` (the points' mean cosine, scaled by their distance over the centre's, is the centre's;
-    only F_t's variation across the disc is second order), which is exact for a uniform sphere; a sphere partly below the horizon still lights the receiver (the
-    terminator moves past 90 degrees by atan(0.5 radius / distance) to atan(0.71 radius / distance),
-    about half the sphere's angular radius, as the four points lie), and an occluder that hides
-    part of the disc gives a penumbra in four steps.  Four shadow rays per light, as an area light's.
+    only F_t's variation across the disc is second order), which is exact for a uniform sphere.  A
+    sphere partly below the horizon still lights the receiver (the terminator moves past 90 degrees by
+    atan(0.5 radius / distance) to atan(0.71 radius / distance), about half the sphere's angular
+    radius, as the four points lie), and an occluder that hides part of the disc gives a penumbra in
+    four steps.  Four shadow rays per light, as an area light's.  Single scattering and the Voxel
+    Number Map light with the point.
     """
     k = np.arange(SHADOW_GROUPS) + 0.5
     phi = 2.0 * np.pi * k / SHADOW_GROUPS
@@ -267,7 +269,7 @@ def _ellipse_points(n: int) -> list:
     Gauss-Legendre nodes of the area coordinate s = r^2 with its weights, points in each ring in
     proportion to its radius, alternate rings turned by half a step.  Seen from the axis the integrand
     is a function of s alone, which Gauss integrates well where a midpoint rule or a sunflower pattern
-    does not (16 points, 0.9 diameters away, off the axis: 0.4 % against 7 % for the sunflower)."""
+    does not (16 points, 0.64 diameters away, off the axis: 0.4 % against 7 % for the sunflower)."""
     K = max(1, int(round(np.sqrt(n / np.pi))))
     x, w = np.polynomial.legendre.leggauss(K)
     sk, wk = 0.5 * (x + 1.0), 0.5 * w  # nodes and weights in s = (r / R)^2 over [0, 1]
