@@ -89,8 +89,9 @@ class BakeJob:
     """
 
     def __init__(self, obj_name: str, V, F, settings, final_path: str, notes: list[str], ss: SSJobInputs | None = None,
-                 base_bake=None, composite=None):
+                 base_bake=None, composite=None, eta: float | None = None):
         self.obj_name = obj_name
+        self.eta = eta  # the material's index of refraction: its transport tables go into the cache
         self.ss = ss
         self.base_bake = base_bake
         self.composite = composite
@@ -150,7 +151,7 @@ class BakeJob:
             if self.ss is not None:
                 bake = self._bake_single_scattering(bake)
             self.stage = "writing cache"
-            save_bake(self.tmp_path, bake)
+            save_bake(self.tmp_path, bake, etas=() if self.eta is None else (self.eta,))
             with self.lock:
                 if self.cancel_requested:
                     raise BakeCancelled("bake cancelled")
@@ -338,9 +339,20 @@ def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
     _check_writable(directory)
     final = os.path.join(directory, cache_files.cache_file_name(obj.name, key))
     notes = [w for w in (scale_warning, note) if w]
-    job = BakeJob(obj.name, V, F, settings, final, notes, ss=ss, composite=composite)
+    job = BakeJob(obj.name, V, F, settings, final, notes, ss=ss, composite=composite, eta=_material_eta(s))
     job.needs_ss = needs_ss
     return job
+
+
+def _material_eta(settings) -> float | None:
+    """The material's index of refraction for the cache's transport tables; None (no tables: the first
+    frame solves them) when the material does not build -- the bake itself does not need it."""
+    from ..translucency_addon.errors import TranslucencyError
+
+    try:
+        return float(scene_inputs.build_material(settings).eta)
+    except TranslucencyError:
+        return None
 
 
 def _single_scattering_needed(settings, V, mm: float) -> str:
@@ -380,7 +392,8 @@ def prepare_ss_job(context, obj) -> BakeJob:
     _check_writable(directory)
     final = os.path.join(directory, cache_files.cache_file_name(obj.name, ss.key))
     notes = [w for w in (scale_warning, note) if w]
-    return BakeJob(obj.name, V, F, base.settings, final, notes, ss=ss, base_bake=base, composite=composite)
+    return BakeJob(obj.name, V, F, base.settings, final, notes, ss=ss, base_bake=base, composite=composite,
+                   eta=_material_eta(obj.translucency))
 
 
 def _error_text(obj_name: str, ex: BaseException) -> str:

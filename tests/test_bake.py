@@ -427,3 +427,38 @@ def test_cache_writer_is_an_npz_and_never_pickles():
         assert z["c"].dtype == np.int32
     with pytest.raises(ValueError, match="pickle"):
         cache.write_npz(io.BytesIO(), {"x": np.array([object()], dtype=object)})
+
+
+def test_the_cache_keeps_the_transport_tables_of_the_material(tmp_path, monkeypatch):
+    """save_bake(etas=...) keeps the half-space transport tables (diffusion/split.py) so a cold frame of that
+    eta -- a farm's every frame -- does not solve them; corrupt tables are a corrupt cache, tables of
+    another format are ignored."""
+    from translucency_addon.diffusion import split
+
+    eta = 1.2345
+    path = cache.save_bake(tmp_path / "t.npz", baked("sphere"), etas=(eta,))
+    want = split.transport_tables(eta)
+    split._KEPT.clear()
+    split.half_space_split.cache_clear()
+
+    def no_solve(self, alpha):
+        raise AssertionError("the tables were solved again")
+
+    monkeypatch.setattr(split.HalfSpaceSplit, "_transport", no_solve)
+    cache.load_bake(path)
+    got = split.half_space_split(eta)
+    np.testing.assert_array_equal(got.shape_table, want["c"])
+    split.half_space_split.cache_clear()
+    arrays = dict(np.load(path))
+    arrays["split/0/M"] = np.full_like(arrays["split/0/M"], np.nan)
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(CacheError, match="transport tables are corrupt"):
+        cache.load_bake(tmp_path / "bad.npz")
+    arrays = dict(np.load(path))
+    arrays["split/0/key"] = np.frombuffer(b"half-space transport 0: eta 1.2345, 64 / 65 / 65", dtype=np.uint8)
+    np.savez(tmp_path / "old.npz", **arrays)
+    split._KEPT.clear()
+    cache.load_bake(tmp_path / "old.npz")  # another format: ignored, not adopted
+    assert not split._KEPT
+    monkeypatch.undo()
+    split.half_space_split.cache_clear()

@@ -254,7 +254,8 @@ def cmd_bake(a) -> int:
                                         progress=lambda f, st: progress(f, "ss: " + st))
         print(file=sys.stderr)
         bake = attach(bake, ss)
-    save_bake(a.output, bake)
+    # the material's half-space transport tables go with the bake: a cold frame of this eta skips them
+    save_bake(a.output, bake, etas=(material_from_args(a).eta,))
     if a.json:
         out = dict(bake.stats)
         if ss is not None:

@@ -95,11 +95,20 @@ def bake_to_arrays(bake: Bake) -> dict:
     return d
 
 
-def save_bake(path, bake: Bake) -> str:
-    """Write ``bake`` to ``path`` atomically (its folder is created); returns the path."""
+def save_bake(path, bake: Bake, etas=()) -> str:
+    """Write ``bake`` to ``path`` atomically (its folder is created); returns the path.
+
+    ``etas``: the indices of refraction whose half-space transport tables the cache keeps
+    (``diffusion.split.transport_tables``; the material's, at bake time), so a cold frame of that
+    eta -- every frame on a farm -- does not solve them again."""
     path = os.fspath(path)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     arrays = bake_to_arrays(bake)
+    if etas:
+        from .diffusion.split import transport_tables
+
+        for i, eta in enumerate(sorted({float(e) for e in etas})):
+            arrays.update({f"split/{i}/{k}": v for k, v in transport_tables(eta).items()})
     write_files({path: lambda fh: write_npz(fh, arrays)})
     return path
 
@@ -280,7 +289,23 @@ def load_bake(path, expected_key: str | None = None) -> Bake:
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise CacheError(f"bake cache {os.fspath(path)!r} is incomplete or inconsistent: {exc}") from exc
     _check_consistency(bake, path)
+    _adopt_split_tables(arrays, path)
     return bake
+
+
+def _adopt_split_tables(arrays: dict, path) -> None:
+    """Hand the transport tables the cache carries to ``diffusion.split`` (ignored when written by code of
+    another table format; a corrupt table is a corrupt cache)."""
+    from .diffusion.split import adopt_transport_tables
+
+    for name in sorted(k for k in arrays if k.startswith("split/") and k.endswith("/key")):
+        base = name[: -len("key")]
+        try:
+            key = bytes(np.asarray(arrays[name], dtype=np.uint8)).decode("utf-8")
+            adopt_transport_tables(key, arrays[base + "M"], arrays[base + "c"])
+        except (KeyError, ValueError, UnicodeDecodeError, TypeError) as exc:
+            raise CacheError(f"bake cache {os.fspath(path)!r}: its half-space transport tables are corrupt ({exc}); "
+                             "re-bake the object") from None
 
 
 def _check_consistency(bake: Bake, path) -> None:

@@ -198,7 +198,11 @@ class HalfSpaceSplit:
         self.B_table = self._boundary(a)
         self.shape_m = np.linspace(0.0, 1.0, N_SHAPE_M)
         self._shape_u = np.linspace(0.0, 1.0, N_TRANSPORT_ALPHA)
-        M_t, self.shape_table = self._transport(1.0 - self._shape_u**2)
+        key = transport_key(eta, int(n_quad))
+        kept = _KEPT.get(key)
+        if kept is None:
+            kept = _KEPT[key] = self._transport(1.0 - self._shape_u**2)
+        M_t, self.shape_table = kept
         self.M_table = np.interp(self._u_grid, self._shape_u, M_t)  # M is smooth in sqrt(1 - alpha)
         m = np.where(self.B_table > 1e-9, self.M_table / np.maximum(self.B_table, 1e-300), a - self.s_table)
         self.m_table = np.clip(np.minimum(m, 1.0 - self.s_table), 0.0, None)
@@ -360,6 +364,41 @@ class HalfSpaceSplit:
         ft = np.where(c > 0, fresnel_transmittance(np.clip(c, 0.0, 1.0), self.eta), 0.0)
         k = ft * self._h(m) / (4.0 * np.pi * self.eta * self.eta)
         return np.asarray(q, dtype=np.float64) * np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0) * k[:, None]
+
+
+TRANSPORT_FORMAT = 1  # bump when _transport's grids or rule change: kept tables of another format are ignored
+_KEPT: dict = {}  # transport_key -> (M, c): the transport tables of this process, and those a bake cache carried
+
+
+def transport_key(eta: float, n_quad: int = N_QUAD) -> str:
+    """What the transport tables of :class:`HalfSpaceSplit` depend on: eta, the quadrature, the grids."""
+    return f"half-space transport {TRANSPORT_FORMAT}: eta {float(eta)!r}, {n_quad} / {N_TRANSPORT_ALPHA} / {N_SHAPE_M}"
+
+
+def transport_tables(eta: float) -> dict:
+    """The transport tables for ``eta`` as arrays a bake cache keeps (``cache.save_bake(etas=...)``):
+    the 63 half-space solves behind them are most of a cold frame's set-up (0.6 s), and a render farm
+    starts every frame cold."""
+    split = half_space_split(eta)
+    M_t, c = _KEPT[transport_key(split.eta)]
+    key = np.frombuffer(transport_key(split.eta).encode("utf-8"), dtype=np.uint8)
+    return {"key": key, "M": np.asarray(M_t, dtype=np.float64), "c": np.asarray(c, dtype=np.float64)}
+
+
+def adopt_transport_tables(key: str, M, c) -> bool:
+    """Keep tables a bake cache carried; False (ignored) when they are of another format or quadrature
+    than this code's.  Raises ``ValueError`` for tables of this format with the wrong shape or values."""
+    if not key.startswith(f"half-space transport {TRANSPORT_FORMAT}: ") or not key.endswith(
+            f", {N_QUAD} / {N_TRANSPORT_ALPHA} / {N_SHAPE_M}"):
+        return False
+    M, c = np.asarray(M, dtype=np.float64), np.asarray(c, dtype=np.float64)
+    if M.shape != (N_TRANSPORT_ALPHA,) or c.shape != (N_TRANSPORT_ALPHA, N_SHAPE_M):
+        raise ValueError(f"transport tables have shapes {M.shape} and {c.shape}, expected ({N_TRANSPORT_ALPHA},) "
+                         f"and ({N_TRANSPORT_ALPHA}, {N_SHAPE_M})")
+    if not (np.all(np.isfinite(M)) and np.all(np.isfinite(c)) and M.min() >= 0 and M.max() <= 1 and c.min() >= 0):
+        raise ValueError("transport tables hold values outside their range (NaN, or M outside [0, 1])")
+    _KEPT.setdefault(key, (M, c))
+    return True
 
 
 @lru_cache(maxsize=8)
