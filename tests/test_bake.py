@@ -86,8 +86,9 @@ def test_refinement_preserves_volume_and_boundary_classes():
     # a refined level has 8x the tets and 4x the boundary faces of its parent
     assert bake.levels[2].n_inner == 8 * bake.levels[1].n_inner
     assert bake.levels[2].n_surface == 4 * bake.levels[1].n_surface
-    # independent levels: ~4x fewer surface triangles each step down
-    assert 2 < bake.levels[1].n_surface / bake.levels[0].n_surface < 6
+    # independent levels: ~4x fewer surface triangles each step down, fewer surface nodes (fTetWild's
+    # run-to-run spread: 1.91-2.92 over 17 Draft bakes of spot, at 3fe77a8 as now; one level would be ~1)
+    assert 1.6 < bake.levels[1].n_surface / bake.levels[0].n_surface < 6
     # snapping the refined boundary onto the original surface brings the volume closer to the truth
     V, F = mesh("spot")
     true = abs(meshio.signed_volume(V, F))
