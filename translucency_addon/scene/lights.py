@@ -336,15 +336,15 @@ def incident_flux(
     n = np.asarray(normals, dtype=np.float64)
     q = np.zeros((len(p), 3))
 
-    def visible(light, cos_i):
-        """Where ``light`` (a point, or a group's representative) is above the horizon and not shadowed."""
+    def visible(to_light, dist):
+        """Where the light towards ``to_light`` (a point, or a group's representative) is above the
+        horizon and not shadowed, and its cosine there."""
+        cos_i = np.einsum("ij,ij->i", n, to_light)
         lit = cos_i > 0
         if visibility is not None and lit.any():
-            _, to_light, dist = light_irradiance(light, p[lit], mm_per_unit)
-            vis = np.zeros(len(p), dtype=bool)
-            vis[np.nonzero(lit)[0]] = visibility(p[lit], n[lit], to_light, dist)
-            lit &= vis
-        return lit
+            idx = np.nonzero(lit)[0]
+            lit[idx] = visibility(p[idx], n[idx], to_light[idx], dist[idx])
+        return lit, cos_i
 
     for light in lights or ():
         if light.kind in ("point", "spot") and light.radius > 0 and light.samples >= 2:
@@ -354,12 +354,14 @@ def incident_flux(
         # An extended emitter: every patch's irradiance, shadowed by the ray of its group (shadow_groups)
         groups = shadow_groups(light) if light.is_extended else [(light, [light])]
         for rep, patches in groups:
-            _, to_rep, _ = light_irradiance(rep, p, mm_per_unit)
-            shadow_free = visible(rep, np.einsum("ij,ij->i", n, to_rep)) if len(patches) > 1 else None
+            shadow_free = visible(*light_irradiance(rep, p, mm_per_unit)[1:])[0] if len(patches) > 1 else None
             for patch in patches:
-                E, to_light, _ = light_irradiance(patch, p, mm_per_unit)
-                cos_i = np.einsum("ij,ij->i", n, to_light)
-                lit = visible(patch, cos_i) if shadow_free is None else (cos_i > 0) & shadow_free
+                E, to_light, dist = light_irradiance(patch, p, mm_per_unit)
+                if shadow_free is None:
+                    lit, cos_i = visible(to_light, dist)
+                else:
+                    cos_i = np.einsum("ij,ij->i", n, to_light)
+                    lit = (cos_i > 0) & shadow_free
                 w = np.where(lit, cos_i * fresnel_transmittance(cos_i, eta), 0.0)
                 q += E * w[:, None]
     if environment is not None and not environment.is_black:
