@@ -256,7 +256,7 @@ class DiffusionSolver:
         :class:`~.raycast.TriangleBVH` of the whole scene.  The combined BVH is
         cached and rebuilt only when the occluder arrays change.
         """
-        from ..geometry.raycast import TriangleBVH, mesh_bvh
+        from ..geometry.raycast import TriangleBVH, content_key, mesh_bvh
 
         if isinstance(occluders, TriangleBVH):
             return occluders
@@ -266,7 +266,7 @@ class DiffusionSolver:
                                             getattr(self.bake, "mesh_bvh_order", None))
             return self._shadow_bvh
         Vo, Fo = (np.ascontiguousarray(a) for a in occluders)
-        key = (Vo.shape, Fo.shape, hash(Vo.tobytes()), hash(Fo.tobytes()))
+        key = content_key(Vo, Fo)
         cached = getattr(self, "_occluder_cache", None)
         if cached is not None and cached[0] == key:
             return cached[1]

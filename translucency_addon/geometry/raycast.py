@@ -16,7 +16,6 @@ is ``log2(n)`` rounds of vectorised median splits and min/max reductions.
 
 from __future__ import annotations
 
-
 import numpy as np
 
 LEAF = 4
@@ -73,7 +72,7 @@ def mesh_bvh(V, F, order=None) -> "TriangleBVH":
     """
     V = np.ascontiguousarray(V, dtype=np.float64)
     F = np.ascontiguousarray(F, dtype=np.int64)
-    key = (V.shape, F.shape, hash(V.tobytes()), hash(F.tobytes()))
+    key = content_key(V, F)
     bvh = _SHARED.pop(key, None)
     if bvh is None:
         bvh = TriangleBVH(V, F) if order is None else TriangleBVH.from_order(V, F, order)
@@ -83,14 +82,27 @@ def mesh_bvh(V, F, order=None) -> "TriangleBVH":
     return bvh
 
 
+def content_key(*arrays) -> tuple:
+    """A key that changes with the arrays' shapes or bytes (Python's hash of the bytes): what a tree built
+    from them is cached under (:func:`mesh_bvh`, the solvers' trees of a mesh plus its occluders)."""
+    arrays = [np.ascontiguousarray(a) for a in arrays]
+    return tuple(a.shape for a in arrays) + tuple(hash(a.tobytes()) for a in arrays)
+
+
+def leaf_count(n_triangles: int) -> int:
+    """The number of leaves the tree of ``n_triangles`` has: the power of two that holds them, LEAF each."""
+    n_leaves = 1
+    while n_leaves * LEAF < n_triangles:
+        n_leaves *= 2
+    return n_leaves
+
+
 def check_order(order, n_triangles: int) -> None:
     """Raise ``ValueError`` unless ``order`` is a :attr:`TriangleBVH.leaf_tris` for ``n_triangles``
     triangles: (n_leaves, LEAF) with n_leaves the power of two the build picks, every triangle once,
     -1 padding."""
     o = np.asarray(order)
-    n_leaves = 1
-    while n_leaves * LEAF < n_triangles:
-        n_leaves *= 2
+    n_leaves = leaf_count(n_triangles)
     if o.shape != (n_leaves, LEAF) or not np.issubdtype(o.dtype, np.integer):
         raise ValueError(f"BVH order has shape {o.shape} ({o.dtype}), expected ({n_leaves}, {LEAF}) integers "
                          f"for {n_triangles} triangles")
@@ -139,9 +151,7 @@ class TriangleBVH:
         if len(F) == 0:
             raise ValueError("TriangleBVH needs at least one triangle")
         m = len(F)
-        n_leaves = 1
-        while n_leaves * LEAF < m:
-            n_leaves *= 2
+        n_leaves = leaf_count(m)
         order = _balanced_order(V[F].mean(axis=1), n_leaves * LEAF)
         self.n_leaves = n_leaves
         self.depth = int(np.log2(n_leaves))

@@ -89,14 +89,14 @@ class VoxelNumberMapEvaluator:
 
     # -- step 1 ---------------------------------------------------------------------------------
     def _shadow_bvh(self, occluders):
-        from ..geometry.raycast import TriangleBVH
+        from ..geometry.raycast import TriangleBVH, content_key
 
         if occluders is None:
             return self.bvh, None
         if isinstance(occluders, TriangleBVH):
             return occluders, id(occluders)
         Vo, Fo = (np.ascontiguousarray(a) for a in occluders)
-        key = (Vo.shape, hash(Vo.tobytes()), hash(Fo.tobytes()))
+        key = content_key(Vo, Fo)
         if self._occluders is None or self._occluders[0] != key:
             V = np.vstack([self.vnm.mesh_vertices, Vo])
             F = np.vstack([self.vnm.mesh_faces, np.asarray(Fo) + len(self.vnm.mesh_vertices)])
