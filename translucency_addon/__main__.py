@@ -214,6 +214,10 @@ def cmd_bake(a) -> int:
     settings.resolved()  # its ranges (levels, sky directions), before the mesh is read
     if a.single_scattering or a.inner or a.voxel_number_map:
         material_from_args(a)
+    try:  # the material's half-space transport tables go with the bake: a cold frame of this eta skips them
+        etas = (material_from_args(a).eta,)
+    except TranslucencyError:  # a plain bake does not need the material; no tables (the first frame solves them)
+        etas = ()
     V, F = load_obj(a.mesh)
     t0 = time.perf_counter()
 
@@ -254,8 +258,7 @@ def cmd_bake(a) -> int:
                                         progress=lambda f, st: progress(f, "ss: " + st))
         print(file=sys.stderr)
         bake = attach(bake, ss)
-    # the material's half-space transport tables go with the bake: a cold frame of this eta skips them
-    save_bake(a.output, bake, etas=(material_from_args(a).eta,))
+    save_bake(a.output, bake, etas=etas)
     if a.json:
         out = dict(bake.stats)
         if ss is not None:
