@@ -354,6 +354,8 @@ def _record(st: state.FluidObjectState, frame: FluidInputs, sig, result, seconds
         st.iterations = int(stats.get("sweeps", 0))
         st.residual = float(max(stats.get("relative_residual", [0.0]) or [0.0]))
         warnings += list(result.warnings)
+        if stats.get("cell_path_note"):  # the cells' numpy fallback (no numba in this Blender): why, and the fix
+            warnings.append(stats["cell_path_note"])
         st.solves += 1
         state.count("solves")
     st.warnings = tuple(warnings)

@@ -12,6 +12,7 @@ import pytest
 
 from translucency_addon.errors import ParticleError
 from translucency_addon.fluid import FluidSolver, build_cells, build_graph, prepare_particles, suggest_radius
+from translucency_addon.fluid import cells as cells_mod, compiled_faces
 from translucency_addon.fluid.disk_faces import clipped_disk
 from translucency_addon.diffusion.graph import check_graph
 from translucency_addon.scene.lights import Environment
@@ -19,6 +20,14 @@ from translucency_addon.scene.materials import material_from_preset
 
 # The bound for lattices: exact up to rounding (measured ~1e-15 relative).
 EXACT = 1e-9
+
+
+@pytest.fixture(params=["compiled", "numpy"])
+def method(request):
+    """Both paths of the faces (cells.cell_path): numba's kernel and the numpy fallback."""
+    if request.param == "compiled" and compiled_faces.available():
+        pytest.fail(f"the compiled path must run in the test environment: {compiled_faces.available()}")
+    return request.param
 
 
 def lattice(n, s=1.0):
@@ -37,11 +46,11 @@ def interior(P, lo, hi):
 
 
 @pytest.mark.parametrize("R", [0.87, 1.0, 1.4])
-def test_cubic_lattice_cells_are_unit_cubes(R):
+def test_cubic_lattice_cells_are_unit_cubes(R, method):
     """Interior cells of a cubic lattice (spacing 1) are unit cubes once R >= sqrt(3)/2: V = 1, the six
     face neighbours share faces of area 1, the diagonal neighbours share none, nothing is free surface."""
     P = lattice(6)
-    cells = build_cells(P, R)
+    cells = build_cells(P, R, method=method)
     inner = interior(P, 0.5, 4.5)
     assert np.abs(cells.volume[inner] - 1.0).max() < EXACT
     assert cells.sphere_area[inner].max() < EXACT
@@ -51,11 +60,11 @@ def test_cubic_lattice_cells_are_unit_cubes(R):
     assert np.all(cells.n_faces[inner] == 6)
 
 
-def test_fcc_lattice_cells_are_rhombic_dodecahedra():
+def test_fcc_lattice_cells_are_rhombic_dodecahedra(method):
     """FCC (cube a = 1): Voronoi cells are rhombic dodecahedra, V = a^3/4, 12 faces of area sqrt(2) a^2/8
     (the cells have 4-valent vertices, where several cutting lines meet)."""
     P = fcc(5)
-    cells = build_cells(P, 0.6)  # farthest vertex at a/2
+    cells = build_cells(P, 0.6, method=method)  # farthest vertex at a/2
     inner = interior(P, 0.9, 3.6)
     assert inner.sum() > 50
     assert np.abs(cells.volume[inner] - 0.25).max() < EXACT
@@ -64,10 +73,10 @@ def test_fcc_lattice_cells_are_rhombic_dodecahedra():
     assert np.all(cells.n_faces[inner] == 12)
 
 
-def test_two_balls_closed_form():
+def test_two_balls_closed_form(method):
     R, d = 1.0, 1.2
     h = d / 2
-    cells = build_cells(np.array([[0.0, 0, 0], [d, 0, 0]]), R)
+    cells = build_cells(np.array([[0.0, 0, 0], [d, 0, 0]]), R, method=method)
     cap = np.pi * (R - h) ** 2 * (2 * R + h) / 3
     assert np.allclose(cells.volume, 4 / 3 * np.pi * R**3 - cap, rtol=EXACT)
     assert np.allclose(cells.face_area, np.pi * (R * R - h * h), rtol=EXACT)
@@ -90,11 +99,11 @@ def test_clipped_disk_against_closed_forms():
 
 
 @pytest.mark.parametrize("R", [0.87, 1.4])
-def test_lattice_ties_do_not_depend_on_the_particle_order(R):
+def test_lattice_ties_do_not_depend_on_the_particle_order(R, method):
     """A shuffled cubic lattice: four particles on one circle give one Voronoi edge to four triangles, and
     which of them keeps it depends on the particle indices; the cells are the same unit cubes in any order."""
     P = lattice(6)[np.random.default_rng(3).permutation(216)]
-    cells = build_cells(P, R)
+    cells = build_cells(P, R, method=method)
     inner = interior(P, 0.5, 4.5)
     assert np.abs(cells.volume[inner] - 1.0).max() < EXACT
     both = inner[cells.face_i] & inner[cells.face_j]
@@ -140,24 +149,25 @@ FINGERPRINTS = {
 }
 
 
-@pytest.mark.parametrize("chunk", [None, 2000])
-def test_cells_match_the_per_face_clipping_they_replaced(chunk):
+@pytest.mark.parametrize("method, chunk", [("compiled", None), ("numpy", None), ("numpy", 2000)])
+def test_cells_match_the_per_face_clipping_they_replaced(method, chunk):
     """Five particle sets (jittered and exact lattices, uniform and clustered random) against fingerprints of
-    the previous exact implementation; ``chunk=2000`` splits the work into 10-30 chunks, so that most faces
-    take lines decided in earlier chunks."""
+    the previous exact implementation; ``chunk=2000`` splits the numpy path's work into 10-30 chunks, so
+    that most faces take lines decided in earlier chunks."""
     for name, P, R in _fingerprint_sets():
-        cells = build_cells(P, R) if chunk is None else build_cells(P, R, chunk=chunk)
+        cells = build_cells(P, R, method=method) if chunk is None else build_cells(P, R, chunk=chunk, method=method)
+        assert cells.path == method
         got, want = _fingerprint(cells), FINGERPRINTS[name]
         assert got[0] == want[0], name
         scale = np.array([1.0, abs(want[1]), *[abs(want[1])] * 4, abs(want[5]), abs(want[5])])
         assert np.all(np.abs(np.subtract(got, want)) <= 1e-9 * scale), (name, got, want)
 
 
-def test_cells_do_not_depend_on_the_particle_order():
+def test_cells_do_not_depend_on_the_particle_order(method):
     """Shuffled input: the same cells, permuted (the engine sorts the particles spatially inside)."""
     P = _jittered(5, 0.2, 9)
     perm = np.random.default_rng(4).permutation(len(P))
-    a, b = build_cells(P, 1.0), build_cells(P[perm], 1.0)
+    a, b = build_cells(P, 1.0, method=method), build_cells(P[perm], 1.0, method=method)
     assert np.allclose(b.volume, a.volume[perm], rtol=1e-12) and np.allclose(b.surface_vector, a.surface_vector[perm])
     inv = np.argsort(perm)
     fa = dict(zip(zip(a.face_i.tolist(), a.face_j.tolist()), a.face_area))
@@ -184,14 +194,14 @@ def _jittered(n, jitter, seed):
     return P + rng.uniform(-jitter, jitter, P.shape)
 
 
-def test_cells_partition_the_union_of_balls_and_match_a_nearest_particle_count():
+def test_cells_partition_the_union_of_balls_and_match_a_nearest_particle_count(method):
     """Sample points: each in the fluid (within R of a particle) belongs to its nearest particle.  The
     fraction of samples per cell estimates V_i; the sum estimates the union of balls."""
     from scipy.spatial import cKDTree
 
     P = _jittered(4, 0.25, 0)
     R = 0.95
-    cells = build_cells(P, R)
+    cells = build_cells(P, R, method=method)
     rng = np.random.default_rng(1)
     lo, hi = P.min(axis=0) - R, P.max(axis=0) + R
     n = 1_500_000
@@ -207,13 +217,13 @@ def test_cells_partition_the_union_of_balls_and_match_a_nearest_particle_count()
     assert np.all(np.abs(cells.volume - per) < 5 * se_cell + 1e-3), np.abs(cells.volume - per).max()
 
 
-def test_face_areas_match_a_brute_force_count_on_the_bisecting_plane():
+def test_face_areas_match_a_brute_force_count_on_the_bisecting_plane(method):
     """Points on the plane between i and j that lie within R and have no nearer particle than i and j."""
     from scipy.spatial import cKDTree
 
     P = _jittered(4, 0.3, 2)
     R = 1.0
-    cells = build_cells(P, R)
+    cells = build_cells(P, R, method=method)
     tree = cKDTree(P)
     rng = np.random.default_rng(3)
     picks = rng.choice(len(cells.face_i), 12, replace=False)
@@ -232,11 +242,11 @@ def test_face_areas_match_a_brute_force_count_on_the_bisecting_plane():
         assert abs(cells.face_area[f] - est) < 0.01 * R * R + 0.01 * est, (f, cells.face_area[f], est)
 
 
-def test_surface_cells_of_a_lattice_block_face_outward_with_their_flat_area():
+def test_surface_cells_of_a_lattice_block_face_outward_with_their_flat_area(method):
     """A 6^3 block, R = 1: the 152 outer cells are the surface; a cell in the middle of a side has its
     surface face's vector area along the side's normal with length 1 (the flat projection)."""
     P = lattice(6)
-    cells = build_cells(P, 1.0)
+    cells = build_cells(P, 1.0, method=method)
     graph = build_graph(cells)
     check_graph(graph, "fluid")
     assert graph.n_inner == 216 and graph.n_surface == 216 - 64
@@ -344,3 +354,42 @@ def test_a_broken_surface_mesh_is_refused():
         _solve(lattice(4), surface=(np.where(V == 1, np.nan, V), np.array([[0, 1, 2]])))
     with pytest.raises(MeshError, match="indices outside its 3 vertices"):
         _solve(lattice(4), surface=(V, np.array([[0, 1, 3]])))
+
+
+def test_the_compiled_and_numpy_paths_give_the_same_cells():
+    """Face for face, to rounding, on the fingerprint sets (exact and jittered lattices, uniform and clustered
+    random) and a jittered ball with the bench's radius (the kernel's nearest-first order and early exits)."""
+    rng = np.random.default_rng(7)
+    ball = lattice(12, 0.5) - 2.75
+    ball = ball[np.linalg.norm(ball, axis=1) < 3.0] + rng.uniform(-0.05, 0.05, (1, 3))
+    sets = _fingerprint_sets() + [("jittered ball", ball + rng.uniform(-0.05, 0.05, ball.shape), 0.5)]
+    for name, P, R in sets:
+        a, b = build_cells(P, R, method="compiled"), build_cells(P, R, method="numpy")
+        assert (a.path, b.path) == ("compiled", "numpy")
+        assert np.array_equal(a.face_i, b.face_i) and np.array_equal(a.face_j, b.face_j), name
+        scale = R * R
+        assert np.abs(a.face_area - b.face_area).max() < 1e-12 * scale, name
+        assert np.abs(a.volume - b.volume).max() < 1e-12 * scale * R, name
+        assert np.abs(a.sphere_area - b.sphere_area).max() < 1e-11 * scale, name
+        assert np.abs(a.surface_vector - b.surface_vector).max() < 1e-11 * scale, name
+
+
+def test_without_numba_the_cells_take_the_numpy_path_and_say_why(monkeypatch):
+    """The fallback is the numpy path (the same cells), and the cells and a fluid frame's stats say why and
+    what to change; asking for the compiled path without numba is refused with the reason."""
+    monkeypatch.setattr(compiled_faces, "_KERNEL", {"error": "numba is not installed"})
+    P = lattice(4) + np.random.default_rng(5).uniform(-0.1, 0.1, (64, 3))
+    cells = build_cells(P, 1.0)
+    assert cells.path == "numpy"
+    assert "numba is not installed" in cells.path_note and "pip install numba" in cells.path_note
+    with pytest.raises(RuntimeError, match="numba is not installed"):
+        build_cells(P, 1.0, method="compiled")
+    res = _solve(P, 1.0)
+    assert res.stats["cell_path"] == "numpy" and "numba is not installed" in res.stats["cell_path_note"]
+    with pytest.raises(ValueError, match="choose one of auto, compiled, numpy"):
+        cells_mod.cell_path("fast")
+
+
+def test_with_numba_a_fluid_frame_uses_the_compiled_path():
+    res = _solve(lattice(4) + np.random.default_rng(6).uniform(-0.1, 0.1, (64, 3)), 1.0)
+    assert res.stats["cell_path"] == "compiled" and res.stats["cell_path_note"] == ""

@@ -86,6 +86,7 @@ KERNEL_BATCH = 2048  # faces per call of the (m, m_own, faces) clipping kernel
 TINY_AREA = 1e-12  # face areas below this fraction of R^2 are no face (lattice ties)
 FLAT = 1e-12  # |sin| between a face and a cutting plane below which they are parallel
 POINT = 1e-12  # segments shorter than this fraction of the disk radius are points (cospherical particles)
+CELL_METHODS = ("auto", "compiled", "numpy")
 
 
 @dataclass
@@ -104,6 +105,8 @@ class VoronoiCells:
     tree: object = None  # the particles' cKDTree (reused by the graph and the occluder)
     seconds: dict = field(default_factory=dict)
     order: np.ndarray | None = None  # the particles in a spatial order (the graph numbers its nodes so)
+    path: str = "numpy"  # where the faces were computed: "compiled" (numba) or "numpy" (cell_path)
+    path_note: str = ""  # why the numpy path ran where the compiled one was asked for ("auto"), else ''
 
     @property
     def n_cells(self) -> int:
@@ -176,13 +179,33 @@ def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK) -> VoronoiCells:
+def cell_path(method: str = "auto") -> tuple:
+    """``(path, why)``: where the faces are computed -- ``"compiled"`` (:mod:`.compiled_faces`, numba) or
+    ``"numpy"`` (this module) -- and, when ``method`` "auto" falls back to numpy, why."""
+    from . import compiled_faces
+
+    if method not in CELL_METHODS:
+        raise ValueError(f"cell method {method!r}: choose one of {', '.join(CELL_METHODS)}")
+    if method == "numpy":
+        return "numpy", ""
+    why = compiled_faces.available()
+    if not why:
+        return "compiled", ""
+    if method == "compiled":
+        raise RuntimeError(f"the compiled cell faces are not available: {why}")
+    return "numpy", f"{why}: the cells take the numpy path (about 10x slower; pip install numba to speed it up)"
+
+
+def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK, method: str = "auto") -> VoronoiCells:
     """Exact Voronoi-fluid cells of particles ``points`` (N, 3) with ball radius ``radius``.
 
     The input must be finite, without coincident particles and with a
     positive radius (:func:`.particles.prepare_particles` checks and cleans).
-    ``chunk`` bounds the candidate triangles handled at once (memory).
+    ``chunk`` bounds the candidate triangles handled at once (memory, numpy path).
+    ``method``: ``"auto"`` (compiled where numba is installed, else numpy), ``"compiled"`` or
+    ``"numpy"`` (:func:`cell_path`); both give the same cells to rounding.
     """
+    path, why = cell_path(method)
     t0 = time.perf_counter()
     P = np.ascontiguousarray(points, dtype=np.float64)
     N = len(P)
@@ -196,7 +219,10 @@ def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK) 
     Q = P[order]
     fc = _faces(Q, R, np.minimum(si, sj), np.maximum(si, sj))
     t1 = time.perf_counter()
-    area, omega, seconds = _face_geometry(Q, R, fc, chunk)
+    if path == "compiled":
+        area, omega, seconds = _compiled_face_geometry(Q, R, fc)
+    else:
+        area, omega, seconds = _face_geometry(Q, R, fc, chunk)
     t2 = time.perf_counter()
     fi, fj, fd, fn = fc.i, fc.j, fc.d, fc.n
     sum_omega = np.bincount(fi, omega, N) + np.bincount(fj, omega, N)
@@ -213,7 +239,25 @@ def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK) 
     return VoronoiCells(points=P, radius=R, face_i=np.minimum(oi, oj), face_j=np.maximum(oi, oj),
                         face_area=area[keep], face_distance=fd[keep], volume=_unsort(volume, order),
                         sphere_area=_unsort(sphere, order), surface_vector=vec, tree=tree, seconds=seconds,
-                        order=order)
+                        order=order, path=path, path_note=why)
+
+
+def _compiled_face_geometry(P, R, fc: _Faces):
+    """Area and solid angle of every face by :mod:`.compiled_faces`: each face clipped by the lines of its
+    first particle's neighbours (every particle within 2R of it, from the faces themselves)."""
+    from . import compiled_faces
+
+    t = time.perf_counter()
+    N = len(P)
+    src = np.concatenate([fc.i, fc.j])
+    dst = np.concatenate([fc.j, fc.i])
+    by = np.argsort(src, kind="stable")
+    start = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=N))])
+    t1 = time.perf_counter()
+    area, omega = compiled_faces.face_geometry(P, R, fc.i, fc.j, fc.n, fc.e1, fc.e2, fc.h, fc.r, start, dst[by],
+                                               np.concatenate([fc.d, fc.d])[by])
+    t2 = time.perf_counter()
+    return np.maximum(area, 0.0), np.maximum(omega, 0.0), {"neighbour lists": t1 - t, "compiled faces": t2 - t1}
 
 
 def _spatial_order(P, R):

@@ -5,7 +5,8 @@ and relax eqs. 16-17 on it.  :class:`FluidSolver` does the same with the
 engine's one solver:
 
 1. :func:`.particles.prepare_particles` -- checks, NaN and duplicates, radius;
-2. :func:`.cells.build_cells` -- exact cells (volumes, faces, surface faces);
+2. :func:`.cells.build_cells` -- exact cells (volumes, faces, surface faces), their faces in compiled
+   code (:mod:`.compiled_faces`, numba) or, where numba is missing, numpy (the stats say which and why);
 3. :func:`.cellgraph.build_graph` -- the cells as a graph of the contract;
 4. :class:`FluidDiffusionSolver`, the :class:`~..diffusion.DiffusionSolver`
    itself on a one-level :class:`FluidFrame`: the same ``assemble``, light
@@ -49,6 +50,7 @@ class FluidOptions:
     max_iterations: int = 50_000
     kernel_radii: float = KERNEL_RADII  # output interpolation radius, in particle radii
     memory_budget: int = DEFAULT_MEMORY_BUDGET_BYTES
+    cells: str = "auto"  # the cells' faces: auto (compiled where numba is installed), compiled, numpy
 
     def solve_options(self) -> SolveOptions:
         return SolveOptions(solver=self.solver, tol=self.tol, max_iterations=self.max_iterations,
@@ -180,8 +182,9 @@ class FluidSolver:
             warnings.append("no particles: nothing to solve, radiance 0")
             return self._zero(n_in, out_pts, surface is not None, seconds, warnings, t0)
         t = time.perf_counter()
-        cells = build_cells(ps.points, ps.radius)
+        cells = build_cells(ps.points, ps.radius, method=opts.cells)
         seconds["cells"] = time.perf_counter() - t
+        cell_path = {"cell_path": cells.path, "cell_path_note": cells.path_note}
         seconds.update({f"cells_{k}": v for k, v in cells.seconds.items()})
         t = time.perf_counter()
         graph = build_graph(cells)
@@ -220,6 +223,7 @@ class FluidSolver:
         seconds["output"] = time.perf_counter() - t
         seconds["total"] = time.perf_counter() - t0
         out.stats.update(self._stats(graph, result, warm, seconds, warnings))
+        out.stats.update(cell_path)
         out.warnings = warnings
         return out
 
