@@ -193,7 +193,7 @@ def cell_path(method: str = "auto") -> tuple:
         return "compiled", ""
     if method == "compiled":
         raise RuntimeError(f"the compiled cell faces are not available: {why}")
-    return "numpy", f"{why}: the cells take the numpy path (about 10x slower; pip install numba to speed it up)"
+    return "numpy", f"{why}: the cells take the numpy path (about 4x slower; install numba to speed it up)"
 
 
 def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK, method: str = "auto") -> VoronoiCells:

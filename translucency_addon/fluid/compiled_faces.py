@@ -75,8 +75,9 @@ def face_geometry(P, R, fi, fj, normal, e1, e2, h, rho, nbr_start, nbr, nbr_dist
         start, nbr = nbr_start.astype(np.int64), nbr.astype(np.int64)
         _KERNEL["sort"](start, nbr, np.array(nbr_distance, dtype=np.float64))
         fn(np.ascontiguousarray(P, dtype=np.float64), float(R), fi.astype(np.int64), fj.astype(np.int64),
-           np.ascontiguousarray(normal), np.ascontiguousarray(e1), np.ascontiguousarray(e2), h, rho,
-           start, nbr, area, omega)
+           np.ascontiguousarray(normal), np.ascontiguousarray(e1), np.ascontiguousarray(e2),
+           np.ascontiguousarray(h, dtype=np.float64), np.ascontiguousarray(rho, dtype=np.float64), start, nbr, area,
+           omega)  # one signature: C-contiguous float64/int64 (numba compiles once per signature)
     return area, omega
 
 
