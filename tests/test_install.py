@@ -33,6 +33,8 @@ from conftest import ROOT, addon_is_registered, factory_reset
 MODULE = "bl_ext.user_default.translucency"
 EXPECTED_TOP_LEVEL = {"__init__.py", "blender_manifest.toml", "LICENSE", "ops", "translucency_addon", "wheels"}
 BUNDLED = ("scipy", "pytetwild", "fast_simplification")
+# The fluid cells' compiled faces: in every zip of a platform PyPI has their wheels for (not macOS x86-64).
+COMPILED = ("numba", "llvmlite")
 
 
 def _blender_ext() -> Path:
@@ -98,13 +100,17 @@ def test_zip_validates_and_holds_only_the_extension(extension_zip):
     assert sorted("wheels/" + w for w in wheels) == sorted(n for n in names if n.startswith("wheels/") and n != "wheels/")
     assert not [w for w in wheels if w.startswith("numpy-")], "numpy ships with Blender"
     linux = summary["wheels"]["linux-x64"]
-    for dist in BUNDLED:
+    for dist in BUNDLED + COMPILED:
         assert any(w.startswith(dist + "-") and "linux" in w for w in linux), (dist, linux)
+    # A platform without numba's wheels still gets its zip, without them, and the summary says why.
+    for platform, missing in summary["without_compiled"].items():
+        assert platform in summary["platforms"] and missing.split("==")[0] in COMPILED, (platform, missing)
+        assert not [w for w in summary["wheels"][platform] if w.startswith(COMPILED)], platform
     # Every supported Blender's Python has its wheels: 3.11 (4.2-5.0) and 3.13 (5.1-5.2).
     # Blender reads the versions from the wheel tags; an abi3 wheel serves every newer CPython.
     assert summary["pythons"] == ["3.11", "3.13"]
     for abi in ("cp311", "cp313"):
-        for dist in BUNDLED:
+        for dist in BUNDLED + COMPILED:
             assert any(w.startswith(dist + "-") and (f"-{abi}-" in w or _abi3_serves(w, abi)) for w in linux), \
                 (dist, abi, linux)
 
@@ -149,7 +155,7 @@ def test_install_enable_disable(extension_zip, tmp_path):
 
         # Blender unpacked the linux wheels into the extensions' site-packages.
         site = _local_site_packages()
-        for dist in BUNDLED:
+        for dist in BUNDLED + COMPILED:
             assert (site / dist).is_dir(), f"{dist} was not installed into {site}"
         module.ops.dependencies.clear_cache()
         assert module.ops.dependencies.missing() == []
@@ -163,7 +169,10 @@ def test_install_enable_disable(extension_zip, tmp_path):
             "F = np.array([[0,2,1],[0,1,3],[0,3,2],[1,2,3]], np.int32)\n"
             "v, t = pytetwild.tetrahedralize(V, F, optimize=False, quiet=True)\n"
             "assert len(t) > 0\n"
-            "print(scipy.__file__); print(pytetwild.__file__); print(fast_simplification.__file__)\n")
+            "import numba, llvmlite\n"
+            "assert numba.njit(lambda x: 2 * x + 1)(20) == 41\n"
+            "print(scipy.__file__); print(pytetwild.__file__); print(fast_simplification.__file__)\n"
+            "print(numba.__file__); print(llvmlite.__file__)\n")
         env = dict(os.environ, PYTHONPATH=str(site))
         proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                               env=env, cwd=tmp_path, timeout=300)
@@ -252,7 +261,7 @@ def test_install_on_other_blender(extension_zip, tmp_path):
                          capture_output=True, text=True, timeout=60).stdout.strip()
     _zip, summary = extension_zip
     wheels = [ROOT / "wheels" / w for w in summary["wheels"]["linux-x64"] if f"-{abi}-" in w or _abi3_serves(w, abi)]
-    assert len(wheels) == len(BUNDLED), wheels
+    assert len(wheels) == len(BUNDLED + COMPILED), wheels
     site = tmp_path / "engine-wheels"
     unpack = subprocess.run([str(python), "-m", "pip", "install", "-q", "--no-deps", "--disable-pip-version-check",
                              "--target", str(site), *map(str, wheels)], capture_output=True, text=True, timeout=600)

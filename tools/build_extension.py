@@ -2,7 +2,8 @@
 # SPDX-License-Identifier: GPL-3.0-or-later
 """Build the Translucency extension zip.
 
-1. Download the bundled wheels (pytetwild, fast_simplification, scipy; never
+1. Download the bundled wheels (pytetwild, fast_simplification, scipy; numba
+   and llvmlite where PyPI has them, for the fluid cells' compiled faces; never
    numpy, which Blender ships) for every platform PyPI has them for and for
    every Python a supported Blender ships (``PYTHONS``: 3.11 for Blender
    4.2-5.0, 3.13 for 5.1-5.2), with ``pip download --only-binary=:all:
@@ -19,6 +20,9 @@
    extensions platform expects, and a quarter of the download.
    ``--all-platforms-zip`` writes the single zip with every platform's
    wheels instead (one file for every machine, about four times larger).
+   numba and llvmlite make a zip 2.4-2.6x larger (linux-x64: 74 -> 195 MiB,
+   macos-arm64: 59 -> 142 MiB, windows-x64: 75 -> 160 MiB; macos-x64 has no
+   numba wheel and stays 66 MiB); ``--without-compiled`` leaves them out.
 2. Check each wheel's ``Requires-Dist``: nothing may be needed besides numpy.
 3. Rewrite ``platforms`` and ``wheels`` in ``blender_manifest.toml``.
 4. Build the zip with Blender's own ``blender_ext.py build`` (it ships inside
@@ -31,6 +35,7 @@ Usage::
     .venv/bin/python tools/build_extension.py --all-platforms-zip   # one zip for every platform
     .venv/bin/python tools/build_extension.py --platforms linux-x64
     .venv/bin/python tools/build_extension.py --offline        # reuse wheels/ only
+    .venv/bin/python tools/build_extension.py --without-compiled   # no numba: zips 2.4-2.6x smaller
 
 Downloaded wheels are kept in ``wheels/`` (git-ignored), so a second run does
 not download again.  The last lines printed are a summary; ``--json`` writes it
@@ -66,10 +71,15 @@ PYTHONS = (
 
 # Bundled distributions (import names differ only by dash/underscore).
 BUNDLED = ("pytetwild", "fast_simplification", "scipy")
-# What a bundled wheel may require: Blender ships numpy.
+# Bundled where PyPI has them for the platform and both Pythons, else left out of that platform's zip: the
+# Voronoi-fluid cells' compiled faces (translucency_addon/fluid/compiled_faces.py), whose numpy path runs
+# without them and says so.  numba has no macOS x86-64 wheel.
+COMPILED = ("numba", "llvmlite")
+# What a bundled wheel may require: Blender ships numpy (and the other bundled wheels of its platform).
 ALLOWED_REQUIREMENTS = {"numpy"}
 # Fallback pins, used only if requirements-test.txt is missing a line.
-DEFAULT_PINS = {"pytetwild": "0.2.3", "fast_simplification": "0.2.0", "scipy": "1.17.1"}
+DEFAULT_PINS = {"pytetwild": "0.2.3", "fast_simplification": "0.2.0", "scipy": "1.17.1", "numba": "0.68.1",
+                "llvmlite": "0.50.0"}
 
 # Blender platform -> groups of pip --platform tags, tried in order for each
 # wheel; the first group that yields a wheel wins.  Older tags come first so the
@@ -115,7 +125,7 @@ def read_pins() -> dict[str, str]:
         for line in REQUIREMENTS.read_text().splitlines():
             line = line.split("#", 1)[0].strip()
             m = re.fullmatch(r"([A-Za-z0-9_.\-]+)\s*==\s*([^\s;]+)", line)
-            if m and normalise(m.group(1)) in BUNDLED:
+            if m and normalise(m.group(1)) in BUNDLED + COMPILED:
                 pins[normalise(m.group(1))] = m.group(2)
     return pins
 
@@ -205,47 +215,60 @@ def wheel_requirements(path: Path) -> list[str]:
     return needed
 
 
-def collect_wheels(platforms: list[str], pins: dict[str, str], offline: bool) -> dict[str, dict[str, Path]]:
-    """{platform: {"dist cpXY": wheel path}} for the platforms that have every wheel for every Python."""
+def _platform_wheels(platform: str, dists: tuple, pins: dict[str, str], offline: bool) -> tuple[dict, str]:
+    """({"dist cpXY": wheel path}, '') when ``platform`` has every wheel of ``dists`` for every Python, else
+    ({}, what is missing)."""
+    chosen: dict[str, Path] = {}
+    for python, abi in PYTHONS:
+        for dist in dists:
+            version = pins[dist]
+            path, error = None, "not in wheels/ (offline)"
+            for tags in PLATFORM_TAGS[platform]:  # reuse a downloaded wheel first
+                path = find_cached(dist, version, tags, abi)
+                if path is not None:
+                    break
+            if path is None and not offline:
+                for tags in PLATFORM_TAGS[platform]:
+                    path, error = pip_download(dist, version, tags, WHEELS_DIR, python, abi)
+                    if path is not None:
+                        break
+            if path is None:
+                missing = f"{dist}=={version} for Python {python}"
+                log(f"  {platform:12s} {missing}: no wheel ({error})")
+                return {}, missing
+            chosen[f"{dist} {abi}"] = path
+            log(f"  {platform:12s} {abi} {path.name} ({path.stat().st_size / 2**20:.1f} MiB)")
+    return chosen, ""
+
+
+def collect_wheels(platforms: list[str], pins: dict[str, str], offline: bool,
+                   without_compiled: dict | None = None, compiled: bool = True) -> dict[str, dict[str, Path]]:
+    """{platform: {"dist cpXY": wheel path}} for the platforms that have every wheel of ``BUNDLED`` for every
+    Python, with the ``COMPILED`` wheels where they have those too (else ``without_compiled[platform]`` says
+    which is missing)."""
     WHEELS_DIR.mkdir(exist_ok=True)
     result: dict[str, dict[str, Path]] = {}
     for platform in platforms:
-        chosen: dict[str, Path] = {}
-        missing = ""
-        for python, abi in PYTHONS:
-            for dist in BUNDLED:
-                version = pins[dist]
-                path, error = None, "not in wheels/ (offline)"
-                for tags in PLATFORM_TAGS[platform]:  # reuse a downloaded wheel first
-                    path = find_cached(dist, version, tags, abi)
-                    if path is not None:
-                        break
-                if path is None and not offline:
-                    for tags in PLATFORM_TAGS[platform]:
-                        path, error = pip_download(dist, version, tags, WHEELS_DIR, python, abi)
-                        if path is not None:
-                            break
-                if path is None:
-                    missing = f"{dist}=={version} for Python {python}"
-                    log(f"  {platform:12s} {missing}: no wheel ({error})")
-                    break
-                chosen[f"{dist} {abi}"] = path
-                log(f"  {platform:12s} {abi} {path.name} ({path.stat().st_size / 2**20:.1f} MiB)")
-            if missing:
-                break
-        if not missing:
-            result[platform] = chosen
-        elif platform in REQUIRED_PLATFORMS:
-            raise BuildError(f"the {platform} wheels are required, but {missing} has none")
-        else:
+        chosen, missing = _platform_wheels(platform, BUNDLED, pins, offline)
+        if missing:
+            if platform in REQUIRED_PLATFORMS:
+                raise BuildError(f"the {platform} wheels are required, but {missing} has none")
             log(f"  {platform}: skipped (no wheel of {missing})")
+            continue
+        extra, missing = _platform_wheels(platform, COMPILED, pins, offline) if compiled else ({}, "--without-compiled")
+        if missing:
+            log(f"  {platform}: without the compiled cells ({missing}; the numpy path runs there)")
+            if without_compiled is not None:
+                without_compiled[platform] = missing
+        result[platform] = {**chosen, **extra}
     return result
 
 
 def check_requirements(wheels: dict[str, dict[str, Path]]) -> None:
     for per_platform in wheels.values():
+        bundled = {key.split(" ", 1)[0] for key in per_platform}
         for path in per_platform.values():
-            extra = [r for r in wheel_requirements(path) if r not in ALLOWED_REQUIREMENTS]
+            extra = [r for r in wheel_requirements(path) if r not in ALLOWED_REQUIREMENTS | bundled]
             if extra:
                 raise BuildError(f"{path.name} requires {', '.join(extra)}, which the extension does not bundle")
 
@@ -346,13 +369,15 @@ def build_lock():
         yield
 
 
-def build(platforms: list[str], output_dir: Path, offline: bool = False, split: bool = True) -> dict:
+def build(platforms: list[str], output_dir: Path, offline: bool = False, split: bool = True,
+          compiled: bool = True) -> dict:
     start = time.time()
     pins = read_pins()
-    log(f"bundled wheels: {', '.join(f'{d}=={v}' for d, v in pins.items() if d in BUNDLED)} "
+    log(f"bundled wheels: {', '.join(f'{d}=={v}' for d, v in pins.items() if d in BUNDLED + COMPILED)} "
         f"(for {', '.join(abi for _py, abi in PYTHONS)}; numpy is not bundled, Blender ships it)")
     with build_lock():
-        wheels = collect_wheels(platforms, pins, offline)
+        without_compiled: dict = {}
+        wheels = collect_wheels(platforms, pins, offline, without_compiled, compiled)
         check_requirements(wheels)
         files = write_manifest(wheels)
         remove_unlisted_wheels(files)
@@ -378,6 +403,7 @@ def build(platforms: list[str], output_dir: Path, offline: bool = False, split: 
         "wheels": {platform: sorted({p.name for p in per.values()}) for platform, per in wheels.items()},
         "pythons": [py for py, _abi in PYTHONS],
         "skipped_platforms": [p for p in platforms if p not in wheels],
+        "without_compiled": without_compiled,
         "blender_ext": str(tool),
         "seconds": round(time.time() - start, 1),
     }
@@ -386,6 +412,8 @@ def build(platforms: list[str], output_dir: Path, offline: bool = False, split: 
         log(f"  {platform}: {', '.join(names)}")
     for platform in summary["skipped_platforms"]:
         log(f"  {platform}: skipped, PyPI lacks a wheel")
+    for platform, missing in without_compiled.items():
+        log(f"  {platform}: without numba ({missing}): the fluid cells take the numpy path there")
     for name, size in summary["zip_sizes_mib"].items():
         log(f"  {output_dir / name}: {size} MiB")
     return summary
@@ -402,6 +430,9 @@ def main(argv: list[str] | None = None) -> int:
                        help="one zip per platform (the default; what the extensions platform expects)")
     shape.add_argument("--all-platforms-zip", dest="split", action="store_false",
                        help="one zip holding every platform's wheels instead (about 4x the size of one platform's)")
+    parser.add_argument("--without-compiled", dest="compiled", action="store_false",
+                        help="leave numba and llvmlite out (each zip ~40-120 MiB smaller; the fluid cells then take "
+                             "their numpy path, about 4x slower)")
     parser.add_argument("--json", type=Path, help="also write the summary to this JSON file")
     args = parser.parse_args(argv)
     platforms = [p.strip() for p in args.platforms.split(",") if p.strip()]
@@ -412,7 +443,8 @@ def main(argv: list[str] | None = None) -> int:
         if required not in platforms:
             platforms.insert(0, required)
     try:
-        summary = build(platforms, args.output_dir.resolve(), offline=args.offline, split=args.split)
+        summary = build(platforms, args.output_dir.resolve(), offline=args.offline, split=args.split,
+                        compiled=args.compiled)
     except BuildError as ex:
         print(f"build_extension: error: {ex}", file=sys.stderr)
         return 1

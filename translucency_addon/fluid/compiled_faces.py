@@ -27,7 +27,9 @@ Why hand-written: no well-kept library computes Voronoi cells cut by balls.  Mea
 jittered particles on 2 cores: scipy's Qhull Delaunay alone takes 0.67 s (with the per-face closed
 forms above, vectorised in numpy, 1.37 s: the numpy path takes 0.95 s), freud's voro++ 0.53 s at
 8k for the plain Voronoi cells (no ball, no faces' polygons, and no wheel for Python 3.11).  numba
-compiles this loop once per machine (``cache=True``; a few seconds the first time).
+compiles this loop once per machine (``cache=True``; about 2 s the first time).  The extension's zips bundle
+numba and llvmlite where PyPI has them (not for macOS x86-64: there, and wherever numba is missing or fails to
+compile, :func:`.cells.cell_path` takes the numpy path and says why).
 
 Exact up to rounding, like the numpy path: lattice ties (four particles on one circle) need no rule
 here, since each face is clipped by all its lines in one place and coincident lines clip twice to the
