@@ -115,14 +115,14 @@ def worker(root: str, quality: str, out: str) -> None:
 
 
 PROFILE_PARTS = (  # (row, how to read it from the profile); cumulative times overlap: see profile_section
-    ("light pass (shadow rays, sky)", ("ct", "diffusion.py", "incident")),
-    ("coarse levels (their set-up and sweeps)", ("ct", "diffusion.py", "solve_systems")),
+    ("light pass (shadow rays, sky)", ("ct", "solver.py", "incident")),
+    ("coarse levels (their set-up and sweeps)", ("ct", "solver.py", "_systems_steps")),
     ("spectral bounds: Lanczos for lambda_min, every level", ("ct", "spectral.py", "lanczos_lower")),
     ("deflation check (its own Lanczos)", ("defl",)),
     ("sweep layout (RCM order, fused CSR), every level", ("ct", None, "sweep_operator")),
     ("sweeps: sparse products (scipy csr_matvec)", ("tt", None, "csr_matvec")),
-    ("sweeps: vector updates (solve_chebyshev's own time)", ("tt", "iterative.py", "solve_chebyshev")),
-    ("vertex radiance", ("ct", "diffusion.py", "vertex_radiance")),
+    ("sweeps: vector updates (the Chebyshev iteration's own time)", ("tt", "iterative.py", "chebyshev_steps")),
+    ("vertex radiance", ("ct", "solver.py", "vertex_radiance")),
 )
 
 

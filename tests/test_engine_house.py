@@ -15,7 +15,7 @@ FLOORS = (
     ("__main__",),
     ("cli_solve", "cli_fluid"),
     ("cli_args",),
-    ("frame",),
+    ("frame", "progressive"),
     ("planner",),
     ("planner_messages", "planner_changes", "planner_facts"),
     ("planner_rules", "cache"),

@@ -188,7 +188,21 @@ def single_scattering_needed(material, thickness_mm: float) -> str:
 
 def diffuse(solver, bake, lights, environment, passes: FramePasses, *, tol: float, occluders=None,
             warm_start=None, shadows: bool = True) -> tuple:
-    """One multiple-scattering solve of the frame: ``(result, bounce, cavity_exchange)``.
+    """One multiple-scattering solve of the frame: ``(result, bounce, cavity_exchange)``;
+    :func:`diffuse_steps` run to its end."""
+    from .diffusion.iterative import drain
+
+    return drain(diffuse_steps(solver, bake, lights, environment, passes, tol=tol, occluders=occluders,
+                               warm_start=warm_start, shadows=shadows))
+
+
+def diffuse_steps(solver, bake, lights, environment, passes: FramePasses, *, tol: float, occluders=None,
+                  warm_start=None, shadows: bool = True):
+    """:func:`diffuse` as a generator for the viewport's progressive frames (:mod:`.progressive`): it yields
+    what ``DiffusionSolver.solve_steps`` yields (functions that return the solve so far) where the frame is
+    one solve on the CPU -- without sky visibility, or with the bounce's block solve -- and returns
+    ``(result, bounce, cavity_exchange)``.  The cavity exchange (GMRES around the solver), the bounce's two
+    passes and the GPU backend run to their end before it returns, yielding nothing.
 
     With the split on ``passes.single_channels``; with the interreflection bounce when the bake has
     sky visibility (``DiffusionSolver.solve_interreflected``: the bounce comes from a first solve of
@@ -207,12 +221,17 @@ def diffuse(solver, bake, lights, environment, passes: FramePasses, *, tol: floa
                                            shadows=shadows, occluders=occluders, channels=passes.ms_channels,
                                            single=passes.single_channels)
         return result, None, info
+    kw = {"warm_start": warm_start, "shadows": shadows, "occluders": occluders, "channels": passes.ms_channels,
+          "single": passes.single_channels}
     if solver.sky is None:
-        return solver.solve(lights, environment, warm_start=warm_start, shadows=shadows, occluders=occluders,
-                            channels=passes.ms_channels, single=passes.single_channels), None, None
-    result, bounce = solver.solve_interreflected(lights, environment, warm_start=warm_start, shadows=shadows,
-                                                 occluders=occluders, channels=passes.ms_channels,
-                                                 single=passes.single_channels)
+        result = yield from solver.solve_steps(lights, environment, **kw)
+        return result, None, None
+    from .diffusion.interreflection import one_solve_applies
+
+    if not one_solve_applies(solver):  # solve_interreflected's one block solve, as steps
+        result = yield from solver.solve_steps(lights, environment, bounced=True, **kw)
+        return result, solver.vertex_radiance(result), None
+    result, bounce = solver.solve_interreflected(lights, environment, **kw)
     return result, bounce, None
 
 

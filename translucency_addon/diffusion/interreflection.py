@@ -85,7 +85,7 @@ import scipy.sparse as sp
 
 from . import kernels
 from ..scene.fresnel import fresnel_transmittance
-from .iterative import LevelSolve, solve_chebyshev
+from .iterative import LevelSolve, chebyshev_steps, drain
 from .spectral import deflation, spectral_bounds
 from .sweeps import SweepOperator
 
@@ -301,8 +301,16 @@ class FinestStep:
 
 
 def solve_finest_bounced(solver, q_light, coarser, warm_start, cols, single) -> FinestStep:
+    """The finest level of ``DiffusionSolver.solve(bounced=True)``: :func:`finest_bounced_steps` run to its end."""
+    return drain(finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single))
+
+
+def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, partial=None):
     """The finest level of ``DiffusionSolver.solve(bounced=True)``: the block system (1) -- (1') in the
-    split's channels -- by Chebyshev, in the channels ``cols``.
+    split's channels -- by Chebyshev, in the channels ``cols``; a generator that returns the
+    :class:`FinestStep` and, given ``partial`` (``DiffusionSolver.solve_steps``), yields at the
+    iteration's checks a function that returns the solve so far (phi1's iterate, with the source and
+    entering light of phi0's).
 
     ``q_light``: the finest level's entering light (before the split; (1') applies m itself);
     ``coarser``: the next coarser level's solution, or None; ``warm_start``: a previous result the
@@ -319,8 +327,16 @@ def solve_finest_bounced(solver, q_light, coarser, warm_start, cols, single) -> 
     x0 = x1.copy() if prev0 is None else solver.initial_guess(fine, cols, previous=prev0)
     X = np.hstack([x0, x1])
     X[:, ~np.any(B != 0, axis=0)] = 0.0  # no light in a channel: the answer is exactly 0 (solve_systems)
-    x, info = solve_chebyshev(system, B, X, solver.level_tolerance(fine), opts.max_iterations, opts.check_every)
     C = len(cols)
+    steps = chebyshev_steps(system, B, X, solver.level_tolerance(fine), opts.max_iterations, opts.check_every)
+    while True:
+        try:
+            current = next(steps)
+        except StopIteration as stop:
+            x, info = stop.value
+            break
+        if partial is not None:
+            yield (lambda get: lambda: _bounced_partial(system, qd, get(), C, cols, fine, partial))(current)
     phi0, phi1 = x[:, :C], x[:, C:]
     q_tot = qd + system.bounce(phi0[base.level.n_inner:], qd)  # the light that entered, the bounce included
     q_dif = system.source(q_tot)  # the diffusion's source (m q_tot with the split)
@@ -331,3 +347,11 @@ def solve_finest_bounced(solver, q_light, coarser, warm_start, cols, single) -> 
     full = kernels.in_channels
     return FinestStep(phi=full(phi1, cols), q=full(q_dif, cols), q_incident=full(q_tot, cols),
                       first_pass=full(phi0, cols), info=info)
+
+
+def _bounced_partial(system, qd, x, C, cols, fine, partial):
+    """The solve so far from the block iterate ``x`` = [phi0 | phi1]: phi1, with the bounce phi0 sends."""
+    phi0, phi1 = x[:, :C], x[:, C:]
+    q_tot = qd + system.bounce(phi0[system.base.level.n_inner:], qd)
+    full = kernels.in_channels
+    return partial(fine, phi1, full(system.source(q_tot), cols), full(q_tot, cols))

@@ -126,7 +126,8 @@ from .assembly import assemble, node_coefficients
 from ..errors import MaterialError, TranslucencyError
 from ..scene.fresnel import diffuse_reflectance_internal
 from .graph import SolverInput
-from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, energy_imbalance, outside_maximum_principle,
+from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, chebyshev_steps, drain, energy_imbalance,
+                        outside_maximum_principle,
                         solve_direct)
 from ..scene.lights import environment_flux, incident_flux, shadow_visibility
 from ..scene.materials import Material
@@ -362,9 +363,22 @@ class DiffusionSolver:
         """Whether ``warm_start`` carries a finest-level solution this solver can start from."""
         return warm_start is not None and warm_start.phi[-1] is not None
 
-    def solve(self, lights=(), environment=None, *, q=None, warm_start=None, shadows=True,
-              occluders=None, channels=None, bounce=None, single=None, bounced=False) -> SolveResult:
-        """Solve every level coarse to fine (or only the finest, from ``warm_start``): the one driver.
+    def solve(self, lights=(), environment=None, **kw) -> SolveResult:
+        """Solve every level coarse to fine (or only the finest, from ``warm_start``): :meth:`solve_steps`
+        run to its end (the keywords are its own)."""
+        return drain(self.solve_steps(lights, environment, **kw))
+
+    def solve_steps(self, lights=(), environment=None, *, q=None, warm_start=None, shadows=True,
+                    occluders=None, channels=None, bounce=None, single=None, bounced=False):
+        """Solve every level coarse to fine (or only the finest, from ``warm_start``): the one driver, as a
+        generator (:meth:`solve` runs it to its end).
+
+        After every sweep of the CPU's Chebyshev it yields a function that returns
+        the solution so far as a :class:`SolveResult` (the finest level's iterate, or the latest coarser
+        level carried up by eq. 10's Shepard transfer, with this frame's light; ``level_solves`` empty):
+        the viewport's progressive frames show it and resume the generator on later redraws.  A backend
+        of its own (the GPU) and the other solvers run their levels without yielding.  It returns the
+        :class:`SolveResult`.
 
         ``q``: precomputed incident light per level (skips the light pass).
         ``bounce``: vertex radiance of a previous solve, the light the object
@@ -414,12 +428,18 @@ class DiffusionSolver:
             solves = [LevelSolve(0, np.zeros(3), [0.0], 0.0) for _ in active]
         else:
             levels = active[:-1] if bounced else active
-            phi, solves = self.solve_systems(q, levels, warm_start, cols) if levels else ([None] * n_lv, [])
+            partial = self._partial_result(q, q_incident, single, cols, mask)
+            if not levels:
+                phi, solves = [None] * n_lv, []
+            elif type(self).solve_systems is DiffusionSolver.solve_systems and opts.solver == "fast":
+                phi, solves = yield from self._systems_steps(q, levels, warm_start, cols, partial)
+            else:
+                phi, solves = self.solve_systems(q, levels, warm_start, cols)
             if bounced:
-                from .interreflection import solve_finest_bounced
+                from .interreflection import finest_bounced_steps
 
-                step = solve_finest_bounced(self, q_light[fine], phi[fine - 1] if levels else None,
-                                            warm_start if usable else None, cols, single)
+                step = yield from finest_bounced_steps(self, q_light[fine], phi[fine - 1] if levels else None,
+                                                       warm_start if usable else None, cols, single, partial)
                 phi[fine], q = step.phi, list(q)
                 q[fine], first_pass = step.q, step.first_pass
                 if q_incident is not None:
@@ -523,6 +543,11 @@ class DiffusionSolver:
         (:meth:`checked_level`) and the output stay shared.
         Returns ``(phi per level (None where inactive), [LevelSolve])``.
         """
+        return drain(self._systems_steps(q, active, warm_start, cols))
+
+    def _systems_steps(self, q, active, warm_start=None, cols=(0, 1, 2), partial=None):
+        """:meth:`solve_systems` as a generator: with the fast solver (Chebyshev) it yields
+        ``partial(level, iterate)`` (a function, see :meth:`solve_steps`) after every sweep."""
         opts = self.options
         fn = SOLVER_FUNCTIONS[opts.solver]
         cols = tuple(cols)
@@ -537,7 +562,18 @@ class DiffusionSolver:
             # start from a coarser level that did see light (a light grazing the surface) would otherwise
             # leave a small residue the relative stopping test (|b| = 0) accepts.
             x0[:, ~np.any(b != 0, axis=0)] = 0.0
-            x, info = fn(system, b, x0, self.level_tolerance(i), opts.max_iterations, opts.check_every)
+            if partial is not None and opts.solver == "fast":
+                steps = chebyshev_steps(system, b, x0, self.level_tolerance(i), opts.max_iterations,
+                                        opts.check_every)
+                while True:
+                    try:
+                        current = next(steps)
+                    except StopIteration as stop:
+                        x, info = stop.value
+                        break
+                    yield (lambda lv, get: lambda: partial(lv, get()))(i, current)
+            else:
+                x, info = fn(system, b, x0, self.level_tolerance(i), opts.max_iterations, opts.check_every)
             x, info = self.checked_level(i, system, q[i][:, cols], b, x, info)
             phi[i] = coarser = kernels.in_channels(x, cols)
             info.residual = kernels.in_channels(info.residual, cols)
@@ -559,6 +595,29 @@ class DiffusionSolver:
             idx, w = self.bake.shepard[level - 1]
             return kernels.shepard_upsample(idx, w, np.asarray(coarser)[:, cols])
         return np.zeros((self.bake.levels[level].n_nodes, len(cols)))
+
+    def _partial_result(self, q, q_incident, single, cols, mask):
+        """``partial(level, iterate, q_fine=None, q_incident_fine=None)``: a :class:`SolveResult` of the solve
+        so far (:meth:`solve_steps`): ``iterate`` (n_level, len(cols)) carried up to the finest level by
+        eq. 10's Shepard transfers where it is a coarser level's; ``q_fine``/``q_incident_fine`` replace
+        the finest level's source and entering light (the bounced block solve's, from its iterate)."""
+        fine = len(self.bake.levels) - 1
+        cols = list(cols)
+
+        def partial(level, iterate, q_fine=None, q_incident_fine=None):
+            x = kernels.in_channels(np.asarray(iterate, dtype=np.float64), cols)
+            for lv in range(level + 1, fine + 1):
+                idx, w = self.bake.shepard[lv - 1]
+                x = kernels.shepard_upsample(idx, w, x)
+            x[:, [c for c in range(3) if not mask[c]]] = 0.0
+            qs, qi = list(q), None if q_incident is None else list(q_incident)
+            if q_fine is not None:
+                qs[fine] = q_fine
+                if qi is not None:
+                    qi[fine] = q_incident_fine
+            return SolveResult(phi=[None] * fine + [x], q=qs, level_solves=[], scheme=self.systems[-1].scheme,
+                               q_incident=qi, single=single)
+        return partial
 
     def level_tolerance(self, level: int) -> float:
         """The relative residual a level's solve stops at: ``options.tol`` on the finest level, the coarse
