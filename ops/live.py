@@ -22,6 +22,16 @@ Info log themselves: :func:`report_info` hands the messages the runtime
 queued (``state.queue_info``: a failed solve, a fluid without particles) to the
 ``translucency.report`` operator from a one-shot timer.
 
+Progressive frames (Scene › Translucency › *Progressive*, on by default): a
+live check gives each diffusion solve the scene's *Frame Budget* (1/30 s),
+writes the solution so far (:mod:`translucency_addon.progressive`) and, while
+any object is still refining, schedules the next step at once from a timer
+(:func:`_refine_timer`), so the viewport redraws between steps and never waits
+for a whole solve; the status bar says which objects are refining.  Only the
+viewport's live checks are progressive: renders, frame changes and checks in
+background mode (``blender -b`` scripts, :func:`flush`) solve to convergence,
+unless a caller asks for it (``check_now(progressive=True)``, the tests).
+
 Nothing is scheduled while the add-on is not registered (:func:`enable` /
 :func:`disable`, called by ``handlers``).
 """
@@ -38,7 +48,7 @@ from .fluid_runtime import FluidReport
 MIN_INTERVAL = 0.05  # seconds between live checks at least
 MAX_INTERVAL = 1.0
 
-_state = {"enabled": False, "last_check": 0.0, "checks": 0, "status_bar": False}
+_state = {"enabled": False, "last_check": 0.0, "checks": 0, "status_bar": False, "refining": False}
 
 
 def enable() -> None:
@@ -47,7 +57,7 @@ def enable() -> None:
 
 def disable() -> None:
     _state["enabled"] = False
-    for timer in (_on_timer, _report_timer):
+    for timer in (_on_timer, _report_timer, _refine_timer):
         if bpy.app.timers.is_registered(timer):
             bpy.app.timers.unregister(timer)
 
@@ -72,20 +82,64 @@ def pending() -> bool:
     return bpy.app.timers.is_registered(_on_timer)
 
 
-def check_now(scene=None, depsgraph=None) -> list:
-    """Run one live check now (the timer's body); returns the solve reports."""
-    if bpy.app.timers.is_registered(_on_timer):
-        bpy.app.timers.unregister(_on_timer)
+def budget(scene, progressive: bool | None = None) -> float | None:
+    """The progressive step's time budget in seconds for a live check of ``scene``, or None (converge).
+
+    ``progressive``: None follows the scene's *Progressive* setting in the viewport and converges in
+    background mode; True or False decides (tests, scripts)."""
+    settings = getattr(scene, "translucency", None)
+    if progressive is False or settings is None or not settings.progressive:
+        return None
+    if progressive is None and bpy.app.background:
+        return None
+    return max(float(settings.frame_budget_ms), 1.0) / 1000.0
+
+
+def refining() -> bool:
+    """Whether a progressive step is scheduled (an object's solve has not converged yet)."""
+    return bpy.app.timers.is_registered(_refine_timer)
+
+
+def check_now(scene=None, depsgraph=None, progressive: bool | None = None) -> list:
+    """Run one live check now (the timer's body); returns the solve reports.  ``progressive``: see
+    :func:`budget`."""
+    for timer in (_on_timer, _refine_timer):  # this check is the one they would run
+        if bpy.app.timers.is_registered(timer):
+            bpy.app.timers.unregister(timer)
     scene = scene or bpy.context.scene
     if scene is None or not hasattr(scene, "translucency"):
         return []
     _state["checks"] += 1
     _state["last_check"] = time.perf_counter()
     state.prune(o.name for o in bpy.data.objects)
-    reports = runtime.solve_scene(scene, depsgraph)
+    reports = runtime.solve_scene(scene, depsgraph, budget=budget(scene, progressive))
+    announce_refining(reports)
     announce_fluids(reports)
     report_info()
     return reports
+
+
+def announce_refining(reports) -> None:
+    """Schedule the next progressive step while an object refines, and say so in the status bar."""
+    names = [r.name for r in reports if getattr(r, "refining", False)]
+    if names:
+        if _state["enabled"] and not bpy.app.timers.is_registered(_refine_timer):
+            bpy.app.timers.register(_refine_timer, first_interval=0.0)
+        status.status_bar("Translucency: refining " + ", ".join(f"'{n}'" for n in names[:3])
+                          + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+                          + ": the viewport shows the solve so far")
+        _state["refining"] = True
+    elif _state["refining"]:
+        status.status_bar(None)
+        _state["refining"] = False
+
+
+def _refine_timer():
+    try:
+        check_now()
+    except Exception as ex:  # noqa: BLE001 - a timer must not raise
+        state.log(f"progressive step failed: {type(ex).__name__}: {ex}")
+    return None  # one-shot; a check that still refines schedules the next
 
 
 def announce_fluids(reports) -> None:

@@ -313,6 +313,12 @@ def _draw_scene_settings(layout, scene, overlay_drawn: bool = False) -> None:
     box.prop(settings, "solver_backend")
     box.prop(settings, "tolerance")
     box.prop(settings, "live_update")
+    row = box.row(align=True)
+    row.active = settings.live_update
+    row.prop(settings, "progressive")
+    sub = row.row(align=True)
+    sub.active = settings.progressive
+    sub.prop(settings, "frame_budget_ms", text="Budget ms")
     if not overlay_drawn:
         box.prop(settings, "overlay_enabled")
         sub = box.row()

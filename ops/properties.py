@@ -680,6 +680,27 @@ class TranslucencySceneSettings(bpy.types.PropertyGroup):
         ),
         default=True,
     )
+    progressive: BoolProperty(
+        name="Progressive",
+        description=(
+            "In the viewport, show the solve so far within the frame budget after a light, the world or the "
+            "material changes, and refine it on later redraws until it converges (renders always converge "
+            "before the frame is drawn)"
+        ),
+        default=True,
+    )
+    frame_budget_ms: FloatProperty(
+        name="Frame Budget",
+        description=(
+            "How long one progressive step may run before the viewport shows the solve so far, in "
+            "milliseconds (the first step also pays for the light pass)"
+        ),
+        default=1000.0 / 30.0,
+        min=1.0,
+        max=5000.0,
+        soft_max=500.0,
+        precision=1,
+    )
     missing_cache_in_render: EnumProperty(
         name="Cache Missing in Render",
         description=(

@@ -87,13 +87,17 @@ class SolveReport:
     deformed: str = ""  # a deformed frame: its pose's line (worst link stretch); "" at the baked pose
     vnm_seconds: float = 0.0  # the Voxel Number Map's evaluation (0: not evaluated)
     vnm_backend: str = ""
+    refining: bool = False  # a progressive frame: the solution so far was written, later steps refine it
 
     def describe(self) -> str:
         """One line for the Info log and the status bar; a skip never reads as a solve."""
         if self.skipped:
             return f"'{self.name}' skipped, nothing computed: {self.skipped}"
         parts = []
-        if self.ms_ran:
+        if self.ms_ran and self.refining:
+            parts.append(f"refining on the {self.backend}: the solve so far after {self.seconds:.3f} s, "
+                         "later redraws refine it")
+        elif self.ms_ran:
             parts.append(f"solved on the {self.backend} in {self.seconds:.3f} s "
                          f"({self.iterations} iterations, residual {self.residual:.2e})"
                          + ("" if self.solved else "; that solution reused, nothing it depends on changed"))
@@ -119,10 +123,11 @@ class Diffusion:
     seconds: float
     result: object = None
     backend: str = ""  # where it ran when not on the object's own solver or its CPU twin (a deformed frame)
+    partial: bool = False  # a progressive frame's solution so far (not converged; never recorded as the solve)
 
 
 def solve_object(obj, scene=None, depsgraph=None, *, use_camera: bool = False, force: bool = False,
-                 retry_load: bool = False) -> SolveReport | None:
+                 retry_load: bool = False, budget: float | None = None) -> SolveReport | None:
     """Solve ``obj`` for the current scene and write its radiance attribute.
 
     ``depsgraph``: where lights, world, occluders and the object's transform
@@ -130,8 +135,10 @@ def solve_object(obj, scene=None, depsgraph=None, *, use_camera: bool = False, f
     during renders).  ``use_camera``: view-dependent radiance towards the
     scene camera (renders); otherwise along the normal.  Returns ``None``
     when nothing changed since the last solve and the attribute is current;
-    ``force`` re-solves anyway.  Raises :class:`TranslucencyError` subclasses
-    with user-facing messages.
+    ``force`` re-solves anyway.  ``budget`` (seconds; the viewport's live checks only): a progressive
+    frame (:mod:`translucency_addon.progressive`): the diffusion runs about that long and the solution
+    so far is written; the report says ``refining`` until a later call with the same inputs converges.
+    Raises :class:`TranslucencyError` subclasses with user-facing messages.
     """
     scene = scene or bpy.context.scene
     if depsgraph is None:
@@ -141,10 +148,10 @@ def solve_object(obj, scene=None, depsgraph=None, *, use_camera: bool = False, f
     if obj.mode == 'EDIT':
         return None  # attribute writes are lost when leaving edit mode; solve afterwards
     with state.lock():
-        return _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load)
+        return _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load, budget)
 
 
-def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
+def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load, budget=None):
     st = cache_files.ensure_state(obj, retry=retry_load)
     stale = cache_files.update_staleness(obj, st, depsgraph)  # and whether the evaluated mesh is a pose of the bake
     if stale:
@@ -175,7 +182,7 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load):
                                                                             solve_sig, force)
             ms = Diffusion(rgb, pose_solver, solved, seconds, result, backend=st.frame_backend)
         else:
-            ms = _diffuse(st, frame, solver, solve_sig, force)
+            ms = _diffuse(st, frame, solver, solve_sig, force, None if frame.rendering else budget)
         return ms.rgb
 
     # The frame is the engine's (translucency_addon.frame.render_frame), as the CLI's: which terms run, in
@@ -331,11 +338,14 @@ def _up_to_date(obj, st, frame: FrameInputs, previous_sig, solve_sig, view_sig, 
     return previous_sig is not None and solve_sig == previous_sig
 
 
-def _diffuse(st: state.ObjectState, frame: FrameInputs, solver, solve_sig, force: bool) -> Diffusion:
+def _diffuse(st: state.ObjectState, frame: FrameInputs, solver, solve_sig, force: bool,
+             budget: float | None = None) -> Diffusion:
     """Multiple scattering at ``obj.data``'s vertices: solved, or the last solution reused when its inputs
-    are this frame's; a GPU solve that raises is redone on the CPU (:func:`.backend.after_gpu_failure`)."""
+    are this frame's; a GPU solve that raises is redone on the CPU (:func:`.backend.after_gpu_failure`).
+    ``budget``: a progressive frame's time slice (:func:`_solve`); its solution so far is ``partial``."""
     from ..translucency_addon.errors import TranslucencyError
 
+    partial = False
     for attempt in (0, 1):
         previous, previous_sig = _previous(st, solver)
         solved, seconds = False, 0.0
@@ -344,9 +354,9 @@ def _diffuse(st: state.ObjectState, frame: FrameInputs, solver, solve_sig, force
                 result = previous
             else:
                 t0 = time.perf_counter()
-                result = _solve(st, solver, frame, previous)
+                result, partial = _solve(st, solver, frame, previous, solve_sig, budget)
                 seconds = time.perf_counter() - t0
-                solved = True
+                solved = not partial
             rgb = radiance_for_mesh(st, solver, result, frame)
             break
         except TranslucencyError:
@@ -362,7 +372,7 @@ def _diffuse(st: state.ObjectState, frame: FrameInputs, solver, solve_sig, force
             st.render_result, st.render_solve_sig = result, solve_sig
         else:
             st.result, st.result_solver, st.solve_sig = result, solver, solve_sig
-    return Diffusion(rgb, solver, solved, seconds, result)
+    return Diffusion(rgb, solver, solved, seconds, result, partial=partial)
 
 
 def _retry_on_the_cpu(st: state.ObjectState, frame: FrameInputs, where):
@@ -385,17 +395,43 @@ def _passes(frame: FrameInputs):
     return FramePasses(frame.use_ms, frame.use_ss, frame.use_vnm, frame.ms_channels, frame.single_channels)
 
 
-def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous):
+def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous, solve_sig=None, budget=None) -> tuple:
     """One multiple-scattering solve of the frame: the engine's :func:`~translucency_addon.frame.diffuse`
-    (the split, the interreflection bounce, the cavity exchange), warm-started from ``previous``."""
-    from ..translucency_addon.frame import diffuse
+    (the split, the interreflection bounce, the cavity exchange), warm-started from ``previous``;
+    ``(result, partial)``.
 
-    result, bounce, _cavity = diffuse(solver, st.bake, frame.lights, frame.environment, _passes(frame),
-                                      tol=frame.tolerance, occluders=frame.occluders, warm_start=previous,
-                                      shadows=True)
+    With a ``budget`` (seconds) it is a progressive frame's slice: the object's
+    :class:`~translucency_addon.progressive.ProgressiveSolve` for these inputs goes on (or starts, from the
+    solution so far of one for other inputs, else ``previous``) and the solution so far comes back with
+    ``partial`` True until it converges; the converged result is the blocking solve's.
+    """
+    from ..translucency_addon.frame import diffuse, diffuse_steps
+
+    kw = {"tol": frame.tolerance, "occluders": frame.occluders, "shadows": True}
+    if budget is None:
+        st.progressive = None
+        result, bounce, _cavity = diffuse(solver, st.bake, frame.lights, frame.environment, _passes(frame),
+                                          warm_start=previous, **kw)
+        partial = False
+    else:
+        from ..translucency_addon.progressive import ProgressiveSolve
+
+        key = (solve_sig, id(solver))
+        job = st.progressive
+        if job is None or not job.continues(key):
+            start = job.latest if job is not None and job.latest is not None and job.key[1] == id(solver) \
+                else previous
+            job = ProgressiveSolve(diffuse_steps(solver, st.bake, frame.lights, frame.environment, _passes(frame),
+                                                 warm_start=start, **kw), key)
+        out, done = job.advance(budget)
+        st.progressive = None if done else job
+        if not done:
+            return out, True
+        result, bounce, _cavity = out
+        partial = False
     if bounce is not None:
         st.bounce = bounce
-    return result
+    return result, partial
 
 
 def radiance_for_mesh(st: state.ObjectState, solver, result, frame: FrameInputs) -> np.ndarray:
@@ -447,14 +483,17 @@ def _write(obj, frame: FrameInputs, rgb: np.ndarray, ss_rgb: np.ndarray | None) 
 
 
 def _record(st: state.ObjectState, frame: FrameInputs, view_sig, ms: Diffusion, ss_rgb) -> None:
-    """What the panel and the next frame read: the runtime state (never saved) and the counters."""
-    st.view_sig = view_sig
+    """What the panel and the next frame read: the runtime state (never saved) and the counters.  A
+    progressive frame's solution so far leaves the view unrecorded, so the next check goes on with it."""
+    st.view_sig = None if ms.partial else view_sig
     st.warnings = frame.warnings
     if ss_rgb is None:
         st.ss_seconds, st.ss_rgb = 0.0, None
     if not frame.use_vnm:
         st.vnm_seconds, st.vnm_backend = 0.0, ""
-    if ms.solved:
+    if ms.partial:
+        state.count("progressive_steps")
+    elif ms.solved:
         st.solves += 1
         state.count("solves")
         st.seconds = ms.seconds
@@ -469,7 +508,8 @@ def _report(st: state.ObjectState, frame: FrameInputs, ms: Diffusion) -> SolveRe
         report_backend = ms.backend or ("CPU" if ms.solver is st.render_solver else st.backend)
     else:
         report_backend = st.ss_backend if frame.use_ss else st.vnm_backend if frame.use_vnm else ""
-    return SolveReport(name=frame.name, backend=report_backend, seconds=st.seconds if frame.use_ms else 0.0,
+    seconds = (ms.seconds if ms.partial else st.seconds) if frame.use_ms else 0.0
+    return SolveReport(name=frame.name, backend=report_backend, seconds=seconds,
                        residual=st.residual if frame.use_ms else 0.0,
                        iterations=st.iterations if frame.use_ms else 0, solved=ms.solved,
                        view="CAMERA" if frame.view is not None else "NORMAL", vertices=frame.n_vertices,
@@ -478,14 +518,14 @@ def _report(st: state.ObjectState, frame: FrameInputs, ms: Diffusion) -> SolveRe
                        skipped="" if frame.plan.run else frame.plan.reason, ms_ran=frame.use_ms,
                        deformed=st.deformation.describe() if st.pose is not None else "",
                        vnm_seconds=st.vnm_seconds if frame.use_vnm else 0.0,
-                       vnm_backend=st.vnm_backend if frame.use_vnm else "")
+                       vnm_backend=st.vnm_backend if frame.use_vnm else "", refining=ms.partial)
 
 
 # ------------------------------------------------------------------ every object of a scene
 
 
 def solve_scene(scene=None, depsgraph=None, *, use_camera: bool = False, force: bool = False,
-                playback: bool = False, failed: list | None = None) -> list:
+                playback: bool = False, failed: list | None = None, budget: float | None = None) -> list:
     """Solve every enabled, baked object and every enabled fluid of ``scene``; errors are logged, never raised.
 
     ``playback``: the viewport is playing the animation; a fluid whose last frame took longer than
@@ -494,7 +534,8 @@ def solve_scene(scene=None, depsgraph=None, *, use_camera: bool = False, force: 
     :class:`.fluid_runtime.FluidReport`) of every object that was (re-)solved or deferred.
     ``failed``: a list that receives ``(object name, message, cache problem?)`` for every object whose
     solve raised (a cache problem: :class:`CacheError`, missing, stale, unreadable, another version's),
-    for the render's policy (``handlers``).
+    for the render's policy (``handlers``).  ``budget``: the viewport's progressive frames
+    (:func:`solve_object`); ``None`` (renders, frame changes, scripts) solves to convergence.
     """
     from ..translucency_addon.errors import CacheError, TranslucencyError
 
@@ -508,7 +549,7 @@ def solve_scene(scene=None, depsgraph=None, *, use_camera: bool = False, force: 
             reports.append(fluid_runtime.deferred_report(obj, fluid, scene.frame_current))
             continue
         try:
-            report = solve_object(obj, scene, depsgraph, use_camera=use_camera, force=force)
+            report = solve_object(obj, scene, depsgraph, use_camera=use_camera, force=force, budget=budget)
         except TranslucencyError as ex:
             _report_error(obj, str(ex))
             if failed is not None:

@@ -83,6 +83,7 @@ class ObjectState:
     render_result: object | None = None
     render_solve_sig: tuple | None = None
     bounce: object | None = None  # vertex radiance (along the normals) of the last interreflected solve
+    progressive: object | None = None  # the viewport's solve in progress (engine's ProgressiveSolve), or None
     gpu_failed_in_render: str = ""  # why the GPU solve failed in a render ('' when it did not)
     occluders: scene_inputs.OccluderCache = field(default_factory=scene_inputs.OccluderCache)
     geometry_digest: str = ""
@@ -199,7 +200,8 @@ _LOGGED: set = set()
 # by the panel.  Runtime only: a file load refills it, the .blend is never modified for it.
 _CACHE_STATUS: dict[str, str] = {}
 # Counters for tests and diagnostics.
-_COUNTERS = {"solves": 0, "radiance_only": 0, "loads": 0, "field_samples": 0, "writes": 0, "planner_skips": 0}
+_COUNTERS = {"solves": 0, "radiance_only": 0, "loads": 0, "field_samples": 0, "writes": 0, "planner_skips": 0,
+             "progressive_steps": 0}
 _PLANS: dict = {}  # object name -> the planner's last Plan (shown in the panel)
 _ERRORS: dict[str, str] = {}  # object name -> why its last solve failed (shown until one succeeds)
 _LAST_SOLVE: dict = {}  # the last solve of any object: name, seconds, residual, backend (the scene's line)
