@@ -393,3 +393,27 @@ def test_without_numba_the_cells_take_the_numpy_path_and_say_why(monkeypatch):
 def test_with_numba_a_fluid_frame_uses_the_compiled_path():
     res = _solve(lattice(4) + np.random.default_rng(6).uniform(-0.1, 0.1, (64, 3)), 1.0)
     assert res.stats["cell_path"] == "compiled" and res.stats["cell_path_note"] == ""
+
+
+def test_the_first_compiled_call_of_a_process_is_timed_for_the_log():
+    """The kernel is compiled (or loaded from numba's cache) at its first call in a process: that frame's
+    stats carry what it took, later frames carry 0 (the add-on logs it once)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import numpy as np\n"
+            "from translucency_addon.fluid import FluidSolver\n"
+            "from translucency_addon.scene.lights import Environment\n"
+            "from translucency_addon.scene.materials import material_from_preset\n"
+            "P = np.stack(np.meshgrid(*[np.arange(4.0)] * 3, indexing='ij'), -1).reshape(-1, 3)\n"
+            "P += np.random.default_rng(0).uniform(-0.1, 0.1, P.shape)\n"
+            "fs = FluidSolver(material_from_preset('skimmilk'), 1.0, 1.0)\n"
+            "a = fs.solve(P, environment=Environment((1, 1, 1))).stats['cell_kernel_first_call_s']\n"
+            "b = fs.solve(P, environment=Environment((1, 1, 1))).stats['cell_kernel_first_call_s']\n"
+            "print(a, b)\n")
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    a, b = (float(x) for x in out.stdout.split())
+    assert a > 0.0 and b == 0.0

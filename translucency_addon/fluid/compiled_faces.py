@@ -39,6 +39,8 @@ them to each other.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 BLOCK = 256  # faces per task: the vertex buffers are allocated once per block
@@ -74,13 +76,23 @@ def face_geometry(P, R, fi, fj, normal, e1, e2, h, rho, nbr_start, nbr, nbr_dist
     E = len(fi)
     area, omega = np.zeros(E), np.zeros(E)
     if E:
+        first = not fn.signatures  # this process compiles the kernel now, or loads it from numba's cache
+        t0 = time.perf_counter()
         start, nbr = nbr_start.astype(np.int64), nbr.astype(np.int64)
         _KERNEL["sort"](start, nbr, np.array(nbr_distance, dtype=np.float64))
         fn(np.ascontiguousarray(P, dtype=np.float64), float(R), fi.astype(np.int64), fj.astype(np.int64),
            np.ascontiguousarray(normal), np.ascontiguousarray(e1), np.ascontiguousarray(e2),
            np.ascontiguousarray(h, dtype=np.float64), np.ascontiguousarray(rho, dtype=np.float64), start, nbr, area,
            omega)  # one signature: C-contiguous float64/int64 (numba compiles once per signature)
+        if first:
+            _KERNEL["first_call_s"] = time.perf_counter() - t0
     return area, omega
+
+
+def first_call_seconds() -> float:
+    """What this process's first call took (the kernel compiled, or loaded from numba's cache, and run);
+    0 before it."""
+    return float(_KERNEL.get("first_call_s", 0.0))
 
 
 def _kernel() -> dict:

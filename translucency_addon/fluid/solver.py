@@ -182,9 +182,13 @@ class FluidSolver:
             warnings.append("no particles: nothing to solve, radiance 0")
             return self._zero(n_in, out_pts, surface is not None, seconds, warnings, t0)
         t = time.perf_counter()
+        from . import compiled_faces
+
+        loaded = compiled_faces.first_call_seconds()
         cells = build_cells(ps.points, ps.radius, method=opts.cells)
         seconds["cells"] = time.perf_counter() - t
-        cell_path = {"cell_path": cells.path, "cell_path_note": cells.path_note}
+        cell_path = {"cell_path": cells.path, "cell_path_note": cells.path_note,
+                     "cell_kernel_first_call_s": compiled_faces.first_call_seconds() if not loaded else 0.0}
         seconds.update({f"cells_{k}": v for k, v in cells.seconds.items()})
         t = time.perf_counter()
         graph = build_graph(cells)
