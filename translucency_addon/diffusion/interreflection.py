@@ -85,7 +85,7 @@ import scipy.sparse as sp
 
 from . import kernels
 from ..scene.fresnel import fresnel_transmittance
-from .iterative import LevelSolve, chebyshev_steps, drain
+from .iterative import LevelSolve, chebyshev_steps, drain, relay
 from .spectral import deflation, spectral_bounds
 from .sweeps import SweepOperator
 
@@ -308,9 +308,9 @@ def solve_finest_bounced(solver, q_light, coarser, warm_start, cols, single) -> 
 def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, partial=None):
     """The finest level of ``DiffusionSolver.solve(bounced=True)``: the block system (1) -- (1') in the
     split's channels -- by Chebyshev, in the channels ``cols``; a generator that returns the
-    :class:`FinestStep` and, given ``partial`` (``DiffusionSolver.solve_steps``), yields at the
-    iteration's checks a function that returns the solve so far (phi1's iterate, with the source and
-    entering light of phi0's).
+    :class:`FinestStep` and yields after every sweep a function that returns the solve so far through
+    ``partial`` (``DiffusionSolver.solve_steps``'s: phi1's iterate, with the source and entering light of
+    phi0's; only called when given).
 
     ``q_light``: the finest level's entering light (before the split; (1') applies m itself);
     ``coarser``: the next coarser level's solution, or None; ``warm_start``: a previous result the
@@ -329,14 +329,7 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
     X[:, ~np.any(B != 0, axis=0)] = 0.0  # no light in a channel: the answer is exactly 0 (solve_systems)
     C = len(cols)
     steps = chebyshev_steps(system, B, X, solver.level_tolerance(fine), opts.max_iterations, opts.check_every)
-    while True:
-        try:
-            current = next(steps)
-        except StopIteration as stop:
-            x, info = stop.value
-            break
-        if partial is not None:
-            yield (lambda get: lambda: _bounced_partial(system, qd, get(), C, cols, fine, partial))(current)
+    x, info = yield from relay(steps, lambda get: lambda: _bounced_partial(system, qd, get(), C, cols, fine, partial))
     phi0, phi1 = x[:, :C], x[:, C:]
     q_tot = qd + system.bounce(phi0[base.level.n_inner:], qd)  # the light that entered, the bounce included
     q_dif = system.source(q_tot)  # the diffusion's source (m q_tot with the split)

@@ -101,6 +101,17 @@ def drain(steps):
             return stop.value
 
 
+def relay(steps, wrap):
+    """Yield ``wrap(get)`` for every ``get`` a :func:`chebyshev_steps` generator yields (a driver turns an
+    iterate into its solution so far); return that generator's ``(x, LevelSolve)``."""
+    while True:
+        try:
+            get = next(steps)
+        except StopIteration as stop:
+            return stop.value
+        yield wrap(get)
+
+
 def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.ndarray, LevelSolve]:
     """Chebyshev semi-iteration with the Jacobi preconditioner: :func:`chebyshev_steps` run to its end."""
     return drain(chebyshev_steps(system, b, x0, tol, max_iter, check_every))

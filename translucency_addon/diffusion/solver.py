@@ -127,8 +127,7 @@ from ..errors import MaterialError, TranslucencyError
 from ..scene.fresnel import diffuse_reflectance_internal
 from .graph import SolverInput
 from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, chebyshev_steps, drain, energy_imbalance,
-                        outside_maximum_principle,
-                        solve_direct)
+                        outside_maximum_principle, relay, solve_direct)
 from ..scene.lights import environment_flux, incident_flux, shadow_visibility
 from ..scene.materials import Material
 from .radiance import clamp_scale, outgoing_radiance
@@ -565,13 +564,7 @@ class DiffusionSolver:
             if partial is not None and opts.solver == "fast":
                 steps = chebyshev_steps(system, b, x0, self.level_tolerance(i), opts.max_iterations,
                                         opts.check_every)
-                while True:
-                    try:
-                        current = next(steps)
-                    except StopIteration as stop:
-                        x, info = stop.value
-                        break
-                    yield (lambda lv, get: lambda: partial(lv, get()))(i, current)
+                x, info = yield from relay(steps, lambda get, lv=i: lambda: partial(lv, get()))
             else:
                 x, info = fn(system, b, x0, self.level_tolerance(i), opts.max_iterations, opts.check_every)
             x, info = self.checked_level(i, system, q[i][:, cols], b, x, info)
