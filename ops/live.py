@@ -68,10 +68,13 @@ def request_update(delay: float | None = None) -> None:
     Calls while a check is pending coalesce into it.  The delay is at least
     :data:`MIN_INTERVAL` and at least the last solve's time (capped at
     :data:`MAX_INTERVAL`), so re-solving never takes more than about half of
-    Blender's time while the user drags a light.
+    Blender's time while the user drags a light; with progressive frames a
+    check runs one slice of the frame budget, so the delay is :data:`MIN_INTERVAL`.
     """
     if not _state["enabled"] or bpy.app.timers.is_registered(_on_timer):
         return
+    if delay is None and budget(bpy.context.scene) is not None:
+        delay = MIN_INTERVAL  # a progressive check runs one slice, not a whole solve
     if delay is None:
         last = max((st.seconds for st in state.all_states()), default=0.0)
         delay = min(MAX_INTERVAL, max(MIN_INTERVAL, last))

@@ -245,6 +245,7 @@ def _prepare_solver(st: state.ObjectState, frame: FrameInputs):
         st.solver_sig, st.material, st.solver_field = solver_sig, frame.material, frame.field_values
         st.part_media = frame.part_media
         st.result = st.result_solver = st.solve_sig = st.view_sig = None
+        st.progressive = None  # its solution so far is another solver's
         st.announced = False
     elif (frame.material != st.material or frame.field_values is not st.solver_field
           or frame.part_media != st.part_media):
@@ -354,8 +355,8 @@ def _diffuse(st: state.ObjectState, frame: FrameInputs, solver, solve_sig, force
                 result = previous
             else:
                 t0 = time.perf_counter()
-                result, partial = _solve(st, solver, frame, previous, solve_sig, budget)
-                seconds = time.perf_counter() - t0
+                result, partial, job_seconds = _solve(st, solver, frame, previous, solve_sig, budget)
+                seconds = time.perf_counter() - t0 if job_seconds is None else job_seconds
                 solved = not partial
             rgb = radiance_for_mesh(st, solver, result, frame)
             break
@@ -398,7 +399,8 @@ def _passes(frame: FrameInputs):
 def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous, solve_sig=None, budget=None) -> tuple:
     """One multiple-scattering solve of the frame: the engine's :func:`~translucency_addon.frame.diffuse`
     (the split, the interreflection bounce, the cavity exchange), warm-started from ``previous``;
-    ``(result, partial)``.
+    ``(result, partial, seconds)``, ``seconds`` None for a blocking solve (the caller times it) and a
+    progressive one's time in all its slices so far.
 
     With a ``budget`` (seconds) it is a progressive frame's slice: the object's
     :class:`~translucency_addon.progressive.ProgressiveSolve` for these inputs goes on (or starts, from the
@@ -412,7 +414,7 @@ def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous, solve_si
         st.progressive = None
         result, bounce, _cavity = diffuse(solver, st.bake, frame.lights, frame.environment, _passes(frame),
                                           warm_start=previous, **kw)
-        partial = False
+        partial, seconds = False, None
     else:
         from ..translucency_addon.progressive import ProgressiveSolve
 
@@ -426,12 +428,12 @@ def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous, solve_si
         out, done = job.advance(budget)
         st.progressive = None if done else job
         if not done:
-            return out, True
+            return out, True, job.seconds
         result, bounce, _cavity = out
-        partial = False
+        partial, seconds = False, job.seconds
     if bounce is not None:
         st.bounce = bounce
-    return result, partial
+    return result, partial, seconds
 
 
 def radiance_for_mesh(st: state.ObjectState, solver, result, frame: FrameInputs) -> np.ndarray:

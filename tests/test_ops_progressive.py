@@ -69,6 +69,8 @@ def test_a_light_move_refines_to_the_blocking_solve(lit_ball):
     assert state.counters()["solves"] == solves  # a solution so far is not a solve
     steps = _refine(live)
     assert len(steps) >= 3, len(steps)
+    last = steps[-1][0]  # the converged frame's report: a solve, timed over all its slices
+    assert last.solved and not last.refining and last.seconds >= steps[-2][0].seconds >= first[0].seconds
     assert not live.refining()
     assert state.counters()["solves"] == solves + 1
     done = radiance(obj)
