@@ -188,8 +188,10 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         return sum(pack.texture_bytes(lay, self.precision, transfer=i > 0) for i, lay in enumerate(self.layouts))
 
     # ------------------------------------------------------------ solve
-    def solve(self, lights=(), environment=None, **kw) -> GPUSolveResult:
-        res = super().solve(lights, environment, **kw)
+    def solve_steps(self, lights=(), environment=None, **kw):
+        """The driver's own steps (the levels run on the GPU without yielding), its result as a
+        :class:`GPUSolveResult` (``solve``, ``frame.diffuse`` and the progressive frames all come here)."""
+        res = yield from super().solve_steps(lights, environment, **kw)
         if self.options.solver == "direct":
             return res
         return GPUSolveResult(phi=res.phi, q=res.q, level_solves=res.level_solves, seconds=res.seconds,

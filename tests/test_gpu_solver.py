@@ -489,3 +489,23 @@ def test_the_gpu_fallback_says_why_in_plain_words(monkeypatch, addon):
     where = backend.placement("AUTO", off_main=False)
     assert where.backend == "CPU" and "gpu.init" not in where.reason
     assert "The image is the same" in where.reason and "Solver to CPU" in where.reason and "EGL" in where.reason
+
+
+@pytest.mark.gpu
+def test_a_frame_on_the_gpu_keeps_its_gpu_result(scene):
+    """``frame.diffuse`` runs the driver's steps (``solve_steps``, the progressive frames' path); on the GPU
+    backend they must still hand back its GPUSolveResult (the surface read back, the iterate resident), whose
+    radiance is the CPU frame's.  Calling the base class's steps returned a plain SolveResult without phi."""
+    from translucency_addon import frame as frame_mod
+
+    bk, mat, sun, _q = scene
+    passes = frame_mod.FramePasses(True, False, False, (True, True, True))
+    gpu = GPUDiffusionSolver(bk, mat, options=options("fast"))
+    try:
+        res, _, _ = frame_mod.diffuse(gpu, bk, sun, None, passes, tol=TOLS["fast"])
+        assert isinstance(res, GPUSolveResult) and gpu.is_resident(res)
+        cpu = diffusion.DiffusionSolver(bk, mat, options=options("fast"))
+        ref, _, _ = frame_mod.diffuse(cpu, bk, sun, None, passes, tol=TOLS["fast"])
+        assert rel_err(gpu.vertex_radiance(res), cpu.vertex_radiance(ref)) < SOLVE_TOL
+    finally:
+        gpu.free()
