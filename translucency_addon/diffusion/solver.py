@@ -127,7 +127,7 @@ from ..errors import MaterialError, TranslucencyError
 from ..scene.fresnel import diffuse_reflectance_internal
 from .graph import SolverInput
 from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, chebyshev_steps, drain, energy_imbalance,
-                        outside_maximum_principle, relay, solve_direct)
+                        outside_maximum_principle, relay, solve_chebyshev, solve_direct)
 from ..scene.lights import environment_flux, incident_flux, shadow_visibility
 from ..scene.materials import Material
 from .radiance import clamp_scale, outgoing_radiance
@@ -561,7 +561,7 @@ class DiffusionSolver:
             # start from a coarser level that did see light (a light grazing the surface) would otherwise
             # leave a small residue the relative stopping test (|b| = 0) accepts.
             x0[:, ~np.any(b != 0, axis=0)] = 0.0
-            if partial is not None and opts.solver == "fast":
+            if partial is not None and fn is solve_chebyshev:  # its steps (a replaced function runs as it is)
                 steps = chebyshev_steps(system, b, x0, self.level_tolerance(i), opts.max_iterations,
                                         opts.check_every)
                 x, info = yield from relay(steps, lambda get, lv=i: lambda: partial(lv, get()))
