@@ -18,9 +18,11 @@ from test_ops_bake import add_light, bake, cache_dir, memo_bakes, radiance, sphe
 
 @pytest.fixture
 def lit_ball(blender, addon, cache_dir, memo_bakes):  # noqa: F811 - pytest fixtures by name
-    """A baked ball solved for a point light on its +x side; returns (obj, light, ops.live, ops.state)."""
+    """A baked ball solved on the CPU for a point light on its +x side; returns (obj, light, ops.live, ops.state).
+    (With a GPU context the Auto backend solves on the GPU, which converges in one step: its own test.)"""
     from translucency.ops import live, state
 
+    bpy.context.scene.translucency.solver_backend = 'CPU'
     obj = sphere(subdivisions=3)
     light = add_light(location=(3.0, 0.0, 1.0))
     assert bake(obj) == {'FINISHED'}
@@ -121,3 +123,18 @@ def test_renders_and_background_checks_never_show_a_solution_so_far(lit_ball):
     bpy.context.view_layer.update()
     reports = live.check_now(progressive=True)
     assert reports and not reports[0].refining and reports[0].solved
+
+
+@pytest.mark.gpu
+def test_on_the_gpu_a_progressive_check_converges_at_once(lit_ball):
+    """The GPU backend solves its levels itself and cannot hand out its iterates: a progressive check there
+    converges in its one step, as a blocking one (the engine's side: tests/test_progressive.py)."""
+    obj, light, live, state = lit_ball
+    scene = bpy.context.scene
+    scene.translucency.solver_backend = 'GPU'
+    scene.translucency.frame_budget_ms = 1.0
+    light.location = (-3.0, 0.0, 1.0)
+    bpy.context.view_layer.update()
+    reports = live.check_now(progressive=True)
+    assert [r.name for r in reports] == ["Blob"] and reports[0].backend == "GPU", reports
+    assert reports[0].solved and not reports[0].refining and not live.refining()
