@@ -369,6 +369,7 @@ def test_the_compiled_and_numpy_paths_give_the_same_cells():
         assert np.array_equal(a.face_i, b.face_i) and np.array_equal(a.face_j, b.face_j), name
         scale = R * R
         assert np.abs(a.face_area - b.face_area).max() < 1e-12 * scale, name
+        assert np.abs(a.face_distance - b.face_distance).max() < 1e-12 * R, name  # the compiled face frames
         assert np.abs(a.volume - b.volume).max() < 1e-12 * scale * R, name
         assert np.abs(a.sphere_area - b.sphere_area).max() < 1e-11 * scale, name
         assert np.abs(a.surface_vector - b.surface_vector).max() < 1e-11 * scale, name

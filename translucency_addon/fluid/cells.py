@@ -149,11 +149,22 @@ class _Faces:
     e2: np.ndarray
 
 
-def _faces(P, R, pi, pj) -> _Faces:
+def _faces(P, R, pi, pj, compiled: bool = False) -> _Faces:
     N = len(P)
     key = pi * N + pj
     order = np.argsort(key)
     i, j, key = pi[order], pj[order], key[order]
+    if compiled:  # the same frames in one compiled pass (compiled_faces.face_frames)
+        from .compiled_faces import face_frames
+
+        d, n, e1, e2, mid = face_frames(P, i, j)
+        ok = d < 2.0 * R
+        if not ok.all():
+            i, j, key, d = i[ok], j[ok], key[ok], d[ok]
+            n, e1, e2, mid = n[:, ok], e1[:, ok], e2[:, ok], mid[:, ok]
+        h = 0.5 * d
+        return _Faces(i=i, j=j, key=key, n=n, d=d, h=h, r=np.sqrt(np.maximum(R * R - h * h, 0.0)), mid=mid,
+                      e1=e1, e2=e2)
     delta = P[j] - P[i]
     d = np.sqrt(np.einsum("ij,ij->i", delta, delta))
     ok = d < 2.0 * R  # the tree's own distance may round the other way at exactly 2R
@@ -217,7 +228,7 @@ def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK, 
     rank[order] = np.arange(N)
     si, sj = rank[pi], rank[pj]
     Q = P[order]
-    fc = _faces(Q, R, np.minimum(si, sj), np.maximum(si, sj))
+    fc = _faces(Q, R, np.minimum(si, sj), np.maximum(si, sj), compiled=path == "compiled")
     t1 = time.perf_counter()
     if path == "compiled":
         area, omega, seconds = _compiled_face_geometry(Q, R, fc)
