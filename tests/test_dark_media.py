@@ -53,12 +53,13 @@ def _material(albedo: float, eta: float) -> list:
     return ["--sigma-s", f"{a},{a},{a}", "--sigma-a", f"{b},{b},{b}", "--eta", repr(eta)]
 
 
-def _frame(tmp_path, mesh, albedo: float, eta: float, single: bool = True, *solve_args):
-    """(total, single-scattering term or None, stats) of the CLI's frame: bake (Draft graph, default single
-    scattering), then solve under a white world, every vertex seen along its normal."""
-    cache = tmp_path / f"s_{albedo}_{eta}_{int(single)}.npz"
+def _frame(tmp_path, mesh, albedo: float, eta: float, single: bool = True, *solve_args, quality: str = "draft"):
+    """(total, single-scattering term or None, stats) of the CLI's frame: bake (Draft graph unless
+    ``quality`` says otherwise, default single scattering), then solve under a white world, every vertex
+    seen along its normal."""
+    cache = tmp_path / f"s_{albedo}_{eta}_{int(single)}_{quality}.npz"
     if not cache.exists():
-        _cli("bake", mesh, "-o", cache, "--quality", "draft", *(["--single-scattering"] if single else []),
+        _cli("bake", mesh, "-o", cache, "--quality", quality, *(["--single-scattering"] if single else []),
              *_material(albedo, eta))
     out, ss, stats = tmp_path / "L.npy", tmp_path / "ss.npy", tmp_path / "st.json"
     ss_args = ["--ss-output", ss] if single and "--pass-planning" not in solve_args else []
@@ -88,9 +89,12 @@ def test_dark_sphere_against_a_random_walk(tmp_path, sphere_obj, eta, bound):
 
 def test_no_jump_where_diffusion_takes_over(tmp_path, sphere_obj):
     """Albedo 0.49 (single scattering and the orders after the first) and 0.51 (diffusion with the
-    first-scatter split): the truth changes by 4 % between them (the walk), we by no more than 12 %."""
-    lo = _frame(tmp_path, sphere_obj, 0.49, 1.3)
-    hi = _frame(tmp_path, sphere_obj, 0.51, 1.3)
+    first-scatter split): the truth changes by 4 % between them (the walk), we by no more than 12 %.
+    Preview graphs (the add-on's default quality): on Draft graphs the diffusion side ranges +3 % to +10 %
+    of the walk from bake to bake (fTetWild's run-to-run variation; +10.1 % failed a fresh-clone CI), on
+    Preview graphs -1.1 % to +0.1 % (three bakes); the single-scattering side is +5.5 % on both."""
+    lo = _frame(tmp_path, sphere_obj, 0.49, 1.3, quality="preview")
+    hi = _frame(tmp_path, sphere_obj, 0.51, 1.3, quality="preview")
     assert "multiple scattering [---]" in lo[2]["plan"] and "multiple scattering [RGB]" in hi[2]["plan"]
     w_lo, w_hi = (sphere_walk(RADIUS_MM, a, 1.3, n=100_000, seed=5).total for a in (0.49, 0.51))
     ours = hi[0].mean() / lo[0].mean()
