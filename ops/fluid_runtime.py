@@ -357,9 +357,9 @@ def _record(st: state.FluidObjectState, frame: FluidInputs, sig, result, seconds
         if stats.get("cell_path_note"):  # the cells' numpy fallback (no numba in this Blender): why, and the fix
             warnings.append(stats["cell_path_note"])
         if stats.get("cell_kernel_first_call_s"):
-            state.log(f"'{frame.name}': the fluid cells' compiled kernel was compiled or loaded from numba's "
-                      f"cache for this session ({stats['cell_kernel_first_call_s']:.1f} s; compiled once per "
-                      "machine, later frames do not pay it)")
+            state.log(f"'{frame.name}': the fluid cells' compiled kernels were compiled, or loaded from numba's "
+                      f"cache, for this session ({stats['cell_kernel_first_call_s']:.1f} s: about 3 s the first "
+                      "time on a machine, 0.2 s later; later frames do not pay it)")
         st.solves += 1
         state.count("solves")
     st.warnings = tuple(warnings)

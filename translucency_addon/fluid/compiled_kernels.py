@@ -1,0 +1,149 @@
+"""The numba kernels of :mod:`.compiled_faces` (see its docstring for what they compute and why).
+
+Imported only by :func:`.compiled_faces._kernel`, inside a guard: importing this module needs numba.  The
+kernels are module-level functions, not closures, so numba's on-disk cache (``cache=True``) finds them
+again in a new process: a closure over another compiled function got a new cache entry, and a compile of
+about 1.5 s, in every process.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+BLOCK = 256  # faces per task: the vertex buffers are allocated once per block
+
+
+@numba.njit(cache=True, nogil=True)
+def sector(ax, ay, bx, by):
+    """The signed angle from (ax, ay) to (bx, by)."""
+    return np.arctan2(ax * by - ay * bx, ax * bx + ay * by)
+
+@numba.njit(cache=True, nogil=True)
+def clip(i, j, f, P, n, e1, e2, h, rho, start, nbr, ux, uy, vx, vy) -> int:
+    """The region of face f as a counter-clockwise polygon in (ux, uy); its vertex count (0: empty)."""
+    s = 2.0 * rho  # the square around the disk, counter-clockwise in (e1, e2)
+    ux[0], uy[0], ux[1], uy[1], ux[2], uy[2], ux[3], uy[3] = -s, -s, s, -s, s, s, -s, s
+    m = 4
+    for t in range(start[i], start[i + 1]):
+        k = nbr[t]
+        if k == j:
+            continue
+        dx, dy, dz = P[k, 0] - P[i, 0], P[k, 1] - P[i, 1], P[k, 2] - P[i, 2]
+        a = e1[0, f] * dx + e1[1, f] * dy + e1[2, f] * dz
+        b = e2[0, f] * dx + e2[1, f] * dy + e2[2, f] * dz
+        c = 0.5 * (dx * dx + dy * dy + dz * dz) - h * (n[0, f] * dx + n[1, f] * dy + n[2, f] * dz)
+        ell2 = a * a + b * b
+        if ell2 <= 1e-24 * (dx * dx + dy * dy + dz * dz):  # k on the axis: all or nothing
+            if c < 0.0:
+                return 0
+            continue
+        if c * c >= rho * rho * ell2:  # the line misses the disk (|c| / ell >= rho)
+            if c > 0.0:
+                continue  # the whole disk is on i's side
+            return 0  # k takes the whole disk
+        q = 0  # keep a u + b v <= c (Sutherland-Hodgman: the region is convex)
+        for p in range(m):
+            px, py = ux[p], uy[p]
+            nx_, ny_ = ux[(p + 1) % m], uy[(p + 1) % m]
+            sp = a * px + b * py - c
+            sn = a * nx_ + b * ny_ - c
+            if sp <= 0.0:
+                vx[q], vy[q] = px, py
+                q += 1
+            if (sp < 0.0 < sn) or (sn < 0.0 < sp):
+                w = sp / (sp - sn)
+                vx[q], vy[q] = px + w * (nx_ - px), py + w * (ny_ - py)
+                q += 1
+        if q < 3:
+            return 0
+        for p in range(q):
+            ux[p], uy[p] = vx[p], vy[p]
+        m = q
+    return m
+
+@numba.njit(cache=True, nogil=True)
+def in_disk(m, ux, uy, h, rho, R):
+    """Area and solid angle (from the particle at height h) of the polygon's part inside the disk."""
+    r2 = rho * rho
+    cone = 1.0 - h / R
+    sa, so = 0.0, 0.0
+    for p in range(m):
+        ax, ay = ux[p], uy[p]
+        bx, by = ux[(p + 1) % m], uy[(p + 1) % m]
+        ex, ey = bx - ax, by - ay
+        qa = ex * ex + ey * ey
+        if qa == 0.0:
+            continue
+        qb = 2.0 * (ax * ex + ay * ey)
+        qc = ax * ax + ay * ay - r2
+        disc = qb * qb - 4.0 * qa * qc
+        lo, hi = 1.0, 1.0  # no crossing: the sector from A to B alone
+        if disc > 0.0:
+            sq = np.sqrt(disc)
+            t1 = min(max((-qb - sq) / (2.0 * qa), 0.0), 1.0)
+            t2 = min(max((-qb + sq) / (2.0 * qa), 0.0), 1.0)
+            if t1 < t2:
+                lo, hi = t1, t2
+        p1x, p1y = ax + lo * ex, ay + lo * ey
+        p2x, p2y = ax + hi * ex, ay + hi * ey
+        phi = sector(ax, ay, p1x, p1y) + sector(p2x, p2y, bx, by)
+        cr = p1x * p2y - p1y * p2x
+        sa += 0.5 * r2 * phi + 0.5 * cr
+        r1 = np.sqrt(h * h + p1x * p1x + p1y * p1y)
+        r2_ = np.sqrt(h * h + p2x * p2x + p2y * p2y)
+        den = h * r1 * r2_ + h * h * (r1 + r2_) + h * (h * h + p1x * p2x + p1y * p2y)
+        so += phi * cone + 2.0 * np.arctan2(h * cr, den)
+    return sa, so
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def faces(P, R, fi, fj, n, e1, e2, h, rho, start, nbr, area, omega):
+    E = fi.shape[0]
+    cap = 8  # a clipped square gains at most one vertex per line: 4 + the lines of a face, and one spare
+    for i in range(start.shape[0] - 1):
+        cap = max(cap, start[i + 1] - start[i] + 6)
+    for blk in numba.prange((E + BLOCK - 1) // BLOCK):
+        ux, uy, vx, vy = np.empty(cap), np.empty(cap), np.empty(cap), np.empty(cap)
+        for f in range(blk * BLOCK, min(E, (blk + 1) * BLOCK)):
+            if not rho[f] > 0.0:
+                continue
+            m = clip(fi[f], fj[f], f, P, n, e1, e2, h[f], rho[f], start, nbr, ux, uy, vx, vy)
+            if m:
+                area[f], omega[f] = in_disk(m, ux, uy, h[f], rho[f], R)
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def sort_rows(start, nbr, dist):
+    """Each particle's neighbours by distance (insertion sort: a few dozen per row)."""
+    for i in numba.prange(start.shape[0] - 1):
+        for t in range(start[i] + 1, start[i + 1]):
+            k, dk = nbr[t], dist[t]
+            u = t - 1
+            while u >= start[i] and dist[u] > dk:
+                nbr[u + 1], dist[u + 1] = nbr[u], dist[u]
+                u -= 1
+            nbr[u + 1], dist[u + 1] = k, dk
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def frames(P, i, j, d, n, e1, e2, mid):
+    """Per face i -> j: distance, unit normal, the in-plane basis of ``cells._plane_basis`` (e1 = n x the
+    axis where |n| is smallest, normalised; e2 = n x e1) and the disk centre."""
+    for f in numba.prange(i.shape[0]):
+        a, b = i[f], j[f]
+        dx, dy, dz = P[b, 0] - P[a, 0], P[b, 1] - P[a, 1], P[b, 2] - P[a, 2]
+        dd = np.sqrt(dx * dx + dy * dy + dz * dz)
+        nx, ny, nz = dx / dd, dy / dd, dz / dd
+        ax, ay, az = abs(nx), abs(ny), abs(nz)
+        if ax <= ay and ax <= az:  # n x (1, 0, 0)
+            ux, uy, uz = 0.0, nz, -ny
+        elif ay <= az:  # n x (0, 1, 0)
+            ux, uy, uz = -nz, 0.0, nx
+        else:  # n x (0, 0, 1)
+            ux, uy, uz = ny, -nx, 0.0
+        un = np.sqrt(ux * ux + uy * uy + uz * uz)
+        ux, uy, uz = ux / un, uy / un, uz / un
+        d[f] = dd
+        n[0, f], n[1, f], n[2, f] = nx, ny, nz
+        e1[0, f], e1[1, f], e1[2, f] = ux, uy, uz
+        e2[0, f], e2[1, f], e2[2, f] = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
+        mid[0, f], mid[1, f], mid[2, f] = 0.5 * (P[a, 0] + P[b, 0]), 0.5 * (P[a, 1] + P[b, 1]), \
+            0.5 * (P[a, 2] + P[b, 2])
