@@ -53,16 +53,16 @@ NOTES = """**Reading the table.**
   (`translucency_addon/fluid/compiled_faces.py`, the default in the test environment and in this table): one
   face per thread, the face's disk clipped by the lines of its particle's neighbours (nearest first, so a
   face that a nearer particle empties stops early), then the clipped polygon's area and solid angle inside
-  the disk in closed form per edge. It gives the numpy path's faces to 1e-14 and is 3.7-4.4x faster in
-  wall time on these 2 cores (the table of the two paths); numpy's path (`cells.py`: each Voronoi edge of a
+  the disk in closed form per edge; the faces' frames (normal, in-plane basis, disk centre) in the same
+  compiled module. It gives the numpy path's faces to 1e-14 and is 4.6-6.0x faster in wall time on these 2
+  cores (the table of the two paths); numpy's path (`cells.py`: each Voronoi edge of a
   particle triangle clipped once and shared by its three faces) stays as the fallback where numba is
   missing, and says so. Measured and not taken: scipy's Qhull Delaunay with the same per-face closed forms
   vectorised (the Voronoi edges are the Delaunay triangles' dual edges, so no clipping at all) -- 0.67 s for
   the Delaunay of 17k particles alone, 1.37 s in all against numpy's 0.95 s; freud's voro++ -- 0.53 s for the
   plain Voronoi cells of 8k particles (no ball, no face polygons) and no wheel for Python 3.11.
-* *What the cells cost now*: the k-d tree's neighbour pairs and the face frames (`_faces`, numpy) are as
-  large as the compiled faces at 16k; the contract graph and the occluder follow. Each is numpy work of a
-  few dozen operations per pair that the same kernel could take over.
+* *What the cells cost now*: the compiled faces (~95 ms at 16k), then the k-d tree's neighbour pairs
+  (~30 ms), the contract graph and the occluder: numpy work that the same module could take over.
 * *No approximate cell geometry is offered*: the paper's sample counting, done with the same k-d tree
   (the table above), costs more CPU than the exact build (compiled path) for the volumes alone and far more
   for the face areas, and is off by 17 % per volume and 20 % of a face on average, differently every frame (flicker).
@@ -74,10 +74,10 @@ NOTES = """**Reading the table.**
   `tests/test_fluid_solve.py::test_warm_start_by_id_saves_sweeps_and_keeps_the_answer`). The default
   tolerance 1e-4 leaves errors far below the frame-to-frame change (the tolerance table); 1e-3 would save
   about 30 % of the sweeps at an error still 200x below it. The warm solve is now as large as the cells.
-* **Targets missed, by about 5x** on these 2 shared cores (16k: 544 ms against 100 ms). What is left: the
+* **Targets missed, by about 4x** on these 2 shared cores (16k: 441 ms against 100 ms). What is left: the
   solve (a coarser level for the sweeps, which grow with the diameter, or the GPU path: `gpu_shaders/pack.py`
   packs 4 links per node, a fluid cell has 15-25), the numpy stages around the compiled faces (neighbour
-  pairs, face frames, graph, occluder, assembly). The extension's zips bundle numba and llvmlite for Linux
+  pairs, graph, occluder, assembly). The extension's zips bundle numba and llvmlite for Linux
   x86-64, Windows x86-64 and macOS arm64 (2.4-2.6x the zip: linux-x64 74 -> 195 MiB); macOS x86-64 has no
   numba wheel and keeps the numpy path (`tools/build_extension.py`, README).
 """
