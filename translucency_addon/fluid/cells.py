@@ -154,27 +154,29 @@ def _faces(P, R, pi, pj, compiled: bool = False) -> _Faces:
     key = pi * N + pj
     order = np.argsort(key)
     i, j, key = pi[order], pj[order], key[order]
-    if compiled:  # the same frames in one compiled pass (compiled_faces.face_frames)
+    if compiled:  # the same frames in one compiled pass
         from .compiled_faces import face_frames
 
         d, n, e1, e2, mid = face_frames(P, i, j)
-        ok = d < 2.0 * R
-        if not ok.all():
-            i, j, key, d = i[ok], j[ok], key[ok], d[ok]
-            n, e1, e2, mid = n[:, ok], e1[:, ok], e2[:, ok], mid[:, ok]
-        h = 0.5 * d
-        return _Faces(i=i, j=j, key=key, n=n, d=d, h=h, r=np.sqrt(np.maximum(R * R - h * h, 0.0)), mid=mid,
-                      e1=e1, e2=e2)
-    delta = P[j] - P[i]
-    d = np.sqrt(np.einsum("ij,ij->i", delta, delta))
+    else:
+        d, n, e1, e2, mid = _face_frames(P, i, j)
     ok = d < 2.0 * R  # the tree's own distance may round the other way at exactly 2R
     if not ok.all():
-        i, j, key, delta, d = i[ok], j[ok], key[ok], delta[ok], d[ok]
-    n = delta / d[:, None]
+        i, j, key, d = i[ok], j[ok], key[ok], d[ok]
+        n, e1, e2, mid = n[:, ok], e1[:, ok], e2[:, ok], mid[:, ok]
     h = 0.5 * d
+    return _Faces(i=i, j=j, key=key, n=n, d=d, h=h, r=np.sqrt(np.maximum(R * R - h * h, 0.0)), mid=mid,
+                  e1=e1, e2=e2)
+
+
+def _face_frames(P, i, j) -> tuple:
+    """``(d, n, e1, e2, mid)`` of the faces i -> j in numpy, vectors (3, E): the twin of
+    :func:`.compiled_faces.face_frames`."""
+    delta = P[j] - P[i]
+    d = np.sqrt(np.einsum("ij,ij->i", delta, delta))
+    n = delta / d[:, None]
     e1, e2 = _plane_basis(n)
-    return _Faces(i=i, j=j, key=key, n=_rows(n), d=d, h=h, r=np.sqrt(np.maximum(R * R - h * h, 0.0)),
-                  mid=_rows(0.5 * (P[i] + P[j])), e1=_rows(e1), e2=_rows(e2))
+    return d, _rows(n), _rows(e1), _rows(e2), _rows(0.5 * (P[i] + P[j]))
 
 
 def _rows(a):

@@ -85,8 +85,8 @@ def face_geometry(P, R, fi, fj, normal, e1, e2, h, rho, nbr_start, nbr, nbr_dist
 
 
 def face_frames(P, i, j) -> tuple:
-    """``(d, n, e1, e2, mid)`` of the faces i -> j, as ``cells._faces`` computes them in numpy (one pass
-    instead of some thirty array operations and their temporaries); vectors (3, E)."""
+    """``(d, n, e1, e2, mid)`` of the faces i -> j, as ``cells._face_frames`` computes them in numpy (one
+    pass instead of some thirty array operations and their temporaries); vectors (3, E)."""
     if "frames" not in _kernel():
         raise RuntimeError(f"the compiled cell faces are not available: {_KERNEL['error']}")
     E = len(i)

@@ -19,6 +19,7 @@ def sector(ax, ay, bx, by):
     """The signed angle from (ax, ay) to (bx, by)."""
     return np.arctan2(ax * by - ay * bx, ax * bx + ay * by)
 
+
 @numba.njit(cache=True, nogil=True)
 def clip(i, j, f, P, n, e1, e2, h, rho, start, nbr, ux, uy, vx, vy) -> int:
     """The region of face f as a counter-clockwise polygon in (ux, uy); its vertex count (0: empty)."""
@@ -62,6 +63,7 @@ def clip(i, j, f, P, n, e1, e2, h, rho, start, nbr, ux, uy, vx, vy) -> int:
         m = q
     return m
 
+
 @numba.njit(cache=True, nogil=True)
 def in_disk(m, ux, uy, h, rho, R):
     """Area and solid angle (from the particle at height h) of the polygon's part inside the disk."""
@@ -96,8 +98,10 @@ def in_disk(m, ux, uy, h, rho, R):
         so += phi * cone + 2.0 * np.arctan2(h * cr, den)
     return sa, so
 
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def faces(P, R, fi, fj, n, e1, e2, h, rho, start, nbr, area, omega):
+    """Area and solid angle of every face into ``area``/``omega``: :func:`clip`, then :func:`in_disk`."""
     E = fi.shape[0]
     cap = 8  # a clipped square gains at most one vertex per line: 4 + the lines of a face, and one spare
     for i in range(start.shape[0] - 1):
@@ -111,6 +115,7 @@ def faces(P, R, fi, fj, n, e1, e2, h, rho, start, nbr, area, omega):
             if m:
                 area[f], omega[f] = in_disk(m, ux, uy, h[f], rho[f], R)
 
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def sort_rows(start, nbr, dist):
     """Each particle's neighbours by distance (insertion sort: a few dozen per row)."""
@@ -122,6 +127,7 @@ def sort_rows(start, nbr, dist):
                 nbr[u + 1], dist[u + 1] = nbr[u], dist[u]
                 u -= 1
             nbr[u + 1], dist[u + 1] = k, dk
+
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def frames(P, i, j, d, n, e1, e2, mid):
