@@ -226,12 +226,7 @@ def diffuse_steps(solver, bake, lights, environment, passes: FramePasses, *, tol
     if solver.sky is None:
         result = yield from solver.solve_steps(lights, environment, **kw)
         return result, None, None
-    from .diffusion.interreflection import one_solve_applies
-
-    if not one_solve_applies(solver):  # solve_interreflected's one block solve, as steps
-        result = yield from solver.solve_steps(lights, environment, bounced=True, **kw)
-        return result, solver.vertex_radiance(result), None
-    result, bounce = solver.solve_interreflected(lights, environment, **kw)
+    result, bounce = yield from solver.interreflected_steps(lights, environment, **kw)
     return result, bounce, None
 
 

@@ -427,7 +427,7 @@ class DiffusionSolver:
             solves = [LevelSolve(0, np.zeros(3), [0.0], 0.0) for _ in active]
         else:
             levels = active[:-1] if bounced else active
-            partial = self._partial_result(q, q_incident, single, cols, mask)
+            partial = self._partial_result(q, q_incident, single, cols)
             if not levels:
                 phi, solves = [None] * n_lv, []
             elif type(self).solve_systems is DiffusionSolver.solve_systems and opts.solver == "fast":
@@ -504,15 +504,21 @@ class DiffusionSolver:
         shape = np.where(on, split.multiple_shape(a_v, cos_o), 1.0)
         return np.asarray(L) * shape + split.single_radiance(q_v, a_v, cos_o) * on
 
-    def solve_interreflected(self, lights=(), environment=None, *, bounces: int = 1, warm_start=None,
-                             bounce=None, **kw) -> tuple:
-        """Solve, then solve again ``bounces`` times with the object's own radiance as ``bounce``.
+    def solve_interreflected(self, lights=(), environment=None, **kw) -> tuple:
+        """Solve, then solve again ``bounces`` times with the object's own radiance as ``bounce``:
+        :meth:`interreflected_steps` run to its end (the keywords are its own)."""
+        return drain(self.interreflected_steps(lights, environment, **kw))
+
+    def interreflected_steps(self, lights=(), environment=None, *, bounces: int = 1, warm_start=None,
+                             bounce=None, **kw):
+        """Solve, then solve again ``bounces`` times with the object's own radiance as ``bounce``; a
+        generator (:meth:`solve_interreflected` runs it to its end).
 
         One bounce (the add-on's default) is one Chebyshev solve of both passes as a block system
         (:mod:`.interreflection`: the same answer, warm-started frame to frame as a pair) wherever
-        :func:`.interreflection.one_solve_applies`; otherwise, and for other ``bounces``, each pass
-        is a solve warm-started from the previous one.  ``bounce`` (a
-        previous frame's vertex radiance) replaces the first plain pass.
+        :func:`.interreflection.one_solve_applies`: that solve's steps are yielded (:meth:`solve_steps`);
+        otherwise, and for other ``bounces``, each pass is a solve warm-started from the previous one, run
+        to its end.  ``bounce`` (a previous frame's vertex radiance) replaces the first plain pass.
         Without sky visibility in the bake this is a single :meth:`solve`.
         Returns ``(SolveResult, vertex radiance along the normals)``.
         """
@@ -522,7 +528,7 @@ class DiffusionSolver:
             from .interreflection import one_solve_applies
 
             if not one_solve_applies(self):
-                res = self.solve(lights, environment, warm_start=warm_start, bounced=True, **kw)
+                res = yield from self.solve_steps(lights, environment, warm_start=warm_start, bounced=True, **kw)
                 return res, self.vertex_radiance(res)
         res = self.solve(lights, environment, warm_start=warm_start, bounce=bounce, **kw)
         L = self.vertex_radiance(res)
@@ -589,10 +595,11 @@ class DiffusionSolver:
             return kernels.shepard_upsample(idx, w, np.asarray(coarser)[:, cols])
         return np.zeros((self.bake.levels[level].n_nodes, len(cols)))
 
-    def _partial_result(self, q, q_incident, single, cols, mask):
+    def _partial_result(self, q, q_incident, single, cols):
         """``partial(level, iterate, q_fine=None, q_incident_fine=None)``: a :class:`SolveResult` of the solve
-        so far (:meth:`solve_steps`): ``iterate`` (n_level, len(cols)) carried up to the finest level by
-        eq. 10's Shepard transfers where it is a coarser level's; ``q_fine``/``q_incident_fine`` replace
+        so far (:meth:`solve_steps`): ``iterate`` (n_level, len(cols)) in its channels (0 in the others,
+        the ones the planner turned off) carried up to the finest level by eq. 10's Shepard transfers
+        where it is a coarser level's; ``q_fine``/``q_incident_fine`` replace
         the finest level's source and entering light (the bounced block solve's, from its iterate)."""
         fine = len(self.bake.levels) - 1
         cols = list(cols)
@@ -602,7 +609,6 @@ class DiffusionSolver:
             for lv in range(level + 1, fine + 1):
                 idx, w = self.bake.shepard[lv - 1]
                 x = kernels.shepard_upsample(idx, w, x)
-            x[:, [c for c in range(3) if not mask[c]]] = 0.0
             qs, qi = list(q), None if q_incident is None else list(q_incident)
             if q_fine is not None:
                 qs[fine] = q_fine
