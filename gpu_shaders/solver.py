@@ -196,7 +196,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
             return res
         return GPUSolveResult(phi=res.phi, q=res.q, level_solves=res.level_solves, seconds=res.seconds,
                               scheme=res.scheme, warnings=res.warnings, phi_surface=self.last_surface,
-                              q_incident=res.q_incident, single=res.single,
+                              q_incident=res.q_incident, single=res.single, beams=res.beams,
                               precision=self.precision,
                               generation=self._resident_generation, solver_id=id(self))
 
@@ -391,7 +391,8 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
             phi = list(result.phi)
             phi[level] = self.read_phi(result, level)
             result = diffusion.SolveResult(phi=phi, q=result.q, level_solves=result.level_solves,
-                                           scheme=result.scheme, q_incident=result.q_incident, single=result.single)
+                                           scheme=result.scheme, q_incident=result.q_incident, single=result.single,
+                                           beams=result.beams)
         return super().power_balance(result, level, clamp)
 
 

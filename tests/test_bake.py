@@ -449,6 +449,7 @@ def test_the_cache_keeps_the_transport_tables_of_the_material(tmp_path, monkeypa
     cache.load_bake(path)
     got = split.half_space_split(eta)
     np.testing.assert_array_equal(got.shape_table, want["c"])
+    np.testing.assert_array_equal(got.beam_shape_table, want["c_beam"])  # eq. 6's tables travel with them
     split.half_space_split.cache_clear()
     arrays = dict(np.load(path))
     arrays["split/0/M"] = np.full_like(arrays["split/0/M"], np.nan)

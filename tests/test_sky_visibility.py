@@ -238,7 +238,7 @@ def test_one_block_solve_carries_the_first_scatter_split(torus_bake):
     solve gives the two passes of the split solve, which differ from the solve without the split."""
     from scipy.sparse.linalg import splu
 
-    from translucency_addon.diffusion.interreflection import bounced_system, one_solve_applies
+    from translucency_addon.diffusion.interreflection import bounced_system, direct_light, one_solve_applies
     from translucency_addon.scene.lights import Light
 
     s = DiffusionSolver(torus_bake, material_from_preset("skin1"), options=SolveOptions(tol=1e-10))
@@ -255,9 +255,13 @@ def test_one_block_solve_carries_the_first_scatter_split(torus_bake):
     assert np.abs(L_plain - L2).max() > 0.01 * L2.max()  # the split changes the answer: it is tested
     assert np.abs(L_plain[:, 1] - L2[:, 1]).max() < 1e-6 * L2.max()  # ... only where it is on
     fine = len(torus_bake.levels) - 1
-    q = s.incident(sun, UNIFORM, levels=[fine])[fine]
+    beams = [None] * len(torus_bake.levels)
+    q = s.incident(sun, UNIFORM, levels=[fine], beams=beams)[fine]
     block = bounced_system(s, (0, 1, 2), split)
-    B = block.rhs(q)
+    direct = direct_light(s, block, q, beams[fine], (0, 1, 2), split)  # the sun's incidence (split.py eq. 6)
+    assert direct is not None
+    block.set_frame(direct)
+    B = block.rhs(q, direct)
     for c in range(3):
         direct = splu(block.matrix(c).tocsc()).solve(np.concatenate([B[:, c], B[:, 3 + c]]))
         assert np.abs(direct[block.n:] - res.phi[-1][:, c]).max() < 1e-8 * np.abs(direct[block.n:]).max()

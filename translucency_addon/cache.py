@@ -302,7 +302,8 @@ def _adopt_split_tables(arrays: dict, path) -> None:
         base = name[: -len("key")]
         try:
             key = bytes(np.asarray(arrays[name], dtype=np.uint8)).decode("utf-8")
-            adopt_transport_tables(key, arrays[base + "M"], arrays[base + "c"])
+            adopt_transport_tables(key, arrays[base + "M"], arrays[base + "c"], arrays.get(base + "M_beam"),
+                                   arrays.get(base + "c_beam"))
         except (KeyError, ValueError, UnicodeDecodeError, TypeError) as exc:
             raise CacheError(f"bake cache {os.fspath(path)!r}: its half-space transport tables are corrupt ({exc}); "
                              "re-bake the object") from None

@@ -178,6 +178,7 @@ class BouncedSystem:
         ``ms_shape`` (n_vertices, C): c_v of (1'), the multiple-scattering shape along the normal."""
         self.base, self.factors = base, factors
         self.m, self.sigma, self.ms_shape = m, sigma, ms_shape
+        self.ms_shape_diffuse = ms_shape
         self.level = base.level
         lo, hi = spectral_bounds(base)
         self.lam_min, self.lam_max = np.tile(lo, 2), np.tile(hi, 2)  # the spectrum of (1) is that of A
@@ -196,22 +197,26 @@ class BouncedSystem:
         key = np.dtype(dtype).str
         if key not in self._ops:
             self._ops[key] = BouncedSweepOperator(self.base, self.factors, dtype=dtype, m=self.m,
-                                                  ms_shape=self.ms_shape)
+                                                  ms_shape=self.ms_shape)  # set_frame keeps it current
         return self._ops[key]
 
-    def source(self, q: np.ndarray) -> np.ndarray:
-        """The diffusion's source for entering light q (n_s, C): m q with the split, else q."""
-        return q if self.m is None else self.m * q
+    def source(self, q: np.ndarray, m=None) -> np.ndarray:
+        """The diffusion's source for entering light q (n_s, C): m q with the split (``m``, else the diffuse
+        light's factors), else q."""
+        return q if self.m is None else (self.m if m is None else m) * q
 
     def shaped(self, v: np.ndarray) -> np.ndarray:
         """diag(c_v) v (n_vertices, C): the multiple-scattering shape along the normal, where the split runs."""
         return v if self.ms_shape is None else self.ms_shape * v
 
-    def bounce(self, phi0_s: np.ndarray, q: np.ndarray) -> np.ndarray:
-        """q_b (n_s, C): the light the object sends itself, ``G_c (phi0_s - 2 m q) + H q``."""
+    def bounce(self, phi0_s: np.ndarray, q: np.ndarray, direct=None) -> np.ndarray:
+        """q_b (n_s, C): the light the object sends itself, ``G_c (phi0_s - 2 m q) + H q`` (``direct``: the
+        frame's :class:`DirectLight`, see :meth:`rhs`: its m and its H q)."""
         Bg, P = self.factors
-        qb = Bg @ self.shaped(P @ (phi0_s - 2.0 * self.source(q)))
-        if self.sigma is not None:
+        qb = Bg @ self.shaped(P @ (phi0_s - 2.0 * self.source(q, None if direct is None else direct.m)))
+        if direct is not None and direct.hq is not None:
+            qb = qb + direct.hq
+        elif self.sigma is not None:
             qb = qb + Bg @ (self.sigma * (P @ q))
         return qb
 
@@ -227,11 +232,22 @@ class BouncedSystem:
         c = self.base.diag.shape[1]
         return np.hstack([self.base.apply(x[:, :c]), self.base.apply(x[:, c:]) - self.coupling(x[:, :c])])
 
-    def rhs(self, q: np.ndarray) -> np.ndarray:
-        """The right-hand side of (1) for the level's direct light q (n_s, C), (N, 2C)."""
-        b0 = self.base.rhs(self.source(q))
-        qb_const = self.bounce(np.zeros_like(q), q)  # G (0 - 2 m q) + H q: the bounce without phi0
-        return np.hstack([b0, self.base.rhs(self.source(q + qb_const))])
+    def rhs(self, q: np.ndarray, direct=None) -> np.ndarray:
+        """The right-hand side of (1) for the level's direct light q (n_s, C), (N, 2C); ``direct``: the
+        frame's :class:`DirectLight` where the lamps' incidence changes the split of q (eq. 6 of
+        :mod:`.split`), else None."""
+        s0 = self.source(q, None if direct is None else direct.m)
+        qb_const = self.bounce(np.zeros_like(q), q, direct)  # G (0 - 2 m q) + H q: the bounce without phi0
+        return np.hstack([self.base.rhs(s0), self.base.rhs(s0 + self.source(qb_const))])
+
+    def set_frame(self, direct=None) -> None:
+        """c_v of (1') for this frame: the direct light's multiple-scattering shape along the normal, which
+        follows the lamps' incidence (``direct.ms_shape``), or the diffuse light's (None).  The block
+        operator depends on the frame's lights only through this diagonal, set on the cached operators."""
+        shape = self.ms_shape_diffuse if direct is None or direct.ms_shape is None else direct.ms_shape
+        self.ms_shape = shape
+        for op in self._ops.values():
+            op.ms_shape = None if shape is None else np.ascontiguousarray(shape.T, dtype=op.dtype)
 
     def matrix(self, channel: int) -> sp.csr_matrix:
         """(1) for one channel as a 2N x 2N scipy matrix (the direct solve the tests check against)."""
@@ -288,6 +304,38 @@ def one_solve_applies(solver) -> str:
 
 
 @dataclass
+class DirectLight:
+    """What the lamps' incidence (eq. 6 of :mod:`.split`) changes in (1') for one frame's direct light q:
+    ``m`` (n_s, C) its source factors, ``ms_shape`` (n_vertices, C) the shape c_v of phi0's light along the
+    normal, ``hq`` (n_s, C) H q, its once-scattered light sent back by the bounce.  The bounce's own light
+    is diffuse and keeps the system's m."""
+
+    m: np.ndarray
+    ms_shape: np.ndarray
+    hq: np.ndarray
+
+
+def direct_light(solver, system, q_light, beam, cols, single):
+    """:class:`DirectLight` of the finest level's entering light ``q_light`` (n_s, 3) with the lamps' part
+    ``beam`` = (q_beam, mu), as the two-pass solve's output sees it (``split_radiance_at`` along the
+    normal); None without a split or without lamps."""
+    if beam is None or system.m is None:
+        return None
+    from .split import half_space_split
+
+    split = half_space_split(solver.eta)
+    on = np.array([bool(single[c]) for c in cols])
+    cl = list(cols)
+    m_all = split.source_factors(solver.surface_albedo[-1], q_light, beam)
+    idx, w = solver.bake.vertex_map
+    q_v, a_v, beam_v = solver.split_inputs_at(q_light, beam, idx, w)
+    shape, single_v = split.output_terms(q_v, a_v, np.ones(len(q_v)), beam_v)
+    Bg, _ = system.factors
+    hq = Bg @ (np.where(on, single_v[:, cl], 0.0) / current_to_radiance(solver))
+    return DirectLight(m=np.where(on, m_all[:, cl], 1.0), ms_shape=np.where(on, shape[:, cl], 1.0), hq=hq)
+
+
+@dataclass
 class FinestStep:
     """What :func:`solve_finest_bounced` hands back to the driver (``DiffusionSolver.solve``), each (n, 3)
     in every channel: phi1 of (1), the diffusion's source (``m q`` with the split), the light that entered
@@ -305,7 +353,7 @@ def solve_finest_bounced(solver, q_light, coarser, warm_start, cols, single) -> 
     return drain(finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single))
 
 
-def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, partial=None):
+def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, partial=None, beam=None):
     """The finest level of ``DiffusionSolver.solve(bounced=True)``: the block system (1) -- (1') in the
     split's channels -- by Chebyshev, in the channels ``cols``; a generator that returns the
     :class:`FinestStep` and yields after every sweep a function that returns the solve so far through
@@ -314,14 +362,19 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
 
     ``q_light``: the finest level's entering light (before the split; (1') applies m itself);
     ``coarser``: the next coarser level's solution, or None; ``warm_start``: a previous result the
-    driver can start from (its ``first_pass`` starts phi0, when it has one), or None.
+    driver can start from (its ``first_pass`` starts phi0, when it has one), or None; ``beam``: the
+    lamps' part of ``q_light`` and their incidence cosines, ``(q_beam, mu)`` or None: the direct light's
+    source follows their incidence (eq. 6 of :mod:`.split`), the bounce's is diffuse light's.  (H of (1'),
+    the bounce's share of single scattering, stays the diffuse light's: a second-order term.)
     """
     opts = solver.options
     fine = len(solver.bake.levels) - 1
     system = bounced_system(solver, cols, single)
     base = system.base
     qd = np.asarray(q_light)[:, list(cols)]
-    B = system.rhs(qd)
+    direct = direct_light(solver, system, q_light, beam, cols, single)
+    system.set_frame(direct)
+    B = system.rhs(qd, direct)
     x1 = solver.initial_guess(fine, cols, coarser, warm_start)
     prev0 = getattr(warm_start, "first_pass", None)
     x0 = x1.copy() if prev0 is None else solver.initial_guess(fine, cols, previous=prev0)
@@ -329,10 +382,13 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
     X[:, ~np.any(B != 0, axis=0)] = 0.0  # no light in a channel: the answer is exactly 0 (solve_systems)
     C = len(cols)
     steps = chebyshev_steps(system, B, X, solver.level_tolerance(fine), opts.max_iterations, opts.check_every)
-    x, info = yield from relay(steps, lambda get: lambda: _bounced_partial(system, qd, get(), C, cols, fine, partial))
+    x, info = yield from relay(steps, lambda get: lambda: _bounced_partial(system, qd, get(), C, cols, fine, partial,
+                                                                           direct))
     phi0, phi1 = x[:, :C], x[:, C:]
-    q_tot = qd + system.bounce(phi0[base.level.n_inner:], qd)  # the light that entered, the bounce included
-    q_dif = system.source(q_tot)  # the diffusion's source (m q_tot with the split)
+    qb = system.bounce(phi0[base.level.n_inner:], qd, direct)
+    m_dir = None if direct is None else direct.m
+    q_tot = qd + qb  # the light that entered, the bounce included
+    q_dif = system.source(qd, m_dir) + system.source(qb)  # the diffusion's source (m q_tot with the split)
     info = LevelSolve(info.iterations, np.maximum(info.residual[:C], info.residual[C:]), info.history,
                       info.seconds, note="")
     phi1, info = solver.checked_level(fine, base, q_dif, base.rhs(q_dif), phi1, info)
@@ -342,9 +398,10 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
                       first_pass=full(phi0, cols), info=info)
 
 
-def _bounced_partial(system, qd, x, C, cols, fine, partial):
+def _bounced_partial(system, qd, x, C, cols, fine, partial, direct=None):
     """The solve so far from the block iterate ``x`` = [phi0 | phi1]: phi1, with the bounce phi0 sends."""
     phi0, phi1 = x[:, :C], x[:, C:]
-    q_tot = qd + system.bounce(phi0[system.base.level.n_inner:], qd)
+    qb = system.bounce(phi0[system.base.level.n_inner:], qd, direct)
+    m_dir = None if direct is None else direct.m
     full = kernels.in_channels
-    return partial(fine, phi1, full(system.source(q_tot), cols), full(q_tot, cols))
+    return partial(fine, phi1, full(system.source(qd, m_dir) + system.source(qb), cols), full(qd + qb, cols))

@@ -128,7 +128,7 @@ from ..scene.fresnel import diffuse_reflectance_internal
 from .graph import SolverInput
 from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, chebyshev_steps, drain, energy_imbalance,
                         outside_maximum_principle, relay, solve_chebyshev, solve_direct)
-from ..scene.lights import environment_flux, incident_flux, shadow_visibility
+from ..scene.lights import LampBeams, environment_flux, incident_flux, shadow_visibility
 from ..scene.materials import Material
 from .radiance import clamp_scale, outgoing_radiance
 from .split import albedo, half_space_split
@@ -167,6 +167,9 @@ class SolveResult:
     q_incident: list | None = None
     single: tuple = (False, False, False)
     first_pass: np.ndarray | None = None  # finest phi without the bounce (solve(bounced=True))
+    # Per level, the lamps' part of the entering light and their mean incidence cosine, (q_beam, mu), or
+    # None: the incidence-aware split (split.py eq. 6) of that part (scene.lights.LampBeams)
+    beams: list | None = None
 
     @property
     def iterations(self) -> int:
@@ -190,6 +193,7 @@ class SolveResult:
 
         return replace(self, phi=finest(self.phi, response.phi), q=finest(self.q, response.q),
                        q_incident=finest(self.q_incident, response.q_incident),
+                       beams=_sum_beams(self.beams, response.beams),
                        level_solves=self.level_solves[:-1] + response.level_solves[-1:],
                        seconds=dict(self.seconds), warnings=list(self.warnings), first_pass=None)
 
@@ -277,7 +281,7 @@ class DiffusionSolver:
         return bvh
 
     def incident(self, lights, environment=None, shadows: bool = True, occluders=None,
-                 levels=None, bounce=None) -> list:
+                 levels=None, bounce=None, beams: list | None = None) -> list:
         """q (eq. 3) at the surface nodes of the requested levels (default all); None elsewhere.
 
         Lights inside the object contribute nothing and are named in
@@ -287,6 +291,8 @@ class DiffusionSolver:
         sees itself, and ``bounce`` -- the mesh's vertex radiance from a
         previous solve, (n_vertices, 3) -- adds the light the object sends to
         itself through those directions (one interreflection bounce).
+        ``beams``: a list with one entry per level, filled with the lamps' part of q and their incidence
+        cosines, ``(q_beam, mu)`` (:class:`~..scene.lights.LampBeams`), for the incidence-aware split.
         """
         sky = self.sky
         if sky is None:
@@ -306,12 +312,15 @@ class DiffusionSolver:
         out = [None] * len(self.bake.levels)
         for i in want:
             lv = self.bake.levels[i]
+            lamp = LampBeams.zeros(len(lv.normal)) if beams is not None else None
+            if beams is not None:
+                beams[i] = lamp.parts()
             if sky is None:
                 out[i] = incident_flux(lights, environment, lv.surface_position, lv.normal, self.eta,
-                                       self.bake.mm_per_unit, visibility=vis)
+                                       self.bake.mm_per_unit, visibility=vis, beams=lamp)
                 continue
             q = incident_flux(lights, None, lv.surface_position, lv.normal, self.eta, self.bake.mm_per_unit,
-                              visibility=vis)
+                              visibility=vis, beams=lamp)
             env = environment if environment is not None and not environment.is_black else None
             q_env = environment_flux(env, lv.normal, self.eta) if env is not None else None
             out[i] = q + sky.correct(i, lv.normal, self.eta, q_env, env, bounce)
@@ -368,7 +377,7 @@ class DiffusionSolver:
         return drain(self.solve_steps(lights, environment, **kw))
 
     def solve_steps(self, lights=(), environment=None, *, q=None, warm_start=None, shadows=True,
-                    occluders=None, channels=None, bounce=None, single=None, bounced=False):
+                    occluders=None, channels=None, bounce=None, single=None, bounced=False, beams=None):
         """Solve every level coarse to fine (or only the finest, from ``warm_start``): the one driver, as a
         generator (:meth:`solve` runs it to its end).
 
@@ -379,7 +388,8 @@ class DiffusionSolver:
         of its own (the GPU) and the other solvers run their levels without yielding.  It returns the
         :class:`SolveResult`.
 
-        ``q``: precomputed incident light per level (skips the light pass).
+        ``q``: precomputed incident light per level (skips the light pass); ``beams``: its lamps' part per
+        level, ``(q_beam, mu)`` or None (:meth:`incident`'s), for the incidence-aware split.
         ``bounce``: vertex radiance of a previous solve, the light the object
         sends to itself (used only with the bake's sky visibility; see
         :meth:`incident` and :meth:`solve_interreflected`).
@@ -412,11 +422,14 @@ class DiffusionSolver:
         active = [fine] if finest_only else list(range(n_lv))
         warnings = []
         if q is None:
+            beams = [None] * n_lv
             q = self.incident(lights, environment, shadows=shadows, occluders=occluders, levels=active,
-                              bounce=bounce)
+                              bounce=bounce, beams=beams)
             warnings = list(self.warnings)
         q_light = q
-        q, q_incident, single = self.split_source(q, single)
+        q, q_incident, single = self.split_source(q, single, beams)
+        if q_incident is None:
+            beams = None
         t1 = time.perf_counter()
         mask = (True, True, True) if channels is None else tuple(bool(c) for c in channels)
         cols = tuple(c for c in range(3) if mask[c])
@@ -427,7 +440,7 @@ class DiffusionSolver:
             solves = [LevelSolve(0, np.zeros(3), [0.0], 0.0) for _ in active]
         else:
             levels = active[:-1] if bounced else active
-            partial = self._partial_result(q, q_incident, single, cols)
+            partial = self._partial_result(q, q_incident, single, cols, beams)
             if not levels:
                 phi, solves = [None] * n_lv, []
             elif type(self).solve_systems is DiffusionSolver.solve_systems and opts.solver == "fast":
@@ -438,7 +451,8 @@ class DiffusionSolver:
                 from .interreflection import finest_bounced_steps
 
                 step = yield from finest_bounced_steps(self, q_light[fine], phi[fine - 1] if levels else None,
-                                                       warm_start if usable else None, cols, single, partial)
+                                                       warm_start if usable else None, cols, single, partial,
+                                                       beam=None if beams is None else beams[fine])
                 phi[fine], q = step.phi, list(q)
                 q[fine], first_pass = step.q, step.first_pass
                 if q_incident is not None:
@@ -454,10 +468,10 @@ class DiffusionSolver:
         t2 = time.perf_counter()
         return SolveResult(phi=phi, q=q, level_solves=solves, scheme=self.systems[-1].scheme,
                            seconds={"lights": t1 - t0, "solve": t2 - t1, "total": t2 - t0}, warnings=warnings,
-                           q_incident=q_incident, single=single, first_pass=first_pass)
+                           q_incident=q_incident, single=single, first_pass=first_pass, beams=beams)
 
     # -- the first-scatter split -----------------------------------------------------------
-    def split_source(self, q, single=None):
+    def split_source(self, q, single=None, beams=None):
         """``(diffusion source per level, incident q per level or None, channels)`` of the split.
 
         In the channels of ``single`` (default: all when ``options.single_scattering``) the light that
@@ -465,7 +479,8 @@ class DiffusionSolver:
         ``s(alpha) q`` that leaves after one scattering is the closed-form single-scattering term the output
         adds (:meth:`split_radiance_at`), and the diffusion solves for ``m(alpha) q`` (``m <= 1 - s``), the
         source whose half-space return is the multiple scattering M(alpha); alpha is each surface node's.
-        So both terms add up, each path once, node by node in a heterogeneous medium.
+        So both terms add up, each path once, node by node in a heterogeneous medium.  ``beams`` (per
+        level ``(q_beam, mu)`` or None): the lamps' part of q is split by its incidence (eq. 6 there).
         """
         if single is None:
             single = (bool(self.options.single_scattering),) * 3
@@ -479,7 +494,7 @@ class DiffusionSolver:
             if qi is None:
                 out.append(None)
                 continue
-            m = split.source_factor(self.surface_albedo[i])
+            m = split.source_factors(self.surface_albedo[i], qi, None if beams is None else beams[i])
             out.append(np.asarray(qi) * np.where(on, m, 1.0))
         return out, list(q), single
 
@@ -493,16 +508,30 @@ class DiffusionSolver:
         """
         if result.q_incident is None or not any(result.single) or result.q_incident[-1] is None:
             return L
-        w = np.asarray(w, dtype=np.float64)
-        idx = np.asarray(idx)
-        q_v = np.einsum("vk,vkc->vc", w, np.asarray(result.q_incident[-1])[idx])
-        a_v = np.einsum("vk,vkc->vc", w, self.surface_albedo[-1][idx])
+        q_v, a_v, beam = self.split_inputs_at(result.q_incident[-1], None if result.beams is None else
+                                              result.beams[-1], idx, w)
         n = np.asarray(normals, dtype=np.float64)
         cos_o = np.ones(len(n)) if view_dirs is None else np.einsum("vj,vj->v", n, view_dirs)
         split = half_space_split(self.eta)
         on = np.array(result.single, dtype=bool)
-        shape = np.where(on, split.multiple_shape(a_v, cos_o), 1.0)
-        return np.asarray(L) * shape + split.single_radiance(q_v, a_v, cos_o) * on
+        shape, single = split.output_terms(q_v, a_v, cos_o, beam)
+        return np.asarray(L) * np.where(on, shape, 1.0) + single * on
+
+    def split_inputs_at(self, q_incident, beam, idx, w) -> tuple:
+        """``(q, alpha, beam)`` of the finest surface nodes mapped onto points (``idx``, ``w``: the vertex map's
+        form): the entering light and albedo interpolated, and the lamps' part ``(q_beam, mu)`` with its
+        incidence cosine weighted by the lamps' q (or None)."""
+        w = np.asarray(w, dtype=np.float64)
+        idx = np.asarray(idx)
+        q_v = np.einsum("vk,vkc->vc", w, np.asarray(q_incident)[idx])
+        a_v = np.einsum("vk,vkc->vc", w, self.surface_albedo[-1][idx])
+        if beam is not None:
+            qb = np.asarray(beam[0])[idx]
+            qb_v = np.einsum("vk,vkc->vc", w, qb)
+            mu_q = np.einsum("vk,vk->v", w, qb.mean(axis=2) * np.asarray(beam[1])[idx])
+            wq = qb_v.mean(axis=1)
+            beam = (qb_v, np.where(wq > 0, mu_q / np.where(wq > 0, wq, 1.0), 1.0))
+        return q_v, a_v, beam
 
     def solve_interreflected(self, lights=(), environment=None, **kw) -> tuple:
         """Solve, then solve again ``bounces`` times with the object's own radiance as ``bounce``:
@@ -595,7 +624,7 @@ class DiffusionSolver:
             return kernels.shepard_upsample(idx, w, np.asarray(coarser)[:, cols])
         return np.zeros((self.bake.levels[level].n_nodes, len(cols)))
 
-    def _partial_result(self, q, q_incident, single, cols):
+    def _partial_result(self, q, q_incident, single, cols, beams=None):
         """``partial(level, iterate, q_fine=None, q_incident_fine=None)``: a :class:`SolveResult` of the solve
         so far (:meth:`solve_steps`): ``iterate`` (n_level, len(cols)) in its channels (0 in the others,
         the ones the planner turned off) carried up to the finest level by eq. 10's Shepard transfers
@@ -615,7 +644,7 @@ class DiffusionSolver:
                 if qi is not None:
                     qi[fine] = q_incident_fine
             return SolveResult(phi=[None] * fine + [x], q=qs, level_solves=[], scheme=self.systems[-1].scheme,
-                               q_incident=qi, single=single)
+                               q_incident=qi, single=single, beams=beams)
         return partial
 
     def level_tolerance(self, level: int) -> float:
@@ -726,7 +755,25 @@ class DiffusionSolver:
         if result.q_incident is not None and result.q_incident[level] is not None:
             # the split: in = the light that entered; single = what the closed-form term sends out
             q_in = np.asarray(result.q_incident[level])
-            s = half_space_split(self.eta).single_escape(self.surface_albedo[level]) * np.array(result.single)
+            beam = None if result.beams is None else result.beams[level]
+            s = half_space_split(self.eta).single_escapes(self.surface_albedo[level], q_in, beam)
+            s = s * np.array(result.single)
             out.update(incident=a @ q_in, single=a @ (s * q_in))
         return out
 
+
+def _sum_beams(a, b):
+    """The lamps' parts of two results' entering light added on the finest level (:meth:`SolveResult.plus_finest`):
+    q_beam summed, the incidence cosine weighted by each one's q."""
+    if a is None or a[-1] is None:
+        return b
+    if b is None or b[-1] is None:
+        return a
+    (qa, ma), (qb, mb) = a[-1], b[-1]
+    q = np.asarray(qa) + np.asarray(qb)
+    wa, wb = np.asarray(qa).mean(axis=1), np.asarray(qb).mean(axis=1)
+    w = wa + wb
+    mu = np.where(w > 0, (wa * ma + wb * mb) / np.where(w > 0, w, 1.0), 1.0)
+    out = list(a)
+    out[-1] = (q, mu)
+    return out

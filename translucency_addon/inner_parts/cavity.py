@@ -231,7 +231,10 @@ def wall_partial_current(solver, result, nodes) -> np.ndarray:
     if result.q_incident is not None and any(result.single):
         from ..diffusion.split import half_space_split
 
-        s = half_space_split(solver.eta).single_escape(solver.surface_albedo[-1][nodes])
+        beam = None if result.beams is None or result.beams[-1] is None else tuple(
+            np.asarray(b)[nodes] for b in result.beams[-1])
+        s = half_space_split(solver.eta).single_escapes(solver.surface_albedo[-1][nodes],
+                                                        result.q_incident[-1][nodes], beam)
         jp = jp + np.where(np.array(result.single), s, 0.0) * result.q_incident[-1][nodes] / (1.0 - solver.fdr)
     return jp
 
@@ -288,7 +291,8 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
     light_kw = {k: kw.pop(k) for k in ("shadows", "occluders") if k in kw}
     usable = solver.can_warm_start(warm_start) or solver.options.levels == "finest"
     levels_needed = [len(solver.bake.levels) - 1] if usable else None
-    q = exchange.dark_walls(solver.incident(lights, environment, levels=levels_needed, **light_kw))
+    beams = [None] * len(solver.bake.levels)  # the lamps' part, for the incidence-aware split
+    q = exchange.dark_walls(solver.incident(lights, environment, levels=levels_needed, beams=beams, **light_kw))
     inner = hollow_lights(solver, lights)
     if inner:
         # A light inside a hollow shines on its wall from the air, as an outside light on the outer surface:
@@ -300,7 +304,7 @@ def solve_with_cavities(solver, exchange: CavityExchange | None, lights=(), envi
         for i, w in enumerate(exchange.level_walls or ()):
             if q[i] is not None and q_in[i] is not None and len(w):
                 q[i][w] += q_in[i][w]
-    first = solver.solve(q=q, warm_start=warm_start, **kw)
+    first = solver.solve(q=q, warm_start=warm_start, beams=beams, **kw)
     first.warnings = list(solver.warnings) + list(first.warnings)
     nodes = exchange.nodes
     op = exchange.operator(solver.eta)
@@ -362,7 +366,7 @@ def _follow(solver, exchange, first, q_cav, op, tol, max_solves, t0, kw):
         q = list(q_ext)
         q[-1] = q_ext[-1].copy()
         q[-1][nodes] += q_cav
-        last = solver.solve(q=q, warm_start=last, **kw)
+        last = solver.solve(q=q, warm_start=last, beams=first.beams, **kw)
         solves += 1
         new = op @ wall_partial_current(solver, last, nodes)
         change = float(np.abs(new - q_cav).max()) / max(float(np.abs(new).max()), scale * 1e-12)

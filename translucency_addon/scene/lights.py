@@ -317,6 +317,34 @@ def light_irradiance(light: Light, points: np.ndarray, mm_per_unit: float):
     return I, to_light, dist
 
 
+@dataclass
+class LampBeams:
+    """The part of q that came from lamps, (n, 3), and ``mu_q`` (n,): the sum over lamps of each one's q
+    (mean over the channels) times its outside incidence cosine -- what the incidence-aware split
+    (``diffusion.split`` eq. 6) needs of a frame's lamps.  Filled by :func:`incident_flux`."""
+
+    q: np.ndarray
+    mu_q: np.ndarray
+
+    @classmethod
+    def zeros(cls, n: int) -> "LampBeams":
+        return cls(np.zeros((n, 3)), np.zeros(n))
+
+    def add(self, dq: np.ndarray, cos_i: np.ndarray) -> None:
+        self.q += dq
+        self.mu_q += dq.mean(axis=1) * np.clip(cos_i, 0.0, 1.0)
+
+    @property
+    def mu(self) -> np.ndarray:
+        """The lamps' q-weighted mean outside incidence cosine per point (1 where no lamp lights it)."""
+        w = self.q.mean(axis=1)
+        return np.where(w > 0, self.mu_q / np.where(w > 0, w, 1.0), 1.0)
+
+    def parts(self) -> tuple:
+        """``(q_beam, mu)``: the form ``diffusion.split.HalfSpaceSplit`` takes."""
+        return self.q, self.mu
+
+
 def incident_flux(
     lights,
     environment: Environment | None,
@@ -325,12 +353,15 @@ def incident_flux(
     eta: float,
     mm_per_unit: float,
     visibility=None,
+    beams: LampBeams | None = None,
 ) -> np.ndarray:
     """Diffused incoming light q (eq. 3) at surface points, (n, 3), W/m^2.
 
     ``visibility(points, normals, to_light, distance) -> bool (n,)`` is called
     once per light to apply shadows (see :func:`shadow_visibility`); ``None``
-    means no occlusion.  The environment term is unoccluded.
+    means no occlusion.  The environment term is unoccluded.  ``beams``: a
+    :class:`LampBeams` that also receives the lamps' part of q with their
+    incidence cosines.
     """
     p = np.asarray(points, dtype=np.float64)
     n = np.asarray(normals, dtype=np.float64)
@@ -349,7 +380,10 @@ def incident_flux(
     for light in lights or ():
         if light.kind in ("point", "spot") and light.radius > 0 and light.samples >= 2:
             E, to_light, dist = light_irradiance(light, p, mm_per_unit)
-            q += E * sphere_visibility(light, p, n, to_light, dist, eta, visibility)[:, None]
+            dq = E * sphere_visibility(light, p, n, to_light, dist, eta, visibility)[:, None]
+            q += dq
+            if beams is not None:
+                beams.add(dq, np.einsum("ij,ij->i", n, to_light))
             continue
         # An extended emitter: every patch's irradiance, shadowed by the ray of its group (shadow_groups)
         groups = shadow_groups(light) if light.is_extended else [(light, [light])]
@@ -364,6 +398,8 @@ def incident_flux(
                     lit = (cos_i > 0) & shadow_free
                 w = np.where(lit, cos_i * fresnel_transmittance(cos_i, eta), 0.0)
                 q += E * w[:, None]
+                if beams is not None:
+                    beams.add(E * w[:, None], cos_i)
     if environment is not None and not environment.is_black:
         q += environment_flux(environment, n, eta)
     return q
