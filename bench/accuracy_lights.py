@@ -233,12 +233,11 @@ def section(res: dict) -> str:
          "under the near spherical light, converged Final graph.", "",
          "Our solve runs every term, as the add-on runs marble (the first-scatter split, "
          "`diffusion/split.py`; until 2098aba this bench solved diffusion alone, which gave the "
-         "near sphere 6.7 % and the near bunny 9.3 %, converged). The split is calibrated for diffuse light: "
-         "under a point light its once- and many-times-scattered shares depend on the incidence, which its "
-         "tables do not carry (a random walk of the half-space at IOR 1.3, albedo 0.999, in the two bins "
-         "nearest head-on: 0.2-0.6 % above the split's radiance under light at normal incidence, 1.2-1.4 % at "
-         "55 degrees, 2.2-2.7 % at 73 degrees; at albedo 0.68 from -8 % at normal incidence to +9 % at "
-         "73 degrees).", "",
+         "near sphere 6.7 % and the near bunny 9.3 %, converged). Under a lamp the split follows the "
+         "incidence of its light at each surface node (eq. 6 there, issue 31; until 412760d it used the diffuse "
+         "light's tables for every light, which gave the near sphere 5.8 %, the near bunny 9.1 %, the far "
+         "sphere 4.0 % and the square 4.3 %, converged). The first frame of the first scene includes the "
+         "split's tables for eta 1.3 (the transport solves, cold process).", "",
          "| scene | reference light <-> engine light | reference spp (batches), s | our solve | first frame ms "
          "| error | noise floor | debiased | R, G, B | 2x2 binned: error / floor / debiased "
          "| mean ours / ref (R, G, B) |",

@@ -121,24 +121,31 @@ def sphere_walk(radius_mfp: float, albedo: float, eta: float, n: int = 200_000, 
     return WalkResult(radiance=score.sum(axis=0) / n, stderr=float(per_path.std() / np.sqrt(n)), n_paths=n)
 
 
-def sphere_sun_walk(radius_mfp: float, albedo: float, theta, n: int = 100_000, seed: int = 1,
-                    max_events: int = 100_000) -> tuple:
-    """Radiance leaving an index-matched sphere (eta = 1: no boundary at all) of radius ``radius_mfp``
-    mean free paths (sigma_t = 1), lit by a sun of irradiance 1 from +z and nothing else, seen along the
-    outward normal at the points at polar angle ``theta`` (radians, array) from the lit pole; returns
-    ``(radiance, standard error)`` per angle.
+def sphere_lamp_walk(radius_mm: float, sigma_t: float, albedo: float, theta, *, point_mm: float | None = None,
+                     n: int = 100_000, seed: int = 1, max_events: int = 100_000) -> tuple:
+    """Radiance leaving an index-matched sphere (eta = 1: no boundary at all) of radius ``radius_mm``
+    (extinction ``sigma_t`` per mm, single-scattering albedo ``albedo``) lit by one lamp on the +z axis and
+    nothing else, seen along the outward normal at the points at polar angle ``theta`` (radians, array)
+    from the lit pole; returns ``(radiance, standard error)`` per angle, W/(m^2 sr).
+
+    The lamp: a sun of irradiance 1 W/m^2 from +z (``point_mm`` None), or a point light of intensity
+    1 W/sr at ``(0, 0, point_mm)`` (irradiance 1/d^2, d in metres).
 
     The adjoint walk of :func:`sphere_walk` with next-event estimation: from the viewed point the path runs
-    in along the normal; at every collision the weight takes the albedo and scores the sun's light
-    scattered there towards the path, ``w E e^{-d}/(4 pi)`` with d the distance to the boundary towards
-    the sun (isotropic phase function).  A path that reaches the boundary leaves into a black world.
-    Index-matched on purpose: a delta light cannot be reached through a refracting boundary by a path
-    tracer (docs/reference.md), while here every order is exact to the walk's noise.
+    in along the normal; at every collision the weight takes the albedo and scores the lamp's light
+    scattered there towards the path, ``w E(x) e^{-sigma_t d}/(4 pi)`` with d the distance to the boundary
+    towards the lamp (isotropic phase function).  A path that reaches the boundary leaves into a black
+    world.  Index-matched on purpose: a delta light cannot be reached through a refracting boundary by a
+    path tracer (docs/reference.md), while here every order is exact to the walk's noise.
     """
     rng = np.random.default_rng(seed)
-    R = float(radius_mfp)
+    R = float(radius_mm)
+    st = float(sigma_t)
     theta = np.atleast_1d(np.asarray(theta, dtype=np.float64))
     out, err = np.zeros(len(theta)), np.zeros(len(theta))
+    lamp = None if point_mm is None else np.array([0.0, 0.0, float(point_mm)])
+    if lamp is not None and point_mm <= R:
+        raise ValueError("the point light must lie outside the sphere")
     for j, th in enumerate(theta):
         nrm = np.array([np.sin(th), 0.0, np.cos(th)])
         p = np.tile(R * nrm * (1.0 - 1e-12), (n, 1))
@@ -154,17 +161,23 @@ def sphere_sun_walk(radius_mfp: float, albedo: float, theta, n: int = 100_000, s
             b = np.einsum("ij,ij->i", pi, di)
             c = np.einsum("ij,ij->i", pi, pi) - R * R
             t_out = -b + np.sqrt(np.maximum(b * b - c, 0.0))
-            s = -np.log(rng.random(idx.size))
+            s = -np.log(rng.random(idx.size)) / st
             coll = s < t_out
             alive[idx[~coll]] = False  # left the sphere: a black world
             ic = idx[coll]
             p[ic] += s[coll, None] * d[ic]
             w[ic] *= albedo
             x = p[ic]
-            bz = x[:, 2]
-            cz = np.einsum("ij,ij->i", x, x) - R * R
-            d_sun = -bz + np.sqrt(np.maximum(bz * bz - cz, 0.0))  # to the boundary along +z
-            score[ic] += w[ic] * np.exp(-d_sun) / (4.0 * np.pi)
+            if lamp is None:
+                u_l, E = np.tile([0.0, 0.0, 1.0], (len(x), 1)), 1.0
+            else:
+                v = lamp - x
+                dist = np.linalg.norm(v, axis=1)
+                u_l, E = v / dist[:, None], 1.0 / (dist * 1e-3) ** 2
+            bl = np.einsum("ij,ij->i", x, u_l)
+            cl = np.einsum("ij,ij->i", x, x) - R * R
+            d_l = -bl + np.sqrt(np.maximum(bl * bl - cl, 0.0))  # to the boundary towards the lamp
+            score[ic] += w[ic] * E * np.exp(-st * d_l) / (4.0 * np.pi)
             u = rng.uniform(-1.0, 1.0, ic.size)
             phi = rng.uniform(0.0, 2.0 * np.pi, ic.size)
             r = np.sqrt(1.0 - u * u)
