@@ -276,3 +276,28 @@ def test_the_split_of_a_lamp_follows_its_incidence(eta, alpha, mu_in):
     err = float(np.sqrt(np.mean((per_bin / walk - 1.0) ** 2)))
     print(f"  per direction RMS {100 * err:.1f} %")
     assert err < 0.02
+
+
+@pytest.mark.parametrize("eta", [1.0, 1.3])
+def test_output_terms_with_beams_are_the_per_term_lookups(eta):
+    """HalfSpaceSplit.output_terms gathers from the flattened tables with shared indices (speed on render
+    meshes); it must be the same numbers as the per-term lookups it replaces, facing-away points included."""
+    split = half_space_split(eta)
+    rng = np.random.default_rng(4)
+    n = 5000
+    a = rng.uniform(0.0, 1.0, (n, 3))
+    q = rng.uniform(0.0, 1.0, (n, 3))
+    qb = q * rng.uniform(0.0, 1.0, (n, 1))
+    qb[:100] = 0.0  # world light only
+    mu = rng.uniform(0.0, 1.0, n)
+    cos_o = rng.uniform(-0.2, 1.0, n)
+    shape, single = split.output_terms(q, a, cos_o, (qb, mu))
+    qd = q - qb
+    wd, wb = split.source_factor(a) * qd, split.beam_source_factor(a, mu) * qb
+    w = wd + wb
+    cd, cb = split.multiple_shape(a, cos_o), split.beam_multiple_shape(a, cos_o, mu)
+    want = np.where(w > 0, (wd * cd + wb * cb) / np.where(w > 0, w, 1.0), cd)
+    np.testing.assert_allclose(shape, want, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(single, split.single_radiance(qd, a, cos_o)
+                               + split.beam_single_radiance(qb, a, cos_o, mu), rtol=1e-12, atol=0)
+    np.testing.assert_array_equal(split.output_terms(q, a, cos_o, None)[0], cd)  # no lamps: the diffuse tables
