@@ -65,6 +65,14 @@ def _cli_options(frame) -> list[str]:
         elif light.kind == "point":
             p = ",".join(repr(float(x)) for x in light.position)
             out.append(f"--point={p}:{4.0 * math.pi * light.intensity!r}:{light.radius!r}")
+        elif light.kind == "spot":
+            p, d = (",".join(repr(float(x)) for x in v) for v in (light.position, light.direction))
+            out.append(f"--spot={p}:{d}:{4.0 * math.pi * light.intensity!r}:{math.degrees(light.spot_size)!r}:"
+                       f"{light.spot_blend!r}:{light.radius!r}")
+        elif light.kind == "area":
+            p, ex, ey = (",".join(repr(float(x)) for x in v) for v in (light.position, light.edge_x, light.edge_y))
+            out.append(f"--area={p}:{ex}:{ey}:{math.pi * light.intensity!r}" + (":disk" if light.shape == "ellipse"
+                                                                                 else ""))
         else:
             raise AssertionError(f"a {light.kind} light has no CLI option yet")
     env = frame.environment
@@ -83,6 +91,9 @@ SCENES = {
     "skin1, point light": dict(preset='SKIN1', world=None, lights=[('POINT', (3.0, -2.0, 2.0), 800.0)]),
     "ketchup, sun (single scattering replaces diffusion)": dict(
         preset='KETCHUP', world=(0.2, 0.2, 0.2), lights=[('SUN', (0.0, 0.0, 5.0), 3.0)], single=True),
+    "skin1, a spot and a rectangular area light (issue 31's lamps through the CLI)": dict(
+        preset='SKIN1', world=None, lights=[('SPOT', (1.5, 0.0, 3.0), 600.0, (0.0, 0.45, 0.0)),
+                                            ('AREA', (-1.0, -2.0, 2.5), 300.0, (0.7, -0.3, 0.2))]),
     "marble and skin1 mixed by a mesh attribute, sky and sun": dict(
         preset='MARBLE', world=(0.3, 0.35, 0.4), lights=[('SUN', (0.0, 0.0, 5.0), 3.0)], mix_with='SKIN1'),
 }
@@ -123,8 +134,13 @@ def test_the_cli_renders_what_the_addon_renders(blender, addon, cache_dir, memo_
         _world(spec["world"])
     else:
         bpy.context.scene.world = None
-    for kind, location, energy in spec["lights"]:
-        add_light(kind, location=location, energy=energy, rotation=(0.3, 0.2, 0.0) if kind == 'SUN' else (0, 0, 0))
+    for kind, location, energy, *rotation in spec["lights"]:
+        rot = rotation[0] if rotation else ((0.3, 0.2, 0.0) if kind == 'SUN' else (0, 0, 0))
+        lamp = add_light(kind, location=location, energy=energy, rotation=rot)
+        if kind == 'SPOT':
+            lamp.data.spot_size, lamp.data.spot_blend = math.radians(50.0), 0.3
+        if kind == 'AREA':
+            lamp.data.shape, lamp.data.size, lamp.data.size_y = 'RECTANGLE', 1.2, 0.5
     _camera()
     bpy.context.scene.translucency.tolerance = 1e-8  # both converged: the comparison sees the recipe, not the stop
     activate(obj)
@@ -137,6 +153,7 @@ def test_the_cli_renders_what_the_addon_renders(blender, addon, cache_dir, memo_
     frame = gather(obj, scene, depsgraph, st, True)
     if spec.get("single"):
         assert frame.use_ss, "the scene is meant to run single scattering"
+    assert {x.kind for x in frame.lights} == {k.lower() for k, *_ in spec["lights"]}, "every lamp reaches the frame"
     cache = bpy.path.abspath(obj.translucency.cache_filepath)
     out = tmp_path / "cli.npy"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}

@@ -108,6 +108,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="point light X,Y,Z:W[:R] -- position (object units), radiant power in W, >= 0 (isotropic), "
                         "and optionally its radius R in object units (a sphere light: soft shadows, Blender's "
                         "Radius; repeatable)")
+    s.add_argument("--spot", type=arg.spot, action="append", default=[],
+                   help="spot light X,Y,Z:DX,DY,DZ:W:SIZE[:BLEND[:R]] -- position, the direction it points, power "
+                        "in W, Blender's Spot Size (full cone angle, degrees), Spot Blend (default 0.15) and Radius "
+                        "(object units, default 0; repeatable)")
+    s.add_argument("--area", type=arg.area, action="append", default=[],
+                   help="area light X,Y,Z:EX,EY,EZ:FX,FY,FZ:W[:disk] -- centre, its two full edges (object units; "
+                        "it emits along F x E), power in W (Blender's), disk for Disk (default Square/Rectangle; "
+                        "repeatable)")
     s.add_argument("--solver", choices=["paper", "fast", "direct"], default="fast",
                    help="paper: Jacobi relaxation (eqs. 8-9, slow on fine graphs); fast: Chebyshev (default); "
                         "direct: sparse LU (exact, memory grows fast)")
@@ -157,6 +165,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="point light X,Y,Z:W[:R] -- position (object units), radiant power in W, >= 0 (isotropic), "
                         "and optionally its radius R in object units (a sphere light: soft shadows, Blender's "
                         "Radius; repeatable)")
+    p.add_argument("--spot", type=arg.spot, action="append", default=[],
+                   help="spot light X,Y,Z:DX,DY,DZ:W:SIZE[:BLEND[:R]] (as for solve; repeatable)")
+    p.add_argument("--area", type=arg.area, action="append", default=[],
+                   help="area light X,Y,Z:EX,EY,EZ:FX,FY,FZ:W[:disk] (as for solve; repeatable)")
     p.add_argument("--mm-per-unit", type=arg.mm_per_unit, default=None,
                    help="override the baked scene scale: millimetres per mesh unit, a finite number > 0")
     return ap
@@ -182,6 +194,10 @@ def _fluid_parser(sub) -> None:
     f.add_argument("--point", type=arg.point, action="append", default=[],
                    help="point light X,Y,Z:W[:R] -- position (object units), power in W, >= 0, optional radius "
                         "(object units; repeatable)")
+    f.add_argument("--spot", type=arg.spot, action="append", default=[],
+                   help="spot light X,Y,Z:DX,DY,DZ:W:SIZE[:BLEND[:R]] (as for solve; repeatable)")
+    f.add_argument("--area", type=arg.area, action="append", default=[],
+                   help="area light X,Y,Z:EX,EY,EZ:FX,FY,FZ:W[:disk] (as for solve; repeatable)")
     f.add_argument("--camera", type=arg.camera, default=None,
                    help="perspective camera position X,Y,Z (object units): view-dependent radiance toward it "
                         "(default: along the normals)")

@@ -97,6 +97,44 @@ def point(text):
     return floats(parts[0], 3, "--point position"), floats(parts[1], 1, "--point power")[0], radius
 
 
+def spot(text):
+    """``X,Y,Z:DX,DY,DZ:W:SIZE[:BLEND[:R]]``: position, the direction it points, power in W, Blender's Spot
+    Size (the full cone angle) in degrees, Spot Blend (default 0.15) and Radius (object units, default 0)."""
+    parts = text.split(":")
+    if len(parts) not in (4, 5, 6):
+        raise argparse.ArgumentTypeError(f"--spot: expected X,Y,Z:DX,DY,DZ:W:SIZE[:BLEND[:R]], got {text!r}")
+    pos = floats(parts[0], 3, "--spot position")
+    d = floats(parts[1], 3, "--spot direction")
+    if not any(d):
+        raise argparse.ArgumentTypeError("--spot direction must not be 0,0,0")
+    watts = floats(parts[2], 1, "--spot power")[0]
+    size = floats(parts[3], 1, "--spot size")[0]
+    if not 1.0 <= size <= 180.0:  # Blender's range for Spot Size
+        raise argparse.ArgumentTypeError(f"--spot size is the full cone angle in degrees, 1 to 180, got {size}")
+    blend = floats(parts[4], 1, "--spot blend")[0] if len(parts) > 4 else 0.15
+    if not 0.0 <= blend <= 1.0:
+        raise argparse.ArgumentTypeError(f"--spot blend must be in [0, 1], got {blend}")
+    radius = floats(parts[5], 1, "--spot radius")[0] if len(parts) > 5 else 0.0
+    if radius < 0:
+        raise argparse.ArgumentTypeError(f"--spot radius must be >= 0, got {radius}")
+    return pos, d, watts, size, blend, radius
+
+
+def area(text):
+    """``X,Y,Z:EX,EY,EZ:FX,FY,FZ:W[:disk]``: centre, the emitter's two full edges (object units; it emits
+    along F x E, Blender's local -Z for edges along its local X and Y), power in W (Blender's, normalised),
+    and ``disk`` for Disk/Ellipse (default: Square/Rectangle)."""
+    parts = text.split(":")
+    if len(parts) not in (4, 5) or (len(parts) == 5 and parts[4].lower() not in ("disk", "square")):
+        raise argparse.ArgumentTypeError(f"--area: expected X,Y,Z:EX,EY,EZ:FX,FY,FZ:W[:disk], got {text!r}")
+    pos = floats(parts[0], 3, "--area position")
+    ex, ey = floats(parts[1], 3, "--area first edge"), floats(parts[2], 3, "--area second edge")
+    if np.linalg.norm(np.cross(ey, ex)) <= 0:
+        raise argparse.ArgumentTypeError("--area edges must be non-zero and not parallel")
+    watts = floats(parts[3], 1, "--area power")[0]
+    return pos, ex, ey, watts, len(parts) == 5 and parts[4].lower() == "disk"
+
+
 def field(text):
     kind, _, scale = text.partition(":")
     if not scale:
@@ -145,6 +183,14 @@ def lights_from_args(a):
         lights.append(Light("sun", irradiance=e, direction=d, name="sun"))
     for pos, watts, radius in a.point:
         lights.append(Light("point", intensity=watts / (4.0 * np.pi), position=pos, radius=radius, name="point"))
+    for pos, d, watts, size, blend, radius in getattr(a, "spot", ()):  # Blender's units, as ops.scene_inputs
+        lights.append(Light("spot", intensity=watts / (4.0 * np.pi), position=pos, direction=d,
+                            spot_size=float(np.radians(size)), spot_blend=blend, radius=radius, name="spot"))
+    for pos, ex, ey, watts, disk in getattr(a, "area", ()):
+        normal = np.cross(ey, ex)
+        lights.append(Light("area", intensity=watts / np.pi, position=pos,
+                            direction=tuple(float(x) for x in normal / np.linalg.norm(normal)),
+                            shape="ellipse" if disk else "rectangle", edge_x=ex, edge_y=ey, name="area"))
     env = Environment(a.env) if a.env is not None else None
     return lights, env
 
