@@ -124,6 +124,9 @@ class SingleScatteringData:
     # Arrays the ray-pair loops derive from the samples once (``ray_pairs._cache``: cell-ordered centres, the
     # Gaussians' constants), keyed by the arrays they came from; never saved, not part of equality.
     ray_cache: dict = field(default_factory=dict, compare=False, repr=False)
+    # The voxel volume the samples were baked from, when the bake kept it (``keep_volume``: the brute-force
+    # references of the tests and benches march it); never saved, not part of equality.
+    volume: object = field(default=None, compare=False, repr=False)
 
     @property
     def n_samples(self) -> int:
@@ -143,10 +146,7 @@ class SingleScatteringData:
 
         kw = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "ray_cache"}
         kw.update(sh=np.ascontiguousarray(self.sh[:, :K]), order=order)
-        out = SingleScatteringData(**kw)
-        if hasattr(self, "volume"):
-            out.volume = self.volume
-        return out
+        return SingleScatteringData(**kw)
 
     # ----------------------------------------------------------------- cache
     def to_arrays(self, prefix: str = "ss/") -> dict:
