@@ -1,12 +1,15 @@
-"""Lamps (issue 31): an index-matched sphere of skin under a sun and under a near point light, the profile
+"""Lamps (issue 31): an index-matched sphere of skin under a sun and near point, spot and disk lights, the profile
 from the lit pole to the shaded pole, against an analogue random walk of the same sphere.
 
     python -m bench.accuracy_sun [--out docs/accuracy.md] [--quick]
 
 Scene: a sphere of radius 10 mm (an icosphere of 2,562 vertices), skin1 (Jensen et al. 2001:
 sigma_a = 0.032, 0.17, 0.48 and sigma_s' = 0.74, 0.88, 1.01 per mm, isotropic phase), index-matched
-(eta = 1), lit by a sun of irradiance 1 W/m^2 from +z, or by a point light of 1 W/sr (4 pi W) at
-30 mm on the +z axis (20 mm from the surface), and nothing else; every vertex seen along its normal.  The frame is the engine's (``frame.render_frame`` through ``python -m translucency_addon
+(eta = 1), lit by a sun of irradiance 1 W/m^2 from +z, or on the +z axis at 30 mm (20 mm from the
+surface) by a point light of 1 W/sr (4 pi W), a spot light of the same power pointing at the centre
+(Spot Size 30 degrees, Blend 0.3: its cone meets the pole's tangent plane in a circle of radius 5.4 mm), or a
+disk light 10 mm across facing the sphere (pi W, Blender's: 1 W/sr along its normal); nothing else; every
+vertex seen along its normal.  The frame is the engine's (``frame.render_frame`` through ``python -m translucency_addon
 solve``, in-process), at Preview and at Final.
 
 Reference: ``bench/sphere_walk.sphere_lamp_walk``, an adjoint random walk of the same sphere with
@@ -44,13 +47,22 @@ if str(ROOT) not in sys.path:
 
 from bench.sphere_walk import sphere_lamp_walk  # noqa: E402
 
-HEADING = "## Lamps (issue 31): an index-matched skin sphere under a sun, pole to pole\n"
+HEADING = "## Lamps (issue 31): an index-matched skin sphere under a sun, point, spot and disk light, pole to pole\n"
 RADIUS_MM = 10.0
 SIGMA_A = (0.032, 0.17, 0.48)  # skin1, per mm
 SIGMA_S = (0.74, 0.88, 1.01)
 THETA_DEG = np.arange(0.0, 180.1, 5.0)
-POINT_MM = 30.0  # the point light's distance from the centre, on +z
-LAMPS = {"sun": (["--sun", "0,0,-1:1"], None), "point light": (["--point", f"0,0,{POINT_MM}:{4.0 * np.pi!r}"], POINT_MM)}
+POINT_MM = 30.0  # the point, spot and disk lights' distance from the centre, on +z
+SPOT_DEG, SPOT_BLEND, DISK_MM = 30.0, 0.3, 5.0
+# lamp -> (the CLI's option, the walk's keywords): each 1 W/sr (the sun 1 W/m^2) towards the sphere
+LAMPS = {
+    "sun": (["--sun", "0,0,-1:1"], {}),
+    "point light": (["--point", f"0,0,{POINT_MM}:{4.0 * np.pi!r}"], {"point_mm": POINT_MM}),
+    "spot light": (["--spot", f"0,0,{POINT_MM}:0,0,-1:{4.0 * np.pi!r}:{SPOT_DEG}:{SPOT_BLEND}"],
+                   {"point_mm": POINT_MM, "spot": (float(np.radians(SPOT_DEG)), SPOT_BLEND)}),
+    "disk light": (["--area", f"0,0,{POINT_MM}:{2 * DISK_MM},0,0:0,{2 * DISK_MM},0:{np.pi!r}:disk"],
+                   {"point_mm": POINT_MM, "disk_mm": DISK_MM}),
+}
 
 
 @contextlib.contextmanager
@@ -76,13 +88,12 @@ def _cli(args) -> None:
         raise RuntimeError(f"translucency_addon {' '.join(map(str, args))} failed ({rc}):\n{out.getvalue()[-2000:]}")
 
 
-def reference(n_walk: int, point_mm=None) -> dict:
-    """The walk's radiance and standard error per channel on ``THETA_DEG``."""
+def reference(n_walk: int, lamp: dict) -> dict:
+    """The walk's radiance and standard error per channel on ``THETA_DEG`` (``lamp``: its keywords)."""
     L, E = [], []
     for sa, ss in zip(SIGMA_A, SIGMA_S):
         st = sa + ss
-        r, e = sphere_lamp_walk(RADIUS_MM, st, ss / st, np.radians(THETA_DEG), point_mm=point_mm, n=n_walk,
-                                seed=11)
+        r, e = sphere_lamp_walk(RADIUS_MM, st, ss / st, np.radians(THETA_DEG), n=n_walk, seed=11, **lamp)
         L.append(r)
         E.append(e)
     return {"theta": THETA_DEG.tolist(), "L": np.array(L).T.tolist(), "err": np.array(E).T.tolist()}
@@ -218,6 +229,13 @@ def findings(results: dict) -> str:
         out.append(f"* **The point light** (20 mm from the surface): lit cap {_c3(pt['cap']['mean'], False)}, "
                    f"terminator band {_c3(pt['terminator']['mean'], False)}; its geometric terminator lies at "
                    "70.5 degrees, so the 80-100 degree band is lit only through the volume.")
+    for lamp, what in (("spot light", "its cone reaches 36 degrees from the pole"),
+                       ("disk light", "points up to 80 degrees from the pole see part of the disk")):
+        r = rows.get((lamp, best, "incidence"))
+        if r:
+            out.append(f"* **The {lamp}** ({what}): lit cap {_c3(r['cap']['mean'], False)} of the walk, profile RMS "
+                       f"{_c3(r['profile']['rms'])}; the same pattern, since the boundary source lights only "
+                       "where the lamp reaches the surface.")
     return "\n".join(out)
 
 
@@ -239,7 +257,7 @@ def main(argv=None) -> int:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
     t0 = time.perf_counter()
-    refs = {lamp: reference(20_000 if a.quick else a.walk_paths, point) for lamp, (_, point) in LAMPS.items()}
+    refs = {lamp: reference(20_000 if a.quick else a.walk_paths, kw) for lamp, (_, kw) in LAMPS.items()}
     results = {"date": time.strftime("%Y-%m-%d"), "commit": commit, "walk_s": time.perf_counter() - t0,
                "reference": refs, "rows": []}
     with tempfile.TemporaryDirectory() as tmp:

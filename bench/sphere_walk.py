@@ -121,7 +121,17 @@ def sphere_walk(radius_mfp: float, albedo: float, eta: float, n: int = 200_000, 
     return WalkResult(radiance=score.sum(axis=0) / n, stderr=float(per_path.std() / np.sqrt(n)), n_paths=n)
 
 
+def spot_mask(cos_angle, size: float, blend: float) -> np.ndarray:
+    """Blender's spot cone (its manual and Cycles' spot attenuation without the cosine, which the
+    engine's ``scene.lights.spot_falloff`` also leaves out): 0 outside half the Spot Size, a smoothstep
+    over the Spot Blend's share of ``1 - cos(size / 2)`` inside the edge."""
+    cos_half = np.cos(0.5 * size)
+    t = np.clip((np.asarray(cos_angle) - cos_half) / max(blend * (1.0 - cos_half), 1e-12), 0.0, 1.0)
+    return np.where(np.asarray(cos_angle) >= cos_half, t * t * (3.0 - 2.0 * t), 0.0)
+
+
 def sphere_lamp_walk(radius_mm: float, sigma_t: float, albedo: float, theta, *, point_mm: float | None = None,
+                     spot: tuple | None = None, disk_mm: float | None = None,
                      n: int = 100_000, seed: int = 1, max_events: int = 100_000) -> tuple:
     """Radiance leaving an index-matched sphere (eta = 1: no boundary at all) of radius ``radius_mm``
     (extinction ``sigma_t`` per mm, single-scattering albedo ``albedo``) lit by one lamp on the +z axis and
@@ -129,7 +139,10 @@ def sphere_lamp_walk(radius_mm: float, sigma_t: float, albedo: float, theta, *, 
     from the lit pole; returns ``(radiance, standard error)`` per angle, W/(m^2 sr).
 
     The lamp: a sun of irradiance 1 W/m^2 from +z (``point_mm`` None), or a point light of intensity
-    1 W/sr at ``(0, 0, point_mm)`` (irradiance 1/d^2, d in metres).
+    1 W/sr at ``(0, 0, point_mm)`` (irradiance 1/d^2, d in metres); with ``spot`` = (size, blend) in
+    radians that point light is a spot pointing down -z (:func:`spot_mask`); with ``disk_mm`` it is a
+    Lambertian disk of that radius centred there, facing -z, of radiance 1/(pi r^2) (intensity 1 W/sr
+    along its normal), sampled at one point per collision.
 
     The adjoint walk of :func:`sphere_walk` with next-event estimation: from the viewed point the path runs
     in along the normal; at every collision the weight takes the albedo and scores the lamp's light
@@ -171,9 +184,18 @@ def sphere_lamp_walk(radius_mm: float, sigma_t: float, albedo: float, theta, *, 
             if lamp is None:
                 u_l, E = np.tile([0.0, 0.0, 1.0], (len(x), 1)), 1.0
             else:
-                v = lamp - x
+                target = lamp
+                if disk_mm is not None:  # a uniform point on the disk
+                    rr = disk_mm * np.sqrt(rng.random(len(x)))
+                    ph = rng.uniform(0.0, 2.0 * np.pi, len(x))
+                    target = lamp + np.stack([rr * np.cos(ph), rr * np.sin(ph), np.zeros(len(x))], axis=1)
+                v = target - x
                 dist = np.linalg.norm(v, axis=1)
                 u_l, E = v / dist[:, None], 1.0 / (dist * 1e-3) ** 2
+                if spot is not None:
+                    E = E * spot_mask(u_l[:, 2], *spot)  # the axis is -z: cos = (x - lamp).(-z)/|.| = u_l.z
+                if disk_mm is not None:
+                    E = E * u_l[:, 2]  # the emitter's cosine (its normal -z); radiance x area = 1 W/sr
             bl = np.einsum("ij,ij->i", x, u_l)
             cl = np.einsum("ij,ij->i", x, x) - R * R
             d_l = -bl + np.sqrt(np.maximum(bl * bl - cl, 0.0))  # to the boundary towards the lamp
