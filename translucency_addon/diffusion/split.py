@@ -493,15 +493,22 @@ class HalfSpaceSplit:
         isotropic output (eq. 4; the beams' shapes weighted by the source each feeds) and the single-scattering
         radiance (eq. 2 for the diffuse part, eq. 6 for each beam).
 
-        With beams, per vertex of a render mesh: the lookups of :meth:`source_factor`,
-        :meth:`beam_source_factor`, :meth:`multiple_shape` and :meth:`beam_multiple_shape` share their grid
-        indices here, as gathers from the flattened tables (the four calls took 0.9 s for 655 k vertices;
-        ``tests/test_scattering_split.py`` checks this against them)."""
+        Per vertex of a render mesh this is the split's output cost, so with beams the lookups of
+        :meth:`source_factor`, :meth:`beam_source_factor` and :meth:`beam_multiple_shape` run only where a
+        lamp's light arrives, sharing their grid indices, as gathers from the flattened tables (the
+        per-term calls took 0.9 s for 655 k vertices; ``tests/test_scattering_split.py`` checks this
+        against them)."""
         q_d, q_b, mu = self._parts(q, beam)
+        shape = self.multiple_shape(alpha, cos_o)
+        single = self.single_radiance(q_d, alpha, cos_o)
         if q_b is None:
-            return self.multiple_shape(alpha, cos_o), self.single_radiance(q_d, alpha, cos_o)
-        a = np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0)
-        c = np.asarray(cos_o, dtype=np.float64)
+            return shape, single
+        lit = np.flatnonzero(q_b.max(axis=1) > 0)  # where a lamp's light arrives
+        if lit.size == 0:
+            return shape, single
+        a = np.clip(np.asarray(alpha, dtype=np.float64)[lit], 0.0, 1.0)
+        c = np.asarray(cos_o, dtype=np.float64)[lit]
+        qd, qb, mu = q_d[lit], q_b[lit], np.asarray(mu)[lit]
         u = np.sqrt(1.0 - a)
         n_a, NT, NB, NM = len(self.alpha_grid), N_TRANSPORT_ALPHA, N_BEAM, N_SHAPE_M
         fa = (1.0 - u) * (n_a - 1)  # the fine alpha grid: uniform in sqrt(1 - alpha), descending
@@ -519,10 +526,6 @@ class HalfSpaceSplit:
         b = ia * NB + k
         m_b = ((1.0 - ta) * ((1.0 - tk) * Mb[b] + tk * Mb[b + 1])
                + ta * ((1.0 - tk) * Mb[b + NB] + tk * Mb[b + NB + 1]))
-        Sd = self.shape_table.ravel()
-        b = it * NM + j
-        c_d = ((1.0 - tt) * ((1.0 - tm) * Sd[b] + tm * Sd[b + 1])
-               + tt * ((1.0 - tm) * Sd[b + NM] + tm * Sd[b + NM + 1]))
         Sb = self.beam_shape_table.ravel()
         b = (it * NB + k) * NM + j
         c_b = 0.0
@@ -530,13 +533,13 @@ class HalfSpaceSplit:
             for dk, wk in ((0, 1.0 - tk), (NM, tk)):
                 bb = b + (di + dk)
                 c_b = c_b + wi * wk * ((1.0 - tm) * Sb[bb] + tm * Sb[bb + 1])
-        facing = (c > 0)[:, None]
-        c_d = np.where(facing, c_d, 1.0)
-        c_b = np.where(facing, c_b, 1.0)
-        w_d, w_b = m_d * q_d, m_b * q_b
+        c_d = shape[lit]
+        c_b = np.where((c > 0)[:, None], c_b, 1.0)
+        w_d, w_b = m_d * qd, m_b * qb
         w = w_d + w_b
-        shape = np.where(w > 0, (w_d * c_d + w_b * c_b) / np.where(w > 0, w, 1.0), c_d)
-        return shape, self.single_radiance(q_d, a, c) + self.beam_single_radiance(q_b, a, c, mu)
+        shape[lit] = np.where(w > 0, (w_d * c_d + w_b * c_b) / np.where(w > 0, w, 1.0), c_d)
+        single[lit] += self.beam_single_radiance(qb, a, c, mu)
+        return shape, single
 
 
 TRANSPORT_FORMAT = 2  # bump when _transport's grids or rule change: kept tables of another format are ignored
