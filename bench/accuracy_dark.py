@@ -25,8 +25,6 @@ the orders) on two shared CPU cores.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import sys
 import tempfile
@@ -39,6 +37,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from bench.bench_io import cli, commit, write_section  # noqa: E402
 from bench.sphere_walk import sphere_walk  # noqa: E402
 
 HEADING = "## Media where diffusion fails (issue 30): a dark sphere and an albedo sweep\n"
@@ -47,25 +46,15 @@ DARK = [(0.2, 1.3), (0.2, 1.0)]
 SWEEP = [0.1, 0.2, 0.3, 0.4, 0.45, 0.49, 0.51, 0.55, 0.6, 0.7, 0.8, 0.9]
 
 
-def _cli(args) -> None:
-    from translucency_addon.__main__ import main
-
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
-        rc = main([str(a) for a in args])
-    if rc:
-        raise RuntimeError(f"translucency_addon {' '.join(map(str, args))} failed ({rc}):\n{out.getvalue()[-2000:]}")
-
-
 def run_case(work: Path, mesh: Path, albedo: float, eta: float, n_walk: int) -> dict:
     a, b = albedo, 1.0 - albedo
     material = ["--sigma-s", f"{a},{a},{a}", "--sigma-a", f"{b},{b},{b}", "--eta", repr(eta)]
     cache = work / f"sphere_{a}_{eta}.npz"
     t0 = time.perf_counter()
-    _cli(["bake", mesh, "-o", cache, "--single-scattering", *material])
+    cli(["bake", mesh, "-o", cache, "--single-scattering", *material])
     t_bake = time.perf_counter() - t0
     out, ss_out, stats = work / "L.npy", work / "ss.npy", work / "stats.json"
-    _cli(["solve", cache, "-o", out, *material, "--env", "1,1,1", "--ss-output", ss_out, "--stats", stats])
+    cli(["solve", cache, "-o", out, *material, "--env", "1,1,1", "--ss-output", ss_out, "--stats", stats])
     st = json.loads(stats.read_text())
     L = np.load(out)[:, 0].astype(np.float64)
     ss = np.load(ss_out)[:, 0].astype(np.float64) if st["single_scattering"]["enabled"] else np.zeros_like(L)
@@ -164,14 +153,11 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.from_json:
         results = json.loads((ROOT / "bench" / "data" / "dark_results.json").read_text())
-        return _write(results, "python -m bench.accuracy_dark" + (f" --out {a.out}" if a.out else ""), a.out)
-    import subprocess
-
+        command = "python -m bench.accuracy_dark" + (f" --out {a.out}" if a.out else "")
+        return write_section(markdown(results, command), HEADING, a.out)
     from translucency_addon.geometry import meshio, primitives
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip()
-    results = {"date": time.strftime("%Y-%m-%d"), "commit": commit, "dark": [], "sweep": []}
+    results = {"date": time.strftime("%Y-%m-%d"), "commit": commit(), "dark": [], "sweep": []}
     n_walk = 50_000 if a.quick else a.walk_paths
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -192,19 +178,7 @@ def main(argv=None) -> int:
     (ROOT / "bench" / "data").mkdir(exist_ok=True)
     if not a.quick:
         (ROOT / "bench" / "data" / "dark_results.json").write_text(json.dumps(results, indent=1) + "\n")
-    return _write(results, command, a.out)
-
-
-def _write(results: dict, command: str, out_path) -> int:
-    text = markdown(results, command)
-    print(text)
-    if out_path:
-        from bench.accuracy_text import replace_section
-
-        out = Path(out_path)
-        old = out.read_text() if out.exists() else ""
-        out.write_text(replace_section(old, HEADING, text[len(HEADING):]))
-    return 0
+    return write_section(markdown(results, command), HEADING, a.out)
 
 
 if __name__ == "__main__":

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import io
 import json
 import sys
 import tempfile
@@ -45,6 +44,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from bench.bench_io import cli, commit, write_section  # noqa: E402
 from bench.sphere_walk import sphere_lamp_walk  # noqa: E402
 
 HEADING = "## Lamps (issue 31): an index-matched skin sphere under a sun, point, spot and disk light, pole to pole\n"
@@ -78,16 +78,6 @@ def diffuse_tables_for_lamps():
         lights.LampBeams.add = add
 
 
-def _cli(args) -> None:
-    from translucency_addon.__main__ import main
-
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
-        rc = main([str(a) for a in args])
-    if rc:
-        raise RuntimeError(f"translucency_addon {' '.join(map(str, args))} failed ({rc}):\n{out.getvalue()[-2000:]}")
-
-
 def reference(n_walk: int, lamp: dict) -> dict:
     """The walk's radiance and standard error per channel on ``THETA_DEG`` (``lamp``: its keywords)."""
     L, E = [], []
@@ -119,7 +109,7 @@ def run_quality(work: Path, mesh: Path, quality: str, refs: dict) -> list:
     material = ["--material", "skin1", "--eta", "1.0"]
     cache = work / f"sphere_{quality}.npz"
     t0 = time.perf_counter()
-    _cli(["bake", mesh, "-o", cache, "--quality", quality])
+    cli(["bake", mesh, "-o", cache, "--quality", quality])
     t_bake = time.perf_counter() - t0
     half_space_split(1.0)  # the split's tables once, before any frame is timed
     V, _ = meshio.load_obj(mesh)
@@ -130,7 +120,7 @@ def run_quality(work: Path, mesh: Path, quality: str, refs: dict) -> list:
                            ("diffuse tables for the lamp too (before)", diffuse_tables_for_lamps())):
             out, stats = work / "L.npy", work / "stats.json"
             with ctx:
-                _cli(["solve", cache, "-o", out, *material, *args, "--stats", stats])
+                cli(["solve", cache, "-o", out, *material, *args, "--stats", stats])
             st = json.loads(stats.read_text())
             L = np.load(out).astype(np.float64)
             rows.append({"lamp": lamp, "quality": quality, "split": label, "bake_s": t_bake,
@@ -249,16 +239,13 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.from_json:
         results = json.loads((ROOT / "bench" / "data" / "sun_results.json").read_text())
-        return _write(results, "python -m bench.accuracy_sun" + (f" --out {a.out}" if a.out else ""), a.out)
-    import subprocess
-
+        command = "python -m bench.accuracy_sun" + (f" --out {a.out}" if a.out else "")
+        return write_section(markdown(results, command), HEADING, a.out)
     from translucency_addon.geometry import meshio, primitives
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip()
     t0 = time.perf_counter()
     refs = {lamp: reference(20_000 if a.quick else a.walk_paths, kw) for lamp, (_, kw) in LAMPS.items()}
-    results = {"date": time.strftime("%Y-%m-%d"), "commit": commit, "walk_s": time.perf_counter() - t0,
+    results = {"date": time.strftime("%Y-%m-%d"), "commit": commit(), "walk_s": time.perf_counter() - t0,
                "reference": refs, "rows": []}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -271,19 +258,7 @@ def main(argv=None) -> int:
     if not a.quick:
         (ROOT / "bench" / "data").mkdir(exist_ok=True)
         (ROOT / "bench" / "data" / "sun_results.json").write_text(json.dumps(results, indent=1) + "\n")
-    return _write(results, command, a.out)
-
-
-def _write(results: dict, command: str, out_path) -> int:
-    text = markdown(results, command)
-    print(text)
-    if out_path:
-        from bench.accuracy_text import replace_section
-
-        out = Path(out_path)
-        old = out.read_text() if out.exists() else ""
-        out.write_text(replace_section(old, HEADING, text[len(HEADING):]))
-    return 0
+    return write_section(markdown(results, command), HEADING, a.out)
 
 
 if __name__ == "__main__":

@@ -40,6 +40,14 @@ def fresnel_unpolarised(cos_i, eta_i: float, eta_t: float) -> np.ndarray:
     return np.where(tir, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
+def to_boundary(p: np.ndarray, d: np.ndarray, R: float) -> np.ndarray:
+    """Distance from points ``p`` inside the sphere of radius ``R`` (centred at 0) along unit ``d`` to its
+    surface: the larger root of ``|p + t d| = R``."""
+    b = np.einsum("ij,ij->i", p, d)
+    c = np.einsum("ij,ij->i", p, p) - R * R
+    return -b + np.sqrt(np.maximum(b * b - c, 0.0))
+
+
 @dataclass
 class WalkResult:
     """Radiance towards the camera by order (rows: 0, 1, ..., the last row that order and above) and by
@@ -87,10 +95,7 @@ def sphere_walk(radius_mfp: float, albedo: float, eta: float, n: int = 200_000, 
         idx = np.flatnonzero(alive)
         if idx.size == 0:
             break
-        pi, di = p[idx], d[idx]
-        b = np.einsum("ij,ij->i", pi, di)
-        c = np.einsum("ij,ij->i", pi, pi) - R * R
-        t_out = -b + np.sqrt(np.maximum(b * b - c, 0.0))
+        t_out = to_boundary(p[idx], d[idx], R)
         s = -np.log(rng.random(idx.size))
         coll = s < t_out
         ic, ib = idx[coll], idx[~coll]
@@ -170,10 +175,7 @@ def sphere_lamp_walk(radius_mm: float, sigma_t: float, albedo: float, theta, *, 
             idx = np.flatnonzero(alive)
             if idx.size == 0:
                 break
-            pi, di = p[idx], d[idx]
-            b = np.einsum("ij,ij->i", pi, di)
-            c = np.einsum("ij,ij->i", pi, pi) - R * R
-            t_out = -b + np.sqrt(np.maximum(b * b - c, 0.0))
+            t_out = to_boundary(p[idx], d[idx], R)
             s = -np.log(rng.random(idx.size)) / st
             coll = s < t_out
             alive[idx[~coll]] = False  # left the sphere: a black world
@@ -196,9 +198,7 @@ def sphere_lamp_walk(radius_mm: float, sigma_t: float, albedo: float, theta, *, 
                     E = E * spot_mask(u_l[:, 2], *spot)  # the axis is -z: cos = (x - lamp).(-z)/|.| = u_l.z
                 if disk_mm is not None:
                     E = E * u_l[:, 2]  # the emitter's cosine (its normal -z); radiance x area = 1 W/sr
-            bl = np.einsum("ij,ij->i", x, u_l)
-            cl = np.einsum("ij,ij->i", x, x) - R * R
-            d_l = -bl + np.sqrt(np.maximum(bl * bl - cl, 0.0))  # to the boundary towards the lamp
+            d_l = to_boundary(x, u_l, R)  # to the boundary towards the lamp
             score[ic] += w[ic] * E * np.exp(-st * d_l) / (4.0 * np.pi)
             u = rng.uniform(-1.0, 1.0, ic.size)
             phi = rng.uniform(0.0, 2.0 * np.pi, ic.size)

@@ -349,6 +349,17 @@ class HalfSpaceSplit:
         """m(alpha): the diffusion's boundary source is m q when the single-scattering term runs."""
         return self._lookup(self.m_table, alpha)
 
+    def _shape_index(self, alpha, cos_o) -> tuple:
+        """The tables of eq. (4)'s shape over (sqrt(1 - alpha), m): index and weight in alpha, (n, 3) each,
+        and in the inside cosine m of the exit, (n, 1) each; ``alpha`` (n, 3), ``cos_o`` (n,) outside."""
+        a = np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0)
+        m = refracted_cosine(np.clip(np.asarray(cos_o, dtype=np.float64), 0.0, 1.0), self.eta)
+        fu = np.sqrt(1.0 - a) * (N_TRANSPORT_ALPHA - 1)
+        i = np.minimum(fu.astype(np.int64), N_TRANSPORT_ALPHA - 2)
+        fm = np.clip(m, 0.0, 1.0) * (N_SHAPE_M - 1)
+        j = np.minimum(fm.astype(np.int64), N_SHAPE_M - 2)[:, None]
+        return i, fu - i, j, fm[:, None] - j
+
     def multiple_shape(self, alpha, cos_o) -> np.ndarray:
         """c of eq. (4): the factor on the isotropic output ``F_t J+/(pi eta^2)`` that gives the diffusion's
         light the direction of multiple scattering, at equal power.
@@ -356,15 +367,8 @@ class HalfSpaceSplit:
         ``alpha`` (n, 3); ``cos_o`` (n,) outside cosine to the viewer.  Bilinear in (sqrt(1 - alpha), m);
         1 where the point faces away (the output is zero there anyway).
         """
-        a = np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0)
         c = np.asarray(cos_o, dtype=np.float64)
-        m = refracted_cosine(np.clip(c, 0.0, 1.0), self.eta)
-        fu = np.sqrt(1.0 - a) * (N_TRANSPORT_ALPHA - 1)
-        i = np.minimum(fu.astype(np.int64), N_TRANSPORT_ALPHA - 2)
-        tu = fu - i
-        fm = np.clip(m, 0.0, 1.0) * (N_SHAPE_M - 1)
-        j = np.minimum(fm.astype(np.int64), N_SHAPE_M - 2)[:, None]
-        tm = (fm - j[:, 0])[:, None]
+        i, tu, j, tm = self._shape_index(alpha, c)
         T = self.shape_table
         lo = (1 - tm) * T[i, j] + tm * T[i, j + 1]
         hi = (1 - tm) * T[i + 1, j] + tm * T[i + 1, j + 1]
@@ -434,16 +438,9 @@ class HalfSpaceSplit:
     def beam_multiple_shape(self, alpha, cos_o, mu) -> np.ndarray:
         """c of eq. (4) for the light a beam at outside cosine ``mu`` sends out after two or more
         scatterings, seen at outside cosine ``cos_o``: trilinear in (sqrt(1 - alpha), mu, m)."""
-        a = np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0)
         c = np.asarray(cos_o, dtype=np.float64)
-        m = refracted_cosine(np.clip(c, 0.0, 1.0), self.eta)
-        fu = np.sqrt(1.0 - a) * (N_TRANSPORT_ALPHA - 1)
-        i = np.minimum(fu.astype(np.int64), N_TRANSPORT_ALPHA - 2)
-        tu = fu - i
+        i, tu, j, tm = self._shape_index(alpha, c)
         k, tk = self._beam_weights(mu)
-        fm = np.clip(m, 0.0, 1.0) * (N_SHAPE_M - 1)
-        j = np.minimum(fm.astype(np.int64), N_SHAPE_M - 2)[:, None]
-        tm = (fm - j[:, 0])[:, None]
         T = self.beam_shape_table
         out = 0.0
         for di, wi in ((0, 1.0 - tu), (1, tu)):
@@ -509,18 +506,12 @@ class HalfSpaceSplit:
         a = np.clip(np.asarray(alpha, dtype=np.float64)[lit], 0.0, 1.0)
         c = np.asarray(cos_o, dtype=np.float64)[lit]
         qd, qb, mu = q_d[lit], q_b[lit], np.asarray(mu)[lit]
-        u = np.sqrt(1.0 - a)
-        n_a, NT, NB, NM = len(self.alpha_grid), N_TRANSPORT_ALPHA, N_BEAM, N_SHAPE_M
-        fa = (1.0 - u) * (n_a - 1)  # the fine alpha grid: uniform in sqrt(1 - alpha), descending
+        n_a, NB, NM = len(self.alpha_grid), N_BEAM, N_SHAPE_M
+        fa = (1.0 - np.sqrt(1.0 - a)) * (n_a - 1)  # the fine alpha grid: uniform in sqrt(1 - alpha), descending
         ia = np.minimum(fa.astype(np.int64), n_a - 2)
         ta = fa - ia
-        ft = u * (NT - 1)  # the transport grid: uniform in sqrt(1 - alpha), ascending
-        it = np.minimum(ft.astype(np.int64), NT - 2)
-        tt = ft - it
+        it, tt, j, tm = self._shape_index(a, c)  # the transport grid, ascending in sqrt(1 - alpha)
         k, tk = self._beam_weights(mu)
-        fm = np.clip(refracted_cosine(np.clip(c, 0.0, 1.0), self.eta), 0.0, 1.0) * (NM - 1)
-        j = np.minimum(fm.astype(np.int64), NM - 2)[:, None]
-        tm = fm[:, None] - j
         m_d = (1.0 - ta) * self.m_table[ia] + ta * self.m_table[ia + 1]
         Mb = self.m_beam_table.ravel()
         b = ia * NB + k
