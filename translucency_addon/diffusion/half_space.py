@@ -113,10 +113,16 @@ class HalfSpaceTransport:
         m = np.asarray(m, dtype=np.float64)[None, :]
         return np.exp(-self.edges[:-1, None] / m) - np.exp(-self.edges[1:, None] / m)
 
-    def solve(self, alpha: float, phi0: np.ndarray) -> np.ndarray:
-        """phi_s of (1) for one alpha, (cells, distributions)."""
+    def solve(self, alpha: float, phi0: np.ndarray, K_phi0: np.ndarray | None = None) -> np.ndarray:
+        """phi_s of (1) for one alpha, (cells, distributions); ``K_phi0``: ``K @ phi0`` when the caller
+        solves several alphas for the same entering light (it does not depend on alpha)."""
         lu = linalg.lu_factor(np.eye(len(self.z)) - alpha * self.K)
-        return linalg.lu_solve(lu, alpha * (self.K @ phi0))
+        return linalg.lu_solve(lu, alpha * (self.K @ phi0 if K_phi0 is None else K_phi0))
+
+    def exitance_weights(self) -> np.ndarray:
+        """v (cells,) with :meth:`exitance` = ``alpha v . phi``: (2) integrated over the Fresnel part of the
+        exit cosines (below m_c nothing leaves)."""
+        return 0.5 * (self.escape(self.mf) @ (self.wf * self.t_f * self.mf))
 
     def exitance(self, alpha: float, phi) -> np.ndarray:
         """Power leaving per unit q (distributions,) from the emission ``alpha phi/(4 pi)`` by (2)."""

@@ -310,13 +310,14 @@ class HalfSpaceSplit:
             ht = HalfSpaceTransport(self.eta, lambda m: inside_transmittance(m, self.eta),
                                     depth_grid(h0=0.002 * f, growth=1.0 + 0.06 * f, h_max=1.0 * f))
             phi0 = ht.uncollided(nu, P)
-            esc = ht.escape(m_eval)
-            M = np.zeros((len(alpha), D))
-            L = np.zeros((len(alpha), D, len(m_eval)))
+            K_phi0 = ht.K @ phi0  # the same for every alpha
+            phi_s = np.zeros((len(alpha), len(ht.z), D))
             for i in np.flatnonzero(solved):
-                phi_s = ht.solve(alpha[i], phi0)
-                M[i] = ht.exitance(alpha[i], phi_s)
-                L[i] = alpha[i] / (4.0 * np.pi) * (esc.T @ phi_s).T
+                phi_s[i] = ht.solve(alpha[i], phi0, K_phi0)
+            # every alpha's exitance and eq. (4)'s radiance at once (one product each, not one per alpha:
+            # small multi-column products per alpha cost more in BLAS threading than they compute)
+            M = alpha[:, None] * np.einsum("c,acd->ad", ht.exitance_weights(), phi_s)
+            L = alpha[:, None, None] / (4.0 * np.pi) * np.einsum("cm,acd->adm", ht.escape(m_eval), phi_s)
             runs.append((M, L))
         M = (4.0 * runs[0][0] - runs[1][0]) / 3.0
         L = (4.0 * runs[0][1] - runs[1][1]) / 3.0
