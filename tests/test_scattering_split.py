@@ -301,3 +301,32 @@ def test_output_terms_with_beams_are_the_per_term_lookups(eta):
     np.testing.assert_allclose(single, split.single_radiance(qd, a, cos_o)
                                + split.beam_single_radiance(qb, a, cos_o, mu), rtol=1e-12, atol=0)
     np.testing.assert_array_equal(split.output_terms(q, a, cos_o, None)[0], cd)  # no lamps: the diffuse tables
+
+
+def test_a_solve_splits_each_lamps_light_by_its_incidence():
+    """The pipeline end to end (issue 31, item 1): the light pass hands the split the incidence each surface
+    node sees its lamp at (n . the direction to the sun), and the diffusion's source is eq. (6)'s at that
+    incidence, not the diffuse light's -- a light pass that reported normal incidence everywhere (as one
+    version of this change did) or the diffuse tables both fail here."""
+    from translucency_addon.diffusion import solver as dmod
+    from translucency_addon.geometry import primitives
+    from translucency_addon.quadgraph import bake as bake_mod
+    from translucency_addon.scene.lights import Light
+    from translucency_addon.scene.materials import material_from_preset
+
+    V, F = primitives.icosphere(1.0, 3)
+    bk = bake_mod.bake_mesh(V, F, bake_mod.BakeSettings(quality="draft", levels=2, base_triangles=200,
+                                                        mm_per_unit=10.0))
+    s = dmod.DiffusionSolver(bk, material_from_preset("skin1"), options=dmod.SolveOptions(single_scattering=True))
+    d = np.array([0.3, -0.2, -1.0])
+    r = s.solve([Light("sun", irradiance=1000.0, direction=tuple(d))])
+    q_beam, mu = r.beams[-1]
+    lit = q_beam.mean(axis=1) > 0
+    assert lit.sum() > 50
+    n = bk.levels[-1].normal
+    np.testing.assert_allclose(mu[lit], np.clip(n[lit] @ (-d / np.linalg.norm(d)), 0.0, 1.0), rtol=0, atol=1e-12)
+    split = half_space_split(s.eta)
+    alpha, q_in = s.surface_albedo[-1][lit], r.q_incident[-1][lit]
+    np.testing.assert_allclose(r.q[-1][lit], split.beam_source_factor(alpha, mu[lit]) * q_in, rtol=1e-12)
+    diffuse = split.source_factor(alpha) * q_in
+    assert np.abs(r.q[-1][lit] - diffuse).max() > 0.02 * np.abs(diffuse).max()

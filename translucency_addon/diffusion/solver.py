@@ -313,17 +313,17 @@ class DiffusionSolver:
         for i in want:
             lv = self.bake.levels[i]
             lamp = LampBeams.zeros(len(lv.normal)) if beams is not None else None
-            if beams is not None:
-                beams[i] = lamp.parts()
             if sky is None:
                 out[i] = incident_flux(lights, environment, lv.surface_position, lv.normal, self.eta,
                                        self.bake.mm_per_unit, visibility=vis, beams=lamp)
-                continue
-            q = incident_flux(lights, None, lv.surface_position, lv.normal, self.eta, self.bake.mm_per_unit,
-                              visibility=vis, beams=lamp)
-            env = environment if environment is not None and not environment.is_black else None
-            q_env = environment_flux(env, lv.normal, self.eta) if env is not None else None
-            out[i] = q + sky.correct(i, lv.normal, self.eta, q_env, env, bounce)
+            else:
+                q = incident_flux(lights, None, lv.surface_position, lv.normal, self.eta, self.bake.mm_per_unit,
+                                  visibility=vis, beams=lamp)
+                env = environment if environment is not None and not environment.is_black else None
+                q_env = environment_flux(env, lv.normal, self.eta) if env is not None else None
+                out[i] = q + sky.correct(i, lv.normal, self.eta, q_env, env, bounce)
+            if beams is not None:  # once every lamp is in: the incidence cosine is their q-weighted mean
+                beams[i] = lamp.parts()
         return out
 
     def shadow_offset(self) -> float:
