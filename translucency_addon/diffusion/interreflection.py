@@ -364,8 +364,8 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
     ``coarser``: the next coarser level's solution, or None; ``warm_start``: a previous result the
     driver can start from (its ``first_pass`` starts phi0, when it has one), or None; ``beam``: the
     lamps' part of ``q_light`` and their incidence cosines, ``(q_beam, mu)`` or None: the direct light's
-    source follows their incidence (eq. 6 of :mod:`.split`), the bounce's is diffuse light's.  (H of (1'),
-    the bounce's share of single scattering, stays the diffuse light's: a second-order term.)
+    source, its once-scattered light the bounce sends back (H q) and phi0's shape follow their incidence
+    (eq. 6 of :mod:`.split`, :class:`DirectLight`); the bounce's own light is diffuse light.
     """
     opts = solver.options
     fine = len(solver.bake.levels) - 1
@@ -385,10 +385,7 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
     x, info = yield from relay(steps, lambda get: lambda: _bounced_partial(system, qd, get(), C, cols, fine, partial,
                                                                            direct))
     phi0, phi1 = x[:, :C], x[:, C:]
-    qb = system.bounce(phi0[base.level.n_inner:], qd, direct)
-    m_dir = None if direct is None else direct.m
-    q_tot = qd + qb  # the light that entered, the bounce included
-    q_dif = system.source(qd, m_dir) + system.source(qb)  # the diffusion's source (m q_tot with the split)
+    q_dif, q_tot = _entered(system, phi0, qd, direct)
     info = LevelSolve(info.iterations, np.maximum(info.residual[:C], info.residual[C:]), info.history,
                       info.seconds, note="")
     phi1, info = solver.checked_level(fine, base, q_dif, base.rhs(q_dif), phi1, info)
@@ -398,10 +395,15 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
                       first_pass=full(phi0, cols), info=info)
 
 
+def _entered(system, phi0, qd, direct=None) -> tuple:
+    """``(the diffusion's source, the light that entered)`` of (1), the bounce phi0 sends included: the
+    direct light ``qd`` split as ``direct`` says (m q with the split), the bounce's as diffuse light."""
+    qb = system.bounce(phi0[system.base.level.n_inner:], qd, direct)
+    return system.source(qd, None if direct is None else direct.m) + system.source(qb), qd + qb
+
+
 def _bounced_partial(system, qd, x, C, cols, fine, partial, direct=None):
     """The solve so far from the block iterate ``x`` = [phi0 | phi1]: phi1, with the bounce phi0 sends."""
-    phi0, phi1 = x[:, :C], x[:, C:]
-    qb = system.bounce(phi0[system.base.level.n_inner:], qd, direct)
-    m_dir = None if direct is None else direct.m
+    q_dif, q_tot = _entered(system, x[:, :C], qd, direct)
     full = kernels.in_channels
-    return partial(fine, phi1, full(system.source(qd, m_dir) + system.source(qb), cols), full(qd + qb, cols))
+    return partial(fine, x[:, C:], full(q_dif, cols), full(q_tot, cols))

@@ -128,7 +128,7 @@ from ..scene.fresnel import diffuse_reflectance_internal
 from .graph import SolverInput
 from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, chebyshev_steps, drain, energy_imbalance,
                         outside_maximum_principle, relay, solve_chebyshev, solve_direct)
-from ..scene.lights import LampBeams, environment_flux, incident_flux, shadow_visibility
+from ..scene.lights import LampBeams, environment_flux, incident_flux, shadow_visibility, weighted_cosine
 from ..scene.materials import Material
 from .radiance import clamp_scale, outgoing_radiance
 from .split import albedo, half_space_split
@@ -529,8 +529,7 @@ class DiffusionSolver:
             qb = np.asarray(beam[0])[idx]
             qb_v = np.einsum("vk,vkc->vc", w, qb)
             mu_q = np.einsum("vk,vk->v", w, qb.mean(axis=2) * np.asarray(beam[1])[idx])
-            wq = qb_v.mean(axis=1)
-            beam = (qb_v, np.where(wq > 0, mu_q / np.where(wq > 0, wq, 1.0), 1.0))
+            beam = (qb_v, weighted_cosine(mu_q, qb_v.mean(axis=1)))
         return q_v, a_v, beam
 
     def solve_interreflected(self, lights=(), environment=None, **kw) -> tuple:
@@ -772,8 +771,6 @@ def _sum_beams(a, b):
     (qa, ma), (qb, mb) = a[-1], b[-1]
     q = np.asarray(qa) + np.asarray(qb)
     wa, wb = np.asarray(qa).mean(axis=1), np.asarray(qb).mean(axis=1)
-    w = wa + wb
-    mu = np.where(w > 0, (wa * ma + wb * mb) / np.where(w > 0, w, 1.0), 1.0)
     out = list(a)
-    out[-1] = (q, mu)
+    out[-1] = (q, weighted_cosine(wa * ma + wb * mb, wa + wb))
     return out

@@ -415,16 +415,36 @@ class HalfSpaceSplit:
         k = np.minimum(fm.astype(np.int64), N_BEAM - 2)
         return k[:, None], (fm - k)[:, None]
 
-    def _lookup_beam(self, table, alpha, mu) -> np.ndarray:
-        """Bilinear in (sqrt(1 - alpha), mu) of a (alpha grid, N_BEAM) table; alpha (n, C), mu (n,)."""
+    def _alpha_index(self, alpha) -> tuple:
+        """Index and weight of ``alpha`` (n, C) on the fine alpha grid (uniform in sqrt(1 - alpha), descending)."""
         n_a = len(self.alpha_grid)
         fu = (1.0 - np.sqrt(1.0 - np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0))) * (n_a - 1)
         i = np.minimum(fu.astype(np.int64), n_a - 2)
-        tu = fu - i
-        k, tk = self._beam_weights(mu)
-        lo = (1.0 - tk) * table[i, k] + tk * table[i, k + 1]
-        hi = (1.0 - tk) * table[i + 1, k] + tk * table[i + 1, k + 1]
-        return (1.0 - tu) * lo + tu * hi
+        return i, fu - i
+
+    @staticmethod
+    def _beam_bilinear(table, i, tu, k, tk) -> np.ndarray:
+        """A (alpha grid, N_BEAM) table at alpha index/weight ``i, tu`` (n, C) and incidence ``k, tk`` (n, 1),
+        gathered from the flattened table."""
+        T, nb = table.ravel(), table.shape[1]
+        b = i * nb + k
+        return (1.0 - tu) * ((1.0 - tk) * T[b] + tk * T[b + 1]) + tu * ((1.0 - tk) * T[b + nb] + tk * T[b + nb + 1])
+
+    def _beam_shape(self, i, tu, k, tk, j, tm) -> np.ndarray:
+        """Eq. (6)'s shape table, trilinear: alpha ``i, tu`` (n, C) on the transport grid, incidence ``k, tk``
+        and exit cosine ``j, tm`` (n, 1), gathered from the flattened table."""
+        T, nb, nm = self.beam_shape_table.ravel(), N_BEAM, N_SHAPE_M
+        b = (i * nb + k) * nm + j
+        out = 0.0
+        for di, wi in ((0, 1.0 - tu), (nb * nm, tu)):
+            for dk, wk in ((0, 1.0 - tk), (nm, tk)):
+                bb = b + (di + dk)
+                out = out + wi * wk * ((1.0 - tm) * T[bb] + tm * T[bb + 1])
+        return out
+
+    def _lookup_beam(self, table, alpha, mu) -> np.ndarray:
+        """Bilinear in (sqrt(1 - alpha), mu) of a (alpha grid, N_BEAM) table; alpha (n, C), mu (n,)."""
+        return self._beam_bilinear(table, *self._alpha_index(alpha), *self._beam_weights(mu))
 
     def beam_single_escape(self, alpha, mu) -> np.ndarray:
         """s of a beam entering at outside cosine ``mu`` (n,): ``alpha/2 int T_in(m) m/(m + nu) dm`` (eq. 6)."""
@@ -441,12 +461,7 @@ class HalfSpaceSplit:
         scatterings, seen at outside cosine ``cos_o``: trilinear in (sqrt(1 - alpha), mu, m)."""
         c = np.asarray(cos_o, dtype=np.float64)
         i, tu, j, tm = self._shape_index(alpha, c)
-        k, tk = self._beam_weights(mu)
-        T = self.beam_shape_table
-        out = 0.0
-        for di, wi in ((0, 1.0 - tu), (1, tu)):
-            for dk, wk in ((0, 1.0 - tk), (1, tk)):
-                out = out + wi * wk * ((1.0 - tm) * T[i + di, k + dk, j] + tm * T[i + di, k + dk, j + 1])
+        out = self._beam_shape(i, tu, *self._beam_weights(mu), j, tm)
         return np.where((c > 0)[:, None], out, 1.0)
 
     def beam_single_radiance(self, q, alpha, cos_o, mu) -> np.ndarray:
@@ -507,26 +522,13 @@ class HalfSpaceSplit:
         a = np.clip(np.asarray(alpha, dtype=np.float64)[lit], 0.0, 1.0)
         c = np.asarray(cos_o, dtype=np.float64)[lit]
         qd, qb, mu = q_d[lit], q_b[lit], np.asarray(mu)[lit]
-        n_a, NB, NM = len(self.alpha_grid), N_BEAM, N_SHAPE_M
-        fa = (1.0 - np.sqrt(1.0 - a)) * (n_a - 1)  # the fine alpha grid: uniform in sqrt(1 - alpha), descending
-        ia = np.minimum(fa.astype(np.int64), n_a - 2)
-        ta = fa - ia
+        ia, ta = self._alpha_index(a)
         it, tt, j, tm = self._shape_index(a, c)  # the transport grid, ascending in sqrt(1 - alpha)
         k, tk = self._beam_weights(mu)
         m_d = (1.0 - ta) * self.m_table[ia] + ta * self.m_table[ia + 1]
-        Mb = self.m_beam_table.ravel()
-        b = ia * NB + k
-        m_b = ((1.0 - ta) * ((1.0 - tk) * Mb[b] + tk * Mb[b + 1])
-               + ta * ((1.0 - tk) * Mb[b + NB] + tk * Mb[b + NB + 1]))
-        Sb = self.beam_shape_table.ravel()
-        b = (it * NB + k) * NM + j
-        c_b = 0.0
-        for di, wi in ((0, 1.0 - tt), (NB * NM, tt)):
-            for dk, wk in ((0, 1.0 - tk), (NM, tk)):
-                bb = b + (di + dk)
-                c_b = c_b + wi * wk * ((1.0 - tm) * Sb[bb] + tm * Sb[bb + 1])
+        m_b = self._beam_bilinear(self.m_beam_table, ia, ta, k, tk)
         c_d = shape[lit]
-        c_b = np.where((c > 0)[:, None], c_b, 1.0)
+        c_b = np.where((c > 0)[:, None], self._beam_shape(it, tt, k, tk, j, tm), 1.0)
         w_d, w_b = m_d * qd, m_b * qb
         w = w_d + w_b
         shape[lit] = np.where(w > 0, (w_d * c_d + w_b * c_b) / np.where(w > 0, w, 1.0), c_d)

@@ -317,6 +317,13 @@ def light_irradiance(light: Light, points: np.ndarray, mm_per_unit: float):
     return I, to_light, dist
 
 
+def weighted_cosine(mu_q, q_mean) -> np.ndarray:
+    """The lamps' q-weighted mean incidence cosine from its weighted sum ``mu_q`` and the weight ``q_mean``
+    (their q, mean over the channels); 1 where no lamp's light arrives."""
+    lit = q_mean > 0
+    return np.where(lit, mu_q / np.where(lit, q_mean, 1.0), 1.0)
+
+
 @dataclass
 class LampBeams:
     """The part of q that came from lamps, (n, 3), and ``mu_q`` (n,): the sum over lamps of each one's q
@@ -337,8 +344,7 @@ class LampBeams:
     @property
     def mu(self) -> np.ndarray:
         """The lamps' q-weighted mean outside incidence cosine per point (1 where no lamp lights it)."""
-        w = self.q.mean(axis=1)
-        return np.where(w > 0, self.mu_q / np.where(w > 0, w, 1.0), 1.0)
+        return weighted_cosine(self.mu_q, self.q.mean(axis=1))
 
     def parts(self) -> tuple:
         """``(q_beam, mu)``: the form ``diffusion.split.HalfSpaceSplit`` takes."""
@@ -396,10 +402,10 @@ def incident_flux(
                 else:
                     cos_i = np.einsum("ij,ij->i", n, to_light)
                     lit = (cos_i > 0) & shadow_free
-                w = np.where(lit, cos_i * fresnel_transmittance(cos_i, eta), 0.0)
-                q += E * w[:, None]
+                dq = E * np.where(lit, cos_i * fresnel_transmittance(cos_i, eta), 0.0)[:, None]
+                q += dq
                 if beams is not None:
-                    beams.add(E * w[:, None], cos_i)
+                    beams.add(dq, cos_i)
     if environment is not None and not environment.is_black:
         q += environment_flux(environment, n, eta)
     return q
