@@ -37,12 +37,13 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.bench_io import cli, commit, write_section  # noqa: E402
+from bench.bench_io import cli, command, commit, load_results, save_results, sphere_obj, write_section  # noqa: E402
 from bench.sphere_walk import sphere_walk  # noqa: E402
 
 HEADING = "## Media where diffusion fails (issue 30): a dark sphere and an albedo sweep\n"
 RADIUS_MM = 5.0
 DARK = [(0.2, 1.3), (0.2, 1.0)]
+RESULTS = "dark_results.json"  # in bench/data
 SWEEP = [0.1, 0.2, 0.3, 0.4, 0.45, 0.49, 0.51, 0.55, 0.6, 0.7, 0.8, 0.9]
 
 
@@ -152,18 +153,12 @@ def main(argv=None) -> int:
                     help="rewrite the section from bench/data/dark_results.json without running")
     a = ap.parse_args(argv)
     if a.from_json:
-        results = json.loads((ROOT / "bench" / "data" / "dark_results.json").read_text())
-        command = "python -m bench.accuracy_dark" + (f" --out {a.out}" if a.out else "")
-        return write_section(markdown(results, command), HEADING, a.out)
-    from translucency_addon.geometry import meshio, primitives
-
+        return write_section(markdown(load_results(RESULTS), command("accuracy_dark", out=a.out)), HEADING, a.out)
     results = {"date": time.strftime("%Y-%m-%d"), "commit": commit(), "dark": [], "sweep": []}
     n_walk = 50_000 if a.quick else a.walk_paths
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        mesh = work / "sphere.obj"
-        V, F = primitives.icosphere(RADIUS_MM, 4)
-        meshio.save_obj(mesh, V, F)
+        mesh = sphere_obj(work, RADIUS_MM)
         for albedo, eta in DARK:
             results["dark"].append(run_case(work, mesh, albedo, eta, n_walk))
             print(results["dark"][-1], file=sys.stderr)
@@ -173,12 +168,9 @@ def main(argv=None) -> int:
             results["sweep"].append(run_case(work, mesh, albedo, 1.3, n_walk))
             print(results["sweep"][-1], file=sys.stderr)
     results["sweep"].sort(key=lambda r: r["albedo"])
-    command = "python -m bench.accuracy_dark" + (" --quick" if a.quick else "") + (
-        f" --out {a.out}" if a.out else "")
-    (ROOT / "bench" / "data").mkdir(exist_ok=True)
     if not a.quick:
-        (ROOT / "bench" / "data" / "dark_results.json").write_text(json.dumps(results, indent=1) + "\n")
-    return write_section(markdown(results, command), HEADING, a.out)
+        save_results(RESULTS, results)
+    return write_section(markdown(results, command("accuracy_dark", a.quick, a.out)), HEADING, a.out)
 
 
 if __name__ == "__main__":

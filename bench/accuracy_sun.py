@@ -44,13 +44,14 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.bench_io import cli, commit, write_section  # noqa: E402
+from bench.bench_io import cli, command, commit, load_results, save_results, sphere_obj, write_section  # noqa: E402
 from bench.sphere_walk import sphere_lamp_walk  # noqa: E402
 
 HEADING = "## Lamps (issue 31): an index-matched skin sphere under a sun, point, spot and disk light, pole to pole\n"
 RADIUS_MM = 10.0
 SIGMA_A = (0.032, 0.17, 0.48)  # skin1, per mm
 SIGMA_S = (0.74, 0.88, 1.01)
+RESULTS = "sun_results.json"  # in bench/data
 THETA_DEG = np.arange(0.0, 180.1, 5.0)
 POINT_MM = 30.0  # the point, spot and disk lights' distance from the centre, on +z
 SPOT_DEG, SPOT_BLEND, DISK_MM = 30.0, 0.3, 5.0
@@ -238,27 +239,19 @@ def main(argv=None) -> int:
                     help="rewrite the section from bench/data/sun_results.json without running")
     a = ap.parse_args(argv)
     if a.from_json:
-        results = json.loads((ROOT / "bench" / "data" / "sun_results.json").read_text())
-        command = "python -m bench.accuracy_sun" + (f" --out {a.out}" if a.out else "")
-        return write_section(markdown(results, command), HEADING, a.out)
-    from translucency_addon.geometry import meshio, primitives
-
+        return write_section(markdown(load_results(RESULTS), command("accuracy_sun", out=a.out)), HEADING, a.out)
     t0 = time.perf_counter()
     refs = {lamp: reference(20_000 if a.quick else a.walk_paths, kw) for lamp, (_, kw) in LAMPS.items()}
     results = {"date": time.strftime("%Y-%m-%d"), "commit": commit(), "walk_s": time.perf_counter() - t0,
                "reference": refs, "rows": []}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        mesh = work / "sphere.obj"
-        V, F = primitives.icosphere(RADIUS_MM, 4)
-        meshio.save_obj(mesh, V, F)
+        mesh = sphere_obj(work, RADIUS_MM)
         for quality in ("preview",) if a.quick else ("preview", "final"):
             results["rows"] += run_quality(work, mesh, quality, refs)
-    command = "python -m bench.accuracy_sun" + (" --quick" if a.quick else "") + (f" --out {a.out}" if a.out else "")
     if not a.quick:
-        (ROOT / "bench" / "data").mkdir(exist_ok=True)
-        (ROOT / "bench" / "data" / "sun_results.json").write_text(json.dumps(results, indent=1) + "\n")
-    return write_section(markdown(results, command), HEADING, a.out)
+        save_results(RESULTS, results)
+    return write_section(markdown(results, command("accuracy_sun", a.quick, a.out)), HEADING, a.out)
 
 
 if __name__ == "__main__":

@@ -39,6 +39,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from bench.bench_io import write_file  # noqa: E402
 
 SPACING_MM = 0.5
 STAGES = ("cells", "light pass", "warm solve", "output")
@@ -386,10 +387,7 @@ def main(argv=None):
             f"**Target** (issue 34): cells + warm solve + output <= {TARGET_MS:.0f} ms per frame at "
             f"{TARGET_N:,} particles on 2 CPU cores: {got:,.0f} ms, {verdict}. {PAPER}.\n\n"
             f"{targets_text(results, sums)}\n\n{paths_text(paths)}\n\n{profile(results, sums)}\n\n{extras_text(extra['tol'], extra['sampling'], TARGET_N)}\n\n{NOTES}\n")
-    print(text)
-    if a.out:
-        Path(a.out).write_text(text)
-    return 0
+    return write_file(text, a.out)
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from bench.bench_io import write_file  # noqa: E402
 BAKES = ROOT / "bench" / "out" / "accuracy_bakes"
 TARGET_MS = 40.0  # issue 33: first image after a light move, any quality
 
@@ -115,10 +116,7 @@ def main(argv=None) -> int:
             "sweeps' layout and carried to the vertices, ~20 ms at Final), up to 0.25 s: the viewport redraws "
             "4-30 times a second while the image refines, and the progressive frame converges in 1.1-1.7x "
             "the blocking frame's time (timings on these shared cores vary by ~20 % from run to run).\n")
-    print(text)
-    if a.out:
-        Path(a.out).write_text(text)
-    return 0
+    return write_file(text, a.out)
 
 
 if __name__ == "__main__":

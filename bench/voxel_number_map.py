@@ -33,6 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+from bench.bench_io import write_file  # noqa: E402
 
 from bench import inner_parts_scenes as scenes  # noqa: E402
 from translucency_addon.scene.lights import Light  # noqa: E402
@@ -207,9 +208,7 @@ def main(argv=None):
                   table(["surface voxels", "kernel ms (GLSL)", "BLAS ms (same x)", "max rel. error"], rows), ""]
     lines += [f"Load average at the end {load()}.", ""]
     text = "\n".join(lines)
-    print(text)
-    if a.out:
-        Path(a.out).write_text(text)
+    write_file(text, a.out)
 
 
 if __name__ == "__main__":
