@@ -234,9 +234,10 @@ def section(res: dict) -> str:
          "Our solve runs every term, as the add-on runs marble (the first-scatter split, "
          "`diffusion/split.py`; until 2098aba this bench solved diffusion alone, which gave the "
          "near sphere 6.7 % and the near bunny 9.3 %, converged). Under a lamp the split follows the "
-         "incidence of its light at each surface node (eq. 6 there, issue 31; until 412760d it used the diffuse "
+         "incidence of its light at each surface node (eq. 6 there, issue 31; before 412760d it used the diffuse "
          "light's tables for every light, which gave the near sphere 5.8 %, the near bunny 9.1 %, the far "
-         "sphere 4.0 % and the square 4.3 %, converged). The first frame of the first scene includes the "
+         "sphere 4.0 % and the square 4.3 %, converged; from 412760d to fe6a6be the light pass handed it "
+         "normal incidence everywhere). The first frame of the first scene includes the "
          "split's tables for eta 1.3 (the transport solves, cold process).", "",
          "| scene | reference light <-> engine light | reference spp (batches), s | our solve | first frame ms "
          "| error | noise floor | debiased | R, G, B | 2x2 binned: error / floor / debiased "
