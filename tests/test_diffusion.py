@@ -360,3 +360,28 @@ def test_first_residual_check_with_a_zero_tolerance():
     k = first_check(np.array([1.0]), 1e-4, np.array([1.01]), 8)
     need = np.arccosh(1e4) / np.arccosh(1.01)
     assert k % 8 == 0 and 0.5 * need - 8 < k <= 0.5 * need
+
+
+def test_the_vertex_map_is_one_sparse_product_equal_to_the_gather():
+    """``radiance.map_to_points`` (one CSR product over every array a frame maps) against the per-slot gather
+    it replaced, on a map with padded slots (weight 0) and a node named twice in one row; the operator is
+    built once per map and rebuilt for another."""
+    from translucency_addon.diffusion import radiance
+
+    rng = np.random.default_rng(3)
+    n_nodes, n, k = 50, 400, 6
+    idx = rng.integers(0, n_nodes, (n, k)).astype(np.int32)
+    idx[:, 1] = idx[:, 0]  # twice in each row
+    w = rng.random((n, k)).astype(np.float32)
+    w[:, -1] = 0.0  # a padded slot
+    a, b = rng.random((n_nodes, 3)), rng.random(n_nodes)
+    got_a, got_b = radiance.map_to_points(idx, w, a, b)
+    w64 = w.astype(np.float64)
+    np.testing.assert_allclose(got_a, np.einsum("vk,vkc->vc", w64, a[idx]), rtol=1e-14, atol=0)
+    np.testing.assert_allclose(got_b, np.einsum("vk,vk->v", w64, b[idx]), rtol=1e-14, atol=0)
+    assert got_b.shape == (n,)
+    assert radiance.mapping_operator(idx, w, n_nodes) is radiance.mapping_operator(idx, w, n_nodes)
+    w2 = w.copy()
+    w2[:, 0] = 0.0
+    (got2,) = radiance.map_to_points(idx, w2, a)
+    np.testing.assert_allclose(got2, np.einsum("vk,vkc->vc", w2.astype(np.float64), a[idx]), rtol=1e-14, atol=0)

@@ -54,3 +54,48 @@ def outgoing_radiance(jplus: np.ndarray, cos_o, eta: float) -> np.ndarray:
     ft = fresnel_transmittance(np.clip(cos_o, 0.0, 1.0), eta)
     ft = np.where(np.asarray(cos_o) > 0, ft, 0.0)
     return jplus * (ft / (np.pi * eta * eta))[:, None]
+
+
+def mapping_operator(idx, w, n_nodes: int):
+    """The vertex map ``y_v = sum_k w_vk x[idx_vk]`` as one CSR matrix (n_points x n_nodes), cached per map.
+
+    ``idx``/``w`` (n_points, K): the vertex map's form (``Bake.vertex_map``, a fluid's surface map); padded
+    slots carry weight 0.  Built straight from the arrays (row v holds its K entries in slot order, so the
+    product sums them in the order the per-slot gather did), and kept for the arrays' lifetime: a frame
+    maps several node arrays through the same map, every frame.  One compiled product over all of them
+    (:func:`map_to_points`) replaces a gather of (n_points, K, C) per array: at 655 k vertices the output's
+    interpolations took 0.47 s as gathers and einsums.
+    """
+    import scipy.sparse as sp
+
+    key = (id(idx), id(w), int(n_nodes))
+    hit = _MAPS.get(key)
+    if hit is not None and hit[0] is idx and hit[1] is w:
+        return hit[2]
+    i = np.asarray(idx)
+    n, k = i.shape
+    data = np.ascontiguousarray(np.asarray(w, dtype=np.float64).reshape(-1))
+    ind = np.ascontiguousarray(i.reshape(-1), dtype=np.int64 if n_nodes >= 2**31 else np.int32)
+    ptr = np.arange(0, n * k + 1, k, dtype=np.int64 if n * k >= 2**31 else np.int32)
+    op = sp.csr_matrix((data, ind, ptr), shape=(n, int(n_nodes)), copy=False)
+    if len(_MAPS) >= 8:
+        _MAPS.pop(next(iter(_MAPS)))
+    _MAPS[key] = (idx, w, op)  # the arrays are kept so their ids cannot be reused while cached
+    return op
+
+
+def map_to_points(idx, w, *node_arrays) -> list:
+    """Each of ``node_arrays`` ((n_nodes,) or (n_nodes, C)) carried to the points of the map ``idx``/``w``,
+    by one sparse product over all their columns (:func:`mapping_operator`)."""
+    n_nodes = len(node_arrays[0])
+    cols = [np.asarray(a, dtype=np.float64).reshape(n_nodes, -1) for a in node_arrays]
+    out = mapping_operator(idx, w, n_nodes) @ (cols[0] if len(cols) == 1 else np.hstack(cols))
+    res, j = [], 0
+    for a, c in zip(node_arrays, cols):
+        m = out[:, j:j + c.shape[1]]
+        res.append(m[:, 0] if np.ndim(a) == 1 else m)
+        j += c.shape[1]
+    return res
+
+
+_MAPS: dict = {}  # (id(idx), id(w), n_nodes) -> (idx, w, CSR)

@@ -130,7 +130,7 @@ from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, chebyshev_ste
                         outside_maximum_principle, relay, solve_chebyshev, solve_direct)
 from ..scene.lights import LampBeams, environment_flux, incident_flux, shadow_visibility, weighted_cosine
 from ..scene.materials import Material
-from .radiance import clamp_scale, outgoing_radiance
+from .radiance import clamp_scale, map_to_points, outgoing_radiance
 from .split import albedo, half_space_split
 
 SOLVERS = ("fast", "paper", "direct", "jacobi")
@@ -521,16 +521,13 @@ class DiffusionSolver:
         """``(q, alpha, beam)`` of the finest surface nodes mapped onto points (``idx``, ``w``: the vertex map's
         form): the entering light and albedo interpolated, and the lamps' part ``(q_beam, mu)`` with its
         incidence cosine weighted by the lamps' q (or None)."""
-        w = np.asarray(w, dtype=np.float64)
-        idx = np.asarray(idx)
-        q_v = np.einsum("vk,vkc->vc", w, np.asarray(q_incident)[idx])
-        a_v = np.einsum("vk,vkc->vc", w, self.surface_albedo[-1][idx])
-        if beam is not None:
-            qb = np.asarray(beam[0])[idx]
-            qb_v = np.einsum("vk,vkc->vc", w, qb)
-            mu_q = np.einsum("vk,vk->v", w, qb.mean(axis=2) * np.asarray(beam[1])[idx])
-            beam = (qb_v, weighted_cosine(mu_q, qb_v.mean(axis=1)))
-        return q_v, a_v, beam
+        if beam is None:
+            q_v, a_v = map_to_points(idx, w, q_incident, self.surface_albedo[-1])
+            return q_v, a_v, None
+        qb = np.asarray(beam[0])
+        q_v, a_v, qb_v, mu_q = map_to_points(idx, w, q_incident, self.surface_albedo[-1], qb,
+                                             qb.mean(axis=1) * np.asarray(beam[1]))
+        return q_v, a_v, (qb_v, weighted_cosine(mu_q, qb_v.mean(axis=1)))
 
     def solve_interreflected(self, lights=(), environment=None, **kw) -> tuple:
         """Solve, then solve again ``bounces`` times with the object's own radiance as ``bounce``:
@@ -723,8 +720,7 @@ class DiffusionSolver:
         :func:`.bake.vertex_mapping` for another vertex set, such as a mesh
         before its modifiers); ``normals`` (n, 3); ``view_dirs`` as above.
         """
-        jplus = self.surface_partial_current(result)
-        j_v = np.einsum("vk,vkc->vc", np.asarray(w, dtype=np.float64), jplus[np.asarray(idx)])
+        (j_v,) = map_to_points(idx, w, self.surface_partial_current(result))
         n = np.asarray(normals, dtype=np.float64)
         cos_o = np.ones(len(n)) if view_dirs is None else np.einsum("vj,vj->v", n, view_dirs)
         return self.split_radiance_at(result, outgoing_radiance(j_v, cos_o, self.eta), idx, w, normals, view_dirs)
