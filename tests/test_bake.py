@@ -188,6 +188,18 @@ def test_cache_errors(tmp_path):
     np.savez(tree, **arrays)
     with pytest.raises(CacheError, match="triangle tree does not match the mesh .*exactly once.*re-bake"):
         cache.load_bake(tree)
+    # the planner's surface thickness kept with the bake: read back as written, refused when it does not fit
+    kept = cache.load_bake(path).surface_thickness
+    np.testing.assert_array_equal(kept.values, bake.surface_thickness.values)
+    assert kept.digest == bake.surface_thickness.digest
+    t = bake.surface_thickness.values
+    for bad in (t[:-1], np.where(np.arange(bake.finest.n_surface) == 3, np.nan, t)):
+        arrays = cache.bake_to_arrays(bake)
+        arrays["planner/thickness"] = bad
+        thick = tmp_path / "thick.npz"
+        np.savez(thick, **arrays)
+        with pytest.raises(CacheError, match="kept surface thickness does not match the finest level.*re-bake"):
+            cache.load_bake(thick)
     # a pickled object array is refused, never executed
     arrays = cache.bake_to_arrays(bake)
     arrays["L0/position"] = np.array([object()], dtype=object)
@@ -464,3 +476,33 @@ def test_the_cache_keeps_the_transport_tables_of_the_material(tmp_path, monkeypa
     assert not split._KEPT
     monkeypatch.undo()
     split.half_space_split.cache_clear()
+
+
+def test_the_bake_keeps_the_planners_thickness_and_a_pose_drops_it(tmp_path):
+    """The bake measures the finest level's thickness once (a cold frame of a 1.3 M-triangle mesh cast these
+    rays again): it is what the planner measures on the same bake without it, and a cache without it (an
+    older one) or a deformed pose is measured again, not handed the rest pose's."""
+    from dataclasses import replace
+
+    from translucency_addon import planner_facts
+    from translucency_addon.deformation.pose import DeformationRig
+
+    bake = baked("spot")
+    kept = bake.surface_thickness
+    assert kept is not None and kept.values.shape == (bake.finest.n_surface,)
+    assert planner_facts.surface_thickness(bake) is kept.values
+    measured = planner_facts.surface_thickness(replace(bake, surface_thickness=None))
+    np.testing.assert_array_equal(measured, kept.values)
+    # read from a cache into new arrays, it still applies (the digest is the same in every process)
+    loaded = cache.load_bake(cache.save_bake(tmp_path / "spot.npz", bake))
+    assert planner_facts.surface_thickness(loaded) is loaded.surface_thickness.values
+    # a pose squashed along z to half: the kept rest-pose thickness is not used, the pose is measured
+    rig = DeformationRig(bake)
+    V = bake.mesh_vertices * np.array([1.0, 1.0, 0.5])
+    pose = rig.deform(V, refuse_folds=False)
+    assert pose.bake.surface_thickness is None
+    posed = planner_facts.surface_thickness(pose.bake)
+    assert np.median(posed) < 0.8 * np.median(kept.values)
+    # the rest pose's kept values on a bake of other nodes: measured again, not taken
+    other = replace(pose.bake, surface_thickness=kept)
+    assert planner_facts.surface_thickness(other) is not kept.values

@@ -65,6 +65,9 @@ def bake_to_arrays(bake: Bake) -> dict:
     d["mesh/F"] = bake.mesh_faces
     if getattr(bake, "mesh_bvh_order", None) is not None:
         d["mesh/bvh_order"] = np.asarray(bake.mesh_bvh_order, dtype=np.int32)
+    if getattr(bake, "surface_thickness", None) is not None:
+        d["planner/thickness"] = np.asarray(bake.surface_thickness.values, dtype=np.float64)
+        d["planner/thickness_digest"] = np.frombuffer(bake.surface_thickness.digest.encode(), dtype=np.uint8)
     d["mesh/N"] = bake.mesh_normals
     d["shadow/V"] = bake.shadow_vertices
     d["shadow/F"] = bake.shadow_faces
@@ -285,12 +288,23 @@ def load_bake(path, expected_key: str | None = None) -> Bake:
             mm_per_unit=float(meta["mm_per_unit"]), key=meta["key"], stats=meta["stats"],
             single_scattering=ss, sky=sky, voxel_number_map=vnm, composite=comp,
             mesh_bvh_order=arrays.get("mesh/bvh_order"),  # absent in caches written before it was kept
+            surface_thickness=_kept_thickness(arrays),  # likewise: the planner measures it then
         )
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise CacheError(f"bake cache {os.fspath(path)!r} is incomplete or inconsistent: {exc}") from exc
     _check_consistency(bake, path)
     _adopt_split_tables(arrays, path)
     return bake
+
+
+def _kept_thickness(arrays: dict):
+    """The planner's surface thickness the bake kept (``raycast.KeptThickness``), or None (older caches)."""
+    if "planner/thickness" not in arrays:
+        return None
+    from .geometry.raycast import KeptThickness
+
+    digest = bytes(np.asarray(arrays.get("planner/thickness_digest", np.zeros(0, np.uint8)), dtype=np.uint8))
+    return KeptThickness(np.asarray(arrays["planner/thickness"], dtype=np.float64), digest.decode("ascii", "replace"))
 
 
 def _adopt_split_tables(arrays: dict, path) -> None:
@@ -343,5 +357,10 @@ def _check_consistency(bake: Bake, path) -> None:
         except ValueError as exc:
             raise CacheError(f"bake cache {os.fspath(path)!r}: the mesh's triangle tree does not match the mesh "
                              f"({exc}); re-bake the object") from None
+    t = None if bake.surface_thickness is None else np.asarray(bake.surface_thickness.values)
+    if t is not None and (t.shape != (bake.levels[-1].n_surface,) or not np.all(np.isfinite(t)) or np.any(t < 0)):
+        raise CacheError(f"bake cache {os.fspath(path)!r}: the kept surface thickness does not match the finest "
+                         f"level ({t.shape[0] if t.ndim else 0} values for {bake.levels[-1].n_surface} surface "
+                         "nodes, or not finite and >= 0); re-bake the object")
     if bake.sky is not None and [s.n_surface for s in bake.sky.levels] != [lv.n_surface for lv in bake.levels]:
         raise CacheError(f"bake cache {os.fspath(path)!r}: sky visibility does not match the graph")

@@ -416,7 +416,7 @@ class DeformationRig:
         if refuse_folds and not report.valid:
             raise GraphFolded(report.describe(), report)
         bake = replace(self.bake, levels=levels, mesh_vertices=V, mesh_normals=normals, shadow_vertices=Vs,
-                       sky=sky, single_scattering=None, surface_bvh=bvh,
+                       sky=sky, single_scattering=None, surface_bvh=bvh, surface_thickness=None,
                        stats={**self.bake.stats, "deformation": {"worst_stretch": report.worst_stretch}})
         return DeformedPose(bake=bake, report=report, seconds=seconds)
 

@@ -16,6 +16,8 @@ is ``log2(n)`` rounds of vectorised median splits and min/max reductions.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 LEAF = 4
@@ -55,6 +57,52 @@ def _balanced_order(centroids: np.ndarray, n_slots: int) -> np.ndarray:
         perm, xyz = perm[split], xyz[:, split]
         n_nodes *= 2
     return perm
+
+
+def inward_thickness(bvh, V, points, normals) -> np.ndarray:
+    """Local thickness (object units) of a closed mesh at surface ``points`` with outward ``normals``.
+
+    One ray per point along its inward normal, from where it enters the surface to where it leaves
+    again (``bvh``: the mesh's :class:`TriangleBVH`; ``V`` its vertices, for the scale).  A ray that
+    meets no triangle (a grazing ray at an edge or corner, or a hole in an open mesh) takes the median
+    of the rays that did: one lost ray must not make a thin part thick.
+    """
+    V = np.asarray(V, dtype=np.float64)
+    diag = float(np.linalg.norm(np.ptp(V, axis=0)))
+    n = np.asarray(normals, dtype=np.float64)
+    p = np.asarray(points, dtype=np.float64)
+    # Enter from just outside and measure entry to exit: a point that sits a hair outside the mesh
+    # (placement round-off; seen at 3e-5 units on the unit sphere) would otherwise measure ~0.
+    eps = 1e-4 * diag
+    origin = p + eps * n
+    t_in, tri_in, _, _ = bvh.intersect(origin, -n, tmin=1e-7 * diag)
+    entry = origin - np.where(tri_in >= 0, t_in + 1e-6 * diag, eps)[:, None] * n
+    t_out, tri_out, _, _ = bvh.intersect(entry, -n, tmin=1e-7 * diag)
+    hit = (tri_in >= 0) & (tri_out >= 0)
+    t = np.where(hit, t_out + 1e-6 * diag, 0.0)
+    return np.where(hit, t, np.median(t[hit]) if hit.any() else diag)
+
+
+@dataclass
+class KeptThickness:
+    """:func:`inward_thickness` measured once (at bake time) with the :func:`thickness_digest` of what it was
+    measured on, so that a reader can tell whether it still applies."""
+
+    values: np.ndarray
+    digest: str
+
+
+def thickness_digest(V, F, points, normals) -> str:
+    """A digest of a mesh and the points and normals its thickness is measured from, the same in every
+    process (unlike Python's salted ``hash``): ~30 ms for a 1.3 M-triangle mesh."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    for a, dt in ((V, np.float64), (F, np.int64), (points, np.float64), (normals, np.float64)):
+        a = np.ascontiguousarray(a, dtype=dt)
+        h.update(repr(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 def mesh_bvh(V, F, order=None) -> "TriangleBVH":

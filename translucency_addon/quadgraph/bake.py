@@ -34,7 +34,7 @@ from ..geometry import tetra
 from ..errors import BakeCancelled, MeshError
 from ..scene.materials import check_mm_per_unit
 from .levels import BLOCK_SIZE, GraphLevel, build_level
-from ..geometry.raycast import mesh_bvh
+from ..geometry.raycast import KeptThickness, inward_thickness, mesh_bvh, thickness_digest
 
 BAKE_FORMAT = 1
 
@@ -142,6 +142,9 @@ class Bake:
     sky: object | None = None  # sky_visibility.SkyVisibility, when baked (environment self-occlusion)
     surface_bvh: object | None = None  # a prebuilt raycast.TriangleBVH of the mesh (a deformed bake's, refitted)
     mesh_bvh_order: np.ndarray | None = None  # that tree's triangle order (raycast.mesh_bvh), kept in the cache
+    # the finest level's thickness at each surface node (object units), what the planner reads: measured
+    # once and kept in the cache with the digest of the mesh and nodes (raycast.KeptThickness)
+    surface_thickness: object | None = None
     voxel_number_map: object | None = None  # voxel_number_map.VoxelNumberMap, when baked (inner parts)
     composite: object | None = None  # composite_bake.CompositeInfo: inner parts, node labels, cavity exchange
 
@@ -415,7 +418,8 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
     vmap = vertex_mapping(V, normals, levels[-1], s.vertex_map_k)
     bake = Bake(levels=levels, shepard=shepard, vertex_map=vmap, mesh_vertices=V, mesh_faces=F,
                 mesh_normals=normals, shadow_vertices=Vb, shadow_faces=Fb, settings=s,
-                mm_per_unit=float(s.mm_per_unit), key=key, mesh_bvh_order=bvh.leaf_tris.astype(np.int32))
+                mm_per_unit=float(s.mm_per_unit), key=key, mesh_bvh_order=bvh.leaf_tris.astype(np.int32),
+                surface_thickness=kept_thickness(bvh, V, F, levels[-1]))
     if s.sky_directions:
         from ..diffusion.sky_visibility import compute_sky_visibility
 
@@ -437,6 +441,13 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
     }
     stats["graph_bytes"] = bake.graph_bytes()
     return bake
+
+
+def kept_thickness(bvh, V, F, level: GraphLevel) -> KeptThickness:
+    """The planner's thickness of ``level``'s surface nodes (:func:`.raycast.inward_thickness`), measured at
+    bake time with the digest of what it was measured on."""
+    return KeptThickness(inward_thickness(bvh, V, level.surface_position, level.normal),
+                         thickness_digest(V, F, level.surface_position, level.normal))
 
 
 def format_stats(bake: Bake) -> str:
