@@ -40,7 +40,7 @@ from __future__ import annotations
 import time
 import weakref
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -71,6 +71,27 @@ class GPUSolveResult(diffusion.SolveResult):
             return self.phi_surface[level]
         return None
 
+    def plus_finest(self, response: "diffusion.SolveResult") -> "diffusion.SolveResult":
+        """:meth:`diffusion.SolveResult.plus_finest` (the cavity exchange's sum), with the read-back surface
+        values summed too; the sum is no solve's iterate, so it is never resident on the GPU (the output then
+        reads its phi, as the CPU does)."""
+        out = super().plus_finest(response)
+        mine = list(self.phi_surface) if self.phi_surface else []
+        theirs = response.surface_phi(-1) if isinstance(response, GPUSolveResult) else None
+        if mine:
+            mine[-1] = None if mine[-1] is None or theirs is None else mine[-1] + theirs
+        return replace(out, phi_surface=mine, generation=-1)
+
+
+def default_readback(bake) -> str:
+    """``"phi"`` for a bake with a cavity exchange, else ``"surface"``.
+
+    The exchange (``inner_parts/cavity.py``) sums a frame's solution and its wall response on the CPU
+    (``SolveResult.plus_finest``) and reads the solution at the walls after each GMRES step: every solve's
+    finest phi comes back (a few MB per solve).  Elsewhere the frame needs the surface only."""
+    exchange = getattr(getattr(bake, "composite", None), "exchange", None)
+    return "phi" if exchange is not None and exchange.m > 0 else "surface"
+
 
 class GPUDiffusionSolver(diffusion.DiffusionSolver):
     """``DiffusionSolver`` whose linear solves run as compute shaders (Blender ``gpu`` module).
@@ -79,7 +100,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
 
     * ``precision``: ``"fp32"`` (default) or ``"fp16"`` (coefficients, q and
       Shepard weights in RGBA16F; see ``pack.py``);
-    * ``readback``: ``"surface"`` (default), ``"phi"`` or ``"none"``;
+    * ``readback``: ``"surface"``, ``"phi"`` or ``"none"``; by default :func:`default_readback`;
     * ``max_texture_size`` / ``max_layers``: override the device limits
       (tests; levels that do not fit are split into layers or refused with
       :class:`errors.GraphTooLarge`).
@@ -93,9 +114,11 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
     backend = "GPU"
 
     def __init__(self, bake, material, field_values=None, options=None, *, precision: str = "fp32",
-                 readback: str = "surface", max_texture_size: int | None = None, max_layers: int | None = None):
+                 readback: str | None = None, max_texture_size: int | None = None, max_layers: int | None = None):
         if precision not in pack.PRECISIONS:
             raise errors.TranslucencyError(f"unknown GPU precision {precision!r}; choose fp32 or fp16")
+        if readback is None:
+            readback = default_readback(bake)
         if readback not in READBACKS:
             raise errors.TranslucencyError(f"unknown readback {readback!r}; choose one of {', '.join(READBACKS)}")
         self.precision = precision

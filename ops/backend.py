@@ -57,8 +57,7 @@ def off_main_thread() -> bool:
 
 
 def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "fast", off_main: bool | None = None,
-              failed_in_render: str = "", built: bool = False, deformed_nodes: int = 0,
-              cavity_walls: int = 0) -> Placement:
+              failed_in_render: str = "", built: bool = False, deformed_nodes: int = 0) -> Placement:
     """Where a pass of ``kind`` (``"diffusion"``, ``"single scattering"`` or ``"Voxel Number Map"``) may run.
 
     ``prefer``: the scene's Solver setting (AUTO, GPU, CPU); ``solver``: the
@@ -68,7 +67,8 @@ def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "f
     GPU solver exists already (a frame asks whether it may use it), so only
     the rules that change from frame to frame apply (thread, render failure);
     ``deformed_nodes``: the node count of a deformed frame's graph (0: the
-    rest pose); ``cavity_walls``: the wall nodes of the bake's cavity exchange (0: no cavity).
+    rest pose).  A cavity exchange runs on either (the GPU solver reads every solve's phi back for it:
+    ``gpu_shaders.solver.default_readback``).
     """
     prefer = (prefer or "AUTO").upper()
     if prefer == "CPU":
@@ -80,12 +80,6 @@ def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "f
                                 f"and cell volumes of all {deformed_nodes:,} nodes, and the GPU solver packs a "
                                 "graph into textures once per bake (re-packing every pose is not built); the rest "
                                 "pose keeps the Solver setting")
-    if cavity_walls:
-        # Each GMRES step of the exchange (inner_parts/cavity.py) reads the finest level's phi at the wall
-        # and adds two solutions; the GPU solver keeps phi on the GPU and reads back the surface only.
-        return Placement("CPU", f"objects with a cavity solve on the CPU: the cavity exchange between its "
-                                f"{cavity_walls:,} wall nodes reads the whole solution back at every step, which "
-                                "the GPU solver does not (it reads the outer surface only)")
     if off_main is None:
         off_main = off_main_thread()
     if off_main:
@@ -130,9 +124,7 @@ def make_solver(bake, material, field_values, options, prefer: str = "AUTO", *, 
     whatever the backend (the CPU would refuse the same material)."""
     from ..translucency_addon.errors import MaterialError
 
-    exchange = getattr(getattr(bake, "composite", None), "exchange", None)
-    where = placement(prefer, solver=options.solver, off_main=off_main,
-                      cavity_walls=exchange.m if exchange is not None else 0)
+    where = placement(prefer, solver=options.solver, off_main=off_main)
     if where.gpu:
         try:
             from .. import gpu_shaders
