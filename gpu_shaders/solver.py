@@ -112,6 +112,9 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
     """
 
     backend = "GPU"
+    #: a pose of the bake (deformed frames) re-uploads the coefficients only: the links, the transfers and
+    #: the vertex map are the rest pose's (``DiffusionSolver.rebind``, :func:`set_material`)
+    rebinds_poses = True
 
     def __init__(self, bake, material, field_values=None, options=None, *, precision: str = "fp32",
                  readback: str | None = None, max_texture_size: int | None = None, max_layers: int | None = None):

@@ -57,7 +57,7 @@ def off_main_thread() -> bool:
 
 
 def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "fast", off_main: bool | None = None,
-              failed_in_render: str = "", built: bool = False, deformed_nodes: int = 0) -> Placement:
+              failed_in_render: str = "", built: bool = False) -> Placement:
     """Where a pass of ``kind`` (``"diffusion"``, ``"single scattering"`` or ``"Voxel Number Map"``) may run.
 
     ``prefer``: the scene's Solver setting (AUTO, GPU, CPU); ``solver``: the
@@ -65,21 +65,14 @@ def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "f
     (default: the current thread's); ``failed_in_render``: why an earlier GPU
     solve of this object failed in a render ('' when none did); ``built``: the
     GPU solver exists already (a frame asks whether it may use it), so only
-    the rules that change from frame to frame apply (thread, render failure);
-    ``deformed_nodes``: the node count of a deformed frame's graph (0: the
-    rest pose).  A cavity exchange runs on either (the GPU solver reads every solve's phi back for it:
-    ``gpu_shaders.solver.default_readback``).
+    the rules that change from frame to frame apply (thread, render failure).
+    Deformed frames and the cavity exchange run on either: the GPU solver of a pose is rebound to the
+    next pose (``DiffusionSolver.rebind``: new coefficients, the same graph textures), and it reads every
+    solve's phi back for a cavity exchange (``gpu_shaders.solver.default_readback``).
     """
     prefer = (prefer or "AUTO").upper()
     if prefer == "CPU":
         return Placement("CPU")
-    if deformed_nodes:
-        # The GPU solver uploads a bake's links, faces and volumes into textures once (gpu_shaders.pack)
-        # and per frame only q; a pose changes all of them, and its solver is a new one every frame.
-        return Placement("CPU", f"deformed frames solve on the CPU: a pose changes the link lengths, face areas "
-                                f"and cell volumes of all {deformed_nodes:,} nodes, and the GPU solver packs a "
-                                "graph into textures once per bake (re-packing every pose is not built); the rest "
-                                "pose keeps the Solver setting")
     if off_main is None:
         off_main = off_main_thread()
     if off_main:

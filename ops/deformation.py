@@ -17,8 +17,10 @@ object's own solver:
    last valid frame -> radiance at the posed vertices.  Its rig (attachments
    and a factorised stiffness per level, up to a few seconds at Preview) is
    built once per loaded bake, on the first deformed frame, and the log says
-   so.  It runs where :func:`.backend.placement` puts deformed frames (the
-   CPU, and it says why).  Shadows of other objects: one BVH of the posed
+   so.  It runs where :func:`.backend.placement` puts diffusion: on the GPU the
+   first pose's solver is rebound to every next pose (its graph textures stay,
+   the coefficients travel); a GPU solve that fails sends the poses to the CPU,
+   and the log says why.  Shadows of other objects: one BVH of the posed
    object and the occluders, refitted to each pose while the occluders stay
    (a rebuild sorts every triangle again).
 
@@ -69,7 +71,7 @@ def diffuse(st: state.ObjectState, frame: FrameInputs, number: int, solve_sig, f
     the view changed.  Raises the engine's :class:`DeformationError`/:class:`GraphFolded` for a pose it
     refuses, with the frame, the numbers and which result the object keeps.
     """
-    from ..translucency_addon.errors import DeformationError, GraphFolded
+    from ..translucency_addon.errors import DeformationError, GraphFolded, TranslucencyError
 
     d = st.deformation
     d.frame = number
@@ -82,10 +84,22 @@ def diffuse(st: state.ObjectState, frame: FrameInputs, number: int, solve_sig, f
         if not force and last is not None and d.solve_sig == solve_sig:
             d.report, d.refused = last.report, ""
             return _radiance(st, last, frame), last.solver, False, 0.0, last.result
-        out = frames.solve(V, list(frame.lights), frame.environment, frame=number,
-                           view_dirs=view_directions(frame.view, V) if same else None, shadows=True,
-                           occluders=_shadow_bvh(d, V, st.bake.mesh_faces, frame), channels=frame.ms_channels,
-                           single=frame.single_channels)
+        for attempt in (0, 1):
+            try:
+                out = frames.solve(V, list(frame.lights), frame.environment, frame=number,
+                                   view_dirs=view_directions(frame.view, V) if same else None, shadows=True,
+                                   occluders=_shadow_bvh(d, V, st.bake.mesh_faces, frame),
+                                   channels=frame.ms_channels, single=frame.single_channels)
+                break
+            except TranslucencyError:
+                raise
+            except Exception as ex:  # noqa: BLE001 - a GPU failure (e.g. no GPU context): the poses go to the CPU
+                where = backend.after_gpu_failure(ex, rendering=frame.rendering, on_gpu=d.backend == "GPU")
+                if attempt or where is None:
+                    raise
+                d.gpu_failed = where.reason
+                state.log(f"'{st.name}': deformed frames: {where.reason}")
+                frames = _frames(st, frame)
     except DeformationError as ex:
         d.report = ex.report if isinstance(ex, GraphFolded) else None
         d.refused = str(ex)
@@ -121,17 +135,36 @@ def _frames(st: state.ObjectState, frame: FrameInputs):
         d.rig = DeformationRig(bake)
         d.rig_seconds = time.perf_counter() - t0
         state.log(f"'{st.name}': deformation rig built in {d.rig_seconds:.2f} s; deformed frames solve on it")
-    where = backend.placement(frame.prefer, deformed_nodes=bake.levels[-1].n_nodes)
-    d.backend, d.reason = where.backend, where.reason
-    if where.reason:
-        state.log(f"'{st.name}': {where.reason}", once_key=("deformed placement", st.name, where.reason))
-    sig = (round(frame.mm, 9), frame.tolerance)
+    options = frame.solve_options()
+    where = (backend.Placement("CPU", d.gpu_failed) if d.gpu_failed
+             else backend.placement(frame.prefer, solver=options.solver, off_main=frame.off_main))
+    sig = (round(frame.mm, 9), frame.tolerance, where.backend)
     if d.frames is None or d.frames_sig != sig:
-        d.frames = DeformationFrames(bake, frame.material, frame.field_values, frame.solve_options(),
-                                     rig=d.rig.with_scale(frame.mm))
+        d.free()  # the last pose solver's GPU textures, if any
+        d.backend, d.reason = where.backend, where.reason
+        d.frames = DeformationFrames(bake, frame.material, frame.field_values, options, rig=d.rig.with_scale(frame.mm),
+                                     make_solver=_gpu_pose_solver(st, frame) if where.gpu else None)
         d.frames_sig, d.solve_sig = sig, None
+    if d.reason:
+        state.log(f"'{st.name}': deformed frames: {d.reason}", once_key=("deformed placement", st.name, d.reason))
     d.frames.material, d.frames.field_values = frame.material, frame.field_values
     return d.frames
+
+
+def _gpu_pose_solver(st: state.ObjectState, frame: FrameInputs):
+    """The deformed frames' solver maker on the GPU: the first pose's solver, rebound to every next pose
+    (``DiffusionSolver.rebind``); where the GPU solver cannot start, the CPU's, and the reason."""
+    d = st.deformation
+
+    def make(bake, material, field_values, options):
+        solver, name, message = backend.make_solver(bake, material, field_values, options, frame.prefer,
+                                                    off_main=frame.off_main)
+        d.backend, d.reason = name, message if name == "CPU" else ""
+        if name == "CPU":
+            d.gpu_failed = message  # the next frame's frames are the CPU's, and say why
+        return solver
+
+    return make
 
 
 def _shadow_bvh(d: state.DeformationState, V, F, frame: FrameInputs):

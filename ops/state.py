@@ -30,9 +30,17 @@ class DeformationState:
     rig: object | None = None  # translucency_addon.deformation.pose.DeformationRig of the loaded bake
     rig_seconds: float = 0.0
     frames: object | None = None  # translucency_addon.deformation.frames.DeformationFrames at the frame's scale
-    frames_sig: tuple | None = None  # (mm per unit, tolerance) the frames were made for
+    frames_sig: tuple | None = None  # (mm per unit, tolerance, backend) the frames were made for
     backend: str = "CPU"  # where deformed frames solve (ops.backend.placement)
     reason: str = ""  # why not on the GPU
+    gpu_failed: str = ""  # why a GPU solve of a pose failed (then the poses stay on the CPU)
+
+    def free(self) -> None:
+        """Release the pose solver's GPU textures (no-op on the CPU); the frames are made again when needed."""
+        last = getattr(self.frames, "last", None)
+        if last is not None:
+            backend.free_solver(last.solver)
+        self.frames = self.frames_sig = self.solve_sig = None
     frame: int | None = None  # the scene frame of the current pose
     report: object | None = None  # its DeformationReport (None when the pose could not be deformed at all)
     refused: str = ""  # why the current pose was not solved ('' when it was)
@@ -142,6 +150,7 @@ class ObjectState:
         if self.vnm is not None:
             backend.free_solver(self.vnm)  # the evaluator's GPU transmission (no-op on the CPU)
         self.vnm = self.vnm_key = self.vnm_inputs = None
+        self.deformation.free()
         self.deformation = DeformationState()
 
 

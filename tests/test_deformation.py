@@ -272,3 +272,21 @@ def test_cli_solve_deformed(bar, tmp_path):
     wrong = tmp_path / "wrong.obj"
     save_obj(wrong, P[:-1], F[:-2])
     assert main(["solve", str(path), "--deformed", str(wrong), "-o", str(out)]) == 2
+
+
+def test_rebind_takes_a_pose_of_the_same_graph_only(bar):
+    """``DiffusionSolver.rebind`` moves a solver to a pose of its graph: the same systems as a new solver on
+    that pose; a graph with other links is refused with the reason."""
+    V, F, bake, rig = bar
+    marble = material_from_preset("marble")
+    pose = rig.deform(primitives.twist(V, 15.0, along=0))
+    solver = DiffusionSolver(bake, marble)
+    solver.rebind(pose.bake)
+    fresh = DiffusionSolver(pose.bake, marble)
+    for a, b in zip(solver.systems, fresh.systems):
+        assert np.array_equal(a.diag, b.diag) and np.array_equal(a.off, b.off)
+    np.testing.assert_array_equal(solver.vertex_radiance(solver.solve([Light("sun", irradiance=1000.0, direction=SUN)])),
+                                  fresh.vertex_radiance(fresh.solve([Light("sun", irradiance=1000.0, direction=SUN)])))
+    other = bake_mesh(*primitives.box((4.0, 1.0, 1.0), n=(8, 2, 2)), BakeSettings(quality="draft", mm_per_unit=MPU))
+    with pytest.raises(TranslucencyError, match="rebind needs a pose of the same graph"):
+        solver.rebind(other)

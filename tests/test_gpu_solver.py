@@ -548,3 +548,34 @@ def test_the_cavity_exchange_on_the_gpu_matches_the_cpu(tmp_path):
         assert rel_err(gpu.vertex_radiance(rg), cpu.vertex_radiance(rc)) < SOLVE_TOL
         prev_c, prev_g = rc, rg
     gpu.free()
+
+
+@pytest.mark.gpu
+def test_deformed_frames_on_the_gpu_match_the_cpu():
+    """Issue 33, item 4: deformed frames (Wang et al. sec. 6.4) on the GPU solver.  A pose keeps the graph
+    and moves its nodes, so the GPU solver of the first pose is rebound to each next one: its graph textures
+    stay (one upload), the coefficients travel per pose; the radiance of every frame equals the CPU frames'
+    (a fresh CPU solver per pose; the sky's bounce is the CPU's block solve and the GPU's two passes), each
+    warm-started from the last frame."""
+    from translucency_addon.deformation.frames import DeformationFrames
+    from translucency_addon.deformation.pose import DeformationRig
+
+    V, F = primitives.box((4.0, 1.0, 1.0), n=(16, 4, 4))
+    bk = bake_mod.bake_mesh(V, F, bake_mod.BakeSettings(quality="draft", mm_per_unit=10.0, sky_directions=32))
+    mat = materials.material_from_preset("marble")
+    opts = diffusion.SolveOptions(tol=1e-5)
+    rig = DeformationRig(bk)
+    cpu = DeformationFrames(bk, mat, options=opts, rig=rig)
+    gpu = DeformationFrames(bk, mat, options=opts, rig=rig, make_solver=GPUDiffusionSolver)
+    sun = [lights.Light("sun", irradiance=1000.0, direction=(0.3, -1.0, -0.5))]
+    solvers = []
+    for deg in (10.0, 12.0, 14.0):
+        pose = primitives.twist(V, deg, along=0)
+        oc, og = cpu.solve(pose, sun, None), gpu.solve(pose, sun, None)
+        solvers.append(og.solver)
+        assert isinstance(og.solver, GPUDiffusionSolver)
+        assert rel_err(og.radiance, oc.radiance) < SOLVE_TOL
+    assert solvers[0] is solvers[1] is solvers[2]
+    assert solvers[0].uploads["graph"] == 1 and solvers[0].uploads["coefficients"] == 3
+    assert len(og.result.level_solves) == 1  # warm-started: the finest level only, as on the CPU
+    solvers[0].free()

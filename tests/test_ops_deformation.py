@@ -183,6 +183,44 @@ def test_armature_bend_solves_on_the_deformed_graph(blender, addon, cache_dir, m
     assert rel_rms(rest, L_fresh) > 2.0 * rel_rms(posed, L_fresh)  # the rest result shown on the pose is not
 
 
+@pytest.mark.gpu
+def test_deformed_frames_solve_on_the_gpu(blender, addon, cache_dir, memo_bakes):
+    """Solver = GPU (llvmpipe here): the poses solve on the GPU solver (issue 33, item 4), the first pose's
+    solver rebound to the next one (its graph uploaded once), and the attribute is the engine's CPU frames'.
+    A GPU solve that fails sends the poses to the CPU with the reason, and the frame is still solved."""
+    from translucency.ops import live, state, status
+
+    obj, rig = baked_bar()
+    key_bend(rig, 10, 60.0)
+    key_bend(rig, 11, 50.0)
+    scene = bpy.context.scene
+    scene.translucency.solver_backend = 'GPU'
+    scene.frame_set(1)
+    live.flush()
+    scene.frame_set(10)
+    st = state.get_state(obj)
+    d = st.deformation
+    assert d.backend == "GPU" and status.solve_status(obj).backend == "GPU", d.reason
+    first = d.frames.last.solver
+    out, _ = engine_frames(obj, evaluated(obj)[0])
+    assert rel_rms(radiance(obj), out.radiance) < 1e-4
+    scene.frame_set(11)
+    assert d.frames.last.solver is first and first.uploads["graph"] == 1 and first.uploads["coefficients"] >= 2
+    out, _ = engine_frames(obj, evaluated(obj)[0])
+    assert rel_rms(radiance(obj), out.radiance) < 1e-4
+
+    def broken(*_a, **_k):
+        raise SystemError("no GPU context (test)")
+
+    first.solve_systems = broken  # the next pose's GPU solve fails
+    scene.frame_set(10)
+    assert d.backend == "CPU" and "the GPU solve failed (SystemError: no GPU context (test))" in d.reason
+    assert status.solve_status(obj).backend == "CPU" and first.is_freed
+    out, _ = engine_frames(obj, evaluated(obj)[0])
+    assert rel_rms(radiance(obj), out.radiance) < 1e-4
+    scene.translucency.solver_backend = 'AUTO'
+
+
 def test_shape_key_squashes_a_sphere(blender, addon, cache_dir, memo_bakes):
     """A shape key that squashes the icosphere to 70 % of its height (bulging out) is a pose of its bake.
 
@@ -437,7 +475,10 @@ def test_animation_render_follows_the_pose(blender, addon, cache_dir, memo_bakes
     frames = dict(written.frames)
     assert sorted(frames) == [1, 10]
     log = capfd.readouterr().out
-    assert "frame 10: 'Bar' solved on the CPU" in log and "deformed, frame 10: worst link compressed to" in log
+    from translucency.ops import state
+
+    where = state.get_state(obj).deformation.backend  # the GPU when an earlier test started a GPU context
+    assert f"frame 10: 'Bar' solved on the {where}" in log and "deformed, frame 10: worst link compressed to" in log
     for number in (1, 10):  # what each frame's render wrote: the engine's solve of that frame's pose
         scene.frame_set(number)
         V, _ = evaluated(obj)

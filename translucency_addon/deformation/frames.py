@@ -18,7 +18,7 @@ from .pose import STRETCH_LIMIT, DeformationReport, DeformationRig, DeformedPose
 from ..errors import DeformationError, GraphFolded
 
 
-def carry_spectral_bounds(previous, solver) -> None:
+def carry_spectral_bounds(previous_systems, solver) -> None:
     """Start each level's Chebyshev interval from the previous frame's (same bake, other pose).
 
     The upper end is Gershgorin's bound of the new system (cheap and guaranteed); the lower
@@ -29,25 +29,32 @@ def carry_spectral_bounds(previous, solver) -> None:
     """
     from ..diffusion.spectral import gershgorin_upper
 
-    for old, new in zip(previous.systems, solver.systems):
+    for old, new in zip(previous_systems, solver.systems):
         if old.lam_min is not None and new.lam_max is None and old.scheme == new.scheme:
             new.lam_max = gershgorin_upper(new)
             new.lam_min = np.minimum(old.lam_min, 0.5 * new.lam_max)
 
 
-def pose_solver(pose: DeformedPose, material, field_values=None, options=None, previous=None):
+def pose_solver(pose: DeformedPose, material, field_values=None, options=None, previous=None, make_solver=None):
     """The one :class:`~.diffusion.DiffusionSolver`, on the deformed bake.
 
     ``field_values``: the heterogeneity field per level sampled at the **rest** positions
     (the material stays attached to the rest pose, sec. 6.4).  ``previous``: the last
     frame's solver on the same bake (rest or deformed) lends its spectral bounds
-    (:func:`carry_spectral_bounds`).
+    (:func:`carry_spectral_bounds`); a solver that ``rebinds_poses`` (the GPU's: its graph
+    textures stay, only the coefficients travel) is that solver moved to the pose.
+    ``make_solver(bake, material, field_values, options)`` makes a new one (default: the CPU's).
     """
-    from ..diffusion.solver import DiffusionSolver
-
-    solver = DiffusionSolver(pose.bake, material, field_values, options)
+    if previous is not None and getattr(previous, "rebinds_poses", False):
+        before = list(previous.systems)
+        previous.rebind(pose.bake)
+        carry_spectral_bounds(before, previous)
+        return previous
+    if make_solver is None:
+        from ..diffusion.solver import DiffusionSolver as make_solver
+    solver = make_solver(pose.bake, material, field_values, options)
     if previous is not None:
-        carry_spectral_bounds(previous, solver)
+        carry_spectral_bounds(previous.systems, solver)
     return solver
 
 
@@ -80,8 +87,9 @@ class DeformationFrames:
     """
 
     def __init__(self, bake: Bake, material, field_values=None, options=None, *, rig: DeformationRig | None = None,
-                 stretch_limit: float = STRETCH_LIMIT):
+                 stretch_limit: float = STRETCH_LIMIT, make_solver=None):
         self.rig = rig if rig is not None else DeformationRig(bake, stretch_limit)
+        self.make_solver = make_solver  # (bake, material, field_values, options) -> solver; None: the CPU's
         self.material = material
         self.field_values = field_values
         self.options = options
@@ -100,7 +108,7 @@ class DeformationFrames:
         t1 = time.perf_counter()
         last = self.last
         solver = pose_solver(pose, self.material, self.field_values, self.options,
-                             previous=None if last is None else last.solver)
+                             previous=None if last is None else last.solver, make_solver=self.make_solver)
         t2 = time.perf_counter()
         warm = None if last is None else last.result
         if interreflect:

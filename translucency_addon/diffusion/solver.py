@@ -234,9 +234,14 @@ class DiffusionSolver:
         self.set_material(material, field_values)
 
     # -- material ------------------------------------------------------------
+    #: A pose of the bake is handed to :meth:`rebind` rather than to a new solver (the GPU's: its graph
+    #: textures stay, the coefficients are uploaded again); the CPU solver holds nothing a new one would not.
+    rebinds_poses = False
+
     def set_material(self, material: Material, field_values=None) -> None:
         """Sample kappa and mu at every node of every level and assemble the systems."""
         self.material = material
+        self.field_values = field_values
         self.eta = material.eta
         self.fdr = diffuse_reflectance_internal(material.eta)
         levels = self.bake.levels
@@ -251,6 +256,22 @@ class DiffusionSolver:
             sa, ss = node_coefficients(material, fv, lv.n_nodes)
             self.surface_albedo.append(albedo(sa[lv.n_inner:], ss[lv.n_inner:]))
             self.systems.append(assemble(lv, sa, ss, material.eta, self.bake.mm_per_unit, self.options.scheme()))
+
+    def rebind(self, bake: SolverInput) -> None:
+        """This solver on another pose of its bake (Wang et al. sec. 6.4): the same graph -- levels, links,
+        transfers, vertex map -- with moved nodes, so the systems are assembled again from its lengths,
+        areas and volumes with the material and field as they are (attached to the rest pose); what
+        depended on the geometry (the shadow tree, the bounce's operators) is dropped.  The spectral bounds
+        are the caller's to carry (:func:`.deformation.frames.carry_spectral_bounds`)."""
+        old, new = self.bake.levels, bake.levels
+        if len(old) != len(new) or any(a.n_inner != b.n_inner or a.n_surface != b.n_surface
+                                       or not np.array_equal(a.neighbors, b.neighbors) for a, b in zip(old, new)):
+            raise TranslucencyError("rebind needs a pose of the same graph (its levels, nodes and links); "
+                                    "another graph needs a solver of its own")
+        self.bake = bake
+        self._shadow_bvh = bake.surface_bvh
+        self.cache = {}
+        self.set_material(self.material, self.field_values)
 
     # -- lights ----------------------------------------------------------------
     def shadow_bvh(self, occluders=None):
