@@ -96,6 +96,27 @@ def test_absorbing_medium_is_darker_and_ordered_by_absorption():
     assert mb[0] > mb[2]
 
 
+def test_a_render_minus_another_cancels_sample_by_sample():
+    """``render_reference(minus=...)``: the second scene is rendered with the same seeds, so every lane
+    follows the same path in both until they differ.  A scene minus itself is exactly 0 with no noise
+    (an independent subtraction would keep both renders' noise); a dark medium minus the same without
+    scattering (same sigma_t) is its scattered light, the difference of the two plain renders, with less
+    noise than their independent errors add up to."""
+    dark = Material(Medium((0.8, 0.8, 0.8), (0.2, 0.2, 0.2), "dark"), eta=1.3)
+    clear = Material(Medium((1.0, 1.0, 1.0), (0.0, 0.0, 0.0), "clear"), eta=1.3)
+    scene = tiny_sphere(dark, image_res=8, spp=64)
+    same = render_reference(scene, batches=2, minus=scene)
+    assert np.all(same.image == 0.0) and np.all(same.stderr == 0.0) and same.reflection is None
+    no_scattering = tiny_sphere(clear, image_res=8, spp=64)
+    scattered = render_reference(scene, batches=2, minus=no_scattering)
+    P = metrics.comparison_mask(scattered.mask)
+    plain, unscattered = (render_reference(sc, batches=2, reflection_spp_factor=1) for sc in (scene, no_scattering))
+    assert scattered.image[P].mean() > 0.0
+    np.testing.assert_allclose(scattered.image[P].mean(), (plain.image - unscattered.image)[P].mean(), rtol=0.15)
+    independent = np.sqrt(plain.stderr**2 + unscattered.stderr**2)
+    assert scattered.stderr[P].mean() < 0.8 * independent[P].mean()
+
+
 def test_heterogeneous_grid_reduces_to_its_media():
     """A mix with field 0 everywhere renders medium A; field 1 renders medium B (grid path)."""
     A, B = preset("marble"), preset("ketchup")

@@ -417,6 +417,7 @@ def render_reference(
     subtract_reflection: bool = True,
     reflection_spp_factor: int = 8,
     max_depth: int = -1,
+    minus: RefScene | None = None,
     progress=None,
 ) -> RefResult:
     """Path-trace ``scene`` and return the translucency-only image with its noise.
@@ -429,6 +430,17 @@ def render_reference(
     ``subtract_reflection=False`` returns the plain render in ``image``
     (``reflection`` is then None).  ``max_depth`` other than -1 (unlimited)
     is for cross-checks only.
+
+    ``minus``: a scene of the same geometry, camera and extinction whose
+    render is subtracted *sample by sample*: each of its renders takes the
+    same seed and samples per pixel as the matching render of ``scene``, so
+    every Mitsuba lane follows the same path in both until the first event
+    where the two differ.  With ``minus`` = the scene without scattering
+    (sigma_s = 0, the same sigma_t, so the free paths are drawn alike), a
+    lane's difference is exactly the light of its scattered paths: the
+    unscattered light and the surface reflection cancel lane by lane instead
+    of adding their noise (``image`` is then the scattered light, with no
+    absorber render; ``reflection`` is None).
     """
     import mitsuba as mi
 
@@ -455,12 +467,18 @@ def render_reference(
             plain = mi.load_dict(scene_dict(scene, c, variant=variant, ply_path=ply, max_depth=max_depth,
                                             _grid_cache=grid_cache))
             absorb = None
-            if subtract_reflection and not (grey_lights and c > 0):
+            if minus is not None:
+                absorb = mi.load_dict(scene_dict(minus, c, variant=variant, ply_path=ply, max_depth=max_depth,
+                                                 _grid_cache={}))
+                k_refl = 1
+            elif subtract_reflection and not (grey_lights and c > 0):
                 absorb = mi.load_dict(scene_dict(scene, c, absorber=True, variant=variant, ply_path=ply))
             for b in range(batches):
                 seed = (scene.seed * 1_000_003 + c * 10_007 + b * 101 + 1) & 0x7FFFFFFF
                 full[b, ..., c] = _render_channel(mi, plain, spp_batch, seed)
-                if absorb is not None:
+                if minus is not None:  # the same seed: lane by lane the same path until they differ
+                    refl[b, ..., c] = _render_channel(mi, absorb, spp_batch, seed)
+                elif absorb is not None:
                     refl[b, ..., c] = _render_channel(mi, absorb, spp_batch * k_refl, seed ^ 0x5BD1E995)
                 elif subtract_reflection:
                     refl[b, ..., c] = refl[b, ..., 0]
@@ -470,7 +488,8 @@ def render_reference(
     image = diff.mean(axis=0)
     stderr = diff.std(axis=0, ddof=1) / math.sqrt(batches)
     return RefResult(image=image, mask=mask, stderr=stderr, seconds=time.perf_counter() - t0, spp=spp_batch * batches,
-                     reflection=refl.mean(axis=0) if subtract_reflection else None, variant=variant, batches=batches)
+                     reflection=refl.mean(axis=0) if subtract_reflection and minus is None else None, variant=variant,
+                     batches=batches)
 
 
 # --- cache ---------------------------------------------------------------------------
@@ -494,7 +513,8 @@ def scene_key(scene: RefScene, **render_kwargs) -> str:
         else np.asarray(scene.environment.sh, dtype=np.float64).round(12).tolist(),
         "camera": repr(scene.camera), "resolution": scene.resolution, "spp": scene.spp, "seed": scene.seed,
         "smooth": scene.smooth_normals, "grid": scene.grid_resolution, "sphere": repr(scene.analytic_sphere),
-        "render": {k: repr(v) for k, v in sorted(render_kwargs.items())}, "version": 1,
+        "render": {k: scene_key(v) if isinstance(v, RefScene) else repr(v) for k, v in sorted(render_kwargs.items())},
+        "version": 1,
     }
     if scene.emitters:  # added with issue 17: scenes without emitters keep their keys
         desc["emitters"] = [repr(e) for e in scene.emitters]
