@@ -292,6 +292,107 @@ def bench_graph(name: str, args) -> dict:
     return row
 
 
+# ------------------------------------------------------------------ every pass (issue 33, item 4)
+PASSES_HEADING = "## Every pass on the GPU path, per frame (issue 33, item 4)\n"
+
+
+def _frame_costs(fn):
+    """Run ``fn()`` and return (its value, wall seconds, GPU dispatches, bytes uploaded, bytes read back)."""
+    from gpu_shaders import runtime
+
+    before = dict(runtime.STATS)
+    t0 = time.perf_counter()
+    out = fn()
+    dt = time.perf_counter() - t0
+    return (out, dt, runtime.STATS["dispatches"] - before["dispatches"],
+            runtime.STATS["bytes_up"] - before["bytes_up"], runtime.STATS["bytes_down"] - before["bytes_down"])
+
+
+def bench_passes(args) -> list:
+    """The passes a frame runs besides the plain solve, each on the CPU and the GPU solver, the second of two
+    frames (the first builds and warms; the second is what a user's next frame costs): the cavity exchange
+    (a marble cube 20 mm across with a hollow 6 mm in radius, Draft, the sun turned 2 degrees) and a deformed
+    frame (a marble bar 40 x 10 x 10 mm twisted 10 then 12 degrees, Draft, sky visibility, a sun)."""
+    import gpu_shaders
+    from gpu_shaders.solver import GPUDiffusionSolver
+    from translucency_addon import __main__ as cli
+    from translucency_addon.cache import load_bake
+    from translucency_addon.deformation.frames import DeformationFrames
+    from translucency_addon.deformation.pose import DeformationRig
+    from translucency_addon.diffusion import solver as diffusion
+    from translucency_addon.geometry import meshio, primitives
+    from translucency_addon.inner_parts.bake import diffusion_material
+    from translucency_addon.inner_parts.cavity import solve_with_cavities
+    from translucency_addon.quadgraph import bake as bake_mod
+    from translucency_addon.scene import lights, materials
+
+    del gpu_shaders
+    marble = materials.material_from_preset("marble")
+    opts = diffusion.SolveOptions(tol=args.tol)
+    d2 = np.radians(2.0)
+    rot = np.array([[np.cos(d2), -np.sin(d2), 0], [np.sin(d2), np.cos(d2), 0], [0, 0, 1]])
+    suns = [[lights.Light("sun", irradiance=1000.0, direction=tuple(v))]
+            for v in (np.array([-1.0, -0.3, -0.2]), rot @ np.array([-1.0, -0.3, -0.2]))]
+    rows = []
+
+    work = Path(tempfile.mkdtemp(prefix="gpu-passes-"))
+    (Vb, Fb), (Vs, Fs) = primitives.cube_with_sphere(20.0, 6.0, n=8, subdivisions=2)
+    meshio.save_obj(work / "cube.obj", Vb, Fb)
+    meshio.save_obj(work / "hole.obj", Vs, Fs)
+    cli.main(["bake", str(work / "cube.obj"), "--inner", f"{work / 'hole.obj'}:cavity", "--quality", "draft",
+              "--levels", "2", "--material", "marble", "-o", str(work / "cube.npz")])
+    bk = load_bake(work / "cube.npz")
+    mat, field = diffusion_material(marble, bk.composite)
+    out = {}
+    for label, solver in (("CPU", diffusion.DiffusionSolver(bk, mat, field, opts)),
+                          ("GPU", GPUDiffusionSolver(bk, mat, field, opts))):
+        res, info = solve_with_cavities(solver, bk.composite.exchange, suns[0], None, tol=args.tol)
+        (res2, info2), dt, disp, up, down = _frame_costs(lambda: solve_with_cavities(
+            solver, bk.composite.exchange, suns[1], None, tol=args.tol, warm_start=res))
+        L = solver.vertex_radiance(res2)
+        out[label] = dict(seconds=dt, dispatches=disp, up=up, down=down, solves=info2["solves"], L=L)
+        getattr(solver, "free", lambda: None)()
+    rows.append(_pass_row("cavity exchange (cube, hollow)", bk.finest.n_nodes, out))
+
+    V, F = primitives.box((4.0, 1.0, 1.0), n=(16, 4, 4))
+    bar = bake_mod.bake_mesh(V, F, bake_mod.BakeSettings(quality="draft", mm_per_unit=10.0, sky_directions=32))
+    rig = DeformationRig(bar)
+    out = {}
+    for label, make in (("CPU", None), ("GPU", GPUDiffusionSolver)):
+        frames = DeformationFrames(bar, marble, options=opts, rig=rig, make_solver=make)
+        frames.solve(primitives.twist(V, 10.0, along=0), suns[0], None)
+        o, dt, disp, up, down = _frame_costs(lambda: frames.solve(primitives.twist(V, 12.0, along=0), suns[0], None))
+        out[label] = dict(seconds=dt, dispatches=disp, up=up, down=down, solves=1, L=o.radiance)
+        getattr(o.solver, "free", lambda: None)()
+    rows.append(_pass_row("deformed frame (bar, twisted)", bar.finest.n_nodes, out))
+    return rows
+
+
+def _pass_row(name, nodes, out) -> dict:
+    c, g = out["CPU"], out["GPU"]
+    return {"pass": name, "nodes": nodes, "solves": g["solves"], "dispatches": g["dispatches"], "up": g["up"],
+            "down": g["down"], "gpu_ms": 1e3 * g["seconds"], "cpu_ms": 1e3 * c["seconds"],
+            "L_err": float(np.abs(g["L"] - c["L"]).max() / np.abs(c["L"]).max())}
+
+
+def passes_markdown(rows, renderer: str) -> str:
+    soft = "llvmpipe" in renderer.lower() or "softpipe" in renderer.lower()
+    out = [PASSES_HEADING, f"`.venv/bin/python bench/gpu_solve.py --passes --out docs/bench_gpu.md` on **{renderer}**"
+           + (" (Mesa's software rasteriser on the 2 CPU cores: the GPU times are CPU times and say nothing about a "
+              "real GPU; the dispatches, bytes and errors carry over)." if soft else "."), "",
+           "The passes that ran on the CPU only before (the cavity exchange's solves, deformed frames), each the "
+           "second of two frames on the CPU solver and on the GPU solver in the same run; per frame: the solves "
+           "it took, the GPU's compute dispatches, the texture data uploaded (q per solve; per pose the "
+           "coefficients) and read back (the cavity exchange reads every solve's phi), the wall time, and the "
+           "GPU's vertex radiance against the CPU's.", "",
+           "| pass | finest nodes | solves | GPU dispatches | uploaded | read back | GPU ms | CPU ms | "
+           "L_o GPU vs CPU (max abs / max) |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        out.append(f"| {r['pass']} | {r['nodes']:,} | {r['solves']} | {r['dispatches']:,} | {r['up'] / 2**20:.2f} MiB | "
+                   f"{r['down'] / 2**20:.2f} MiB | {r['gpu_ms']:,.0f} | {r['cpu_ms']:,.0f} | {r['L_err']:.1e} |")
+    return "\n".join(out) + "\n"
+
+
 # ------------------------------------------------------------------ report
 def markdown(rows, renderer: str, args) -> str:
     out = []
@@ -368,8 +469,15 @@ def main(argv=None) -> int:
     ap.add_argument("--tol", type=float, default=1e-4)
     ap.add_argument("--cache-dir", type=Path, default=Path(tempfile.gettempdir()),
                     help="where the bakes are cached between runs")
+    ap.add_argument("--passes", action="store_true",
+                    help="only the passes besides the plain solve (cavity exchange, deformed frame), written as "
+                         "their section of --out")
     args = ap.parse_args(argv)
     renderer = init_gpu()
+    if args.passes:
+        from bench.bench_io import write_section
+
+        return write_section(passes_markdown(bench_passes(args), renderer), PASSES_HEADING, args.out)
     print(f"GPU backend: {renderer}")
     if "llvmpipe" in renderer.lower():
         print("NOTE: llvmpipe = software rendering on the CPU; GPU times below are CPU times.")

@@ -91,7 +91,7 @@ KERNELS = {
 }
 
 _SHADERS: dict = {}
-STATS = {"compiled": 0, "dispatches": 0}
+STATS = {"compiled": 0, "dispatches": 0, "bytes_up": 0, "bytes_down": 0}  # bytes: texture data uploaded / read back
 
 
 def glsl_source(name: str) -> str:
@@ -176,6 +176,7 @@ def float_texture(data: np.ndarray | None, shape=None, fmt: str = "RGBA32F"):
         data = np.ascontiguousarray(data, dtype=np.float32)
         layers, height, width = data.shape[:3]
         buf = gpu.types.Buffer("FLOAT", data.size, data.reshape(-1))
+        STATS["bytes_up"] += int(data.nbytes)
         return gpu.types.GPUTexture((width, height), layers=layers, format=fmt, data=buf)
     layers, height, width = shape
     tex = gpu.types.GPUTexture((width, height), layers=layers, format=fmt)
@@ -209,4 +210,5 @@ def read_texture(tex, channels: int = 4) -> np.ndarray:
     """
     buf = tex.read()
     flat = np.asarray(buf).ravel(order="K")
+    STATS["bytes_down"] += int(flat.nbytes)
     return flat.reshape(tex.height, tex.width, channels).astype(np.float32, copy=True)
