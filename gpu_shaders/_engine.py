@@ -11,8 +11,10 @@ try:  # installed extension: translucency.gpu_shaders -> translucency.translucen
     from ..translucency_addon.diffusion import solver as diffusion, iterative, kernels, spectral  # noqa: F401
     from ..translucency_addon import errors  # noqa: F401
     from ..translucency_addon.scene import fresnel  # noqa: F401
+    from ..translucency_addon.fluid import solver as fluid  # noqa: F401
 except ImportError:  # top-level package (repo root on sys.path)
     from translucency_addon.quadgraph import bake, levels as quadgraph  # noqa: F401
     from translucency_addon.diffusion import solver as diffusion, iterative, kernels, spectral  # noqa: F401
     from translucency_addon import errors  # noqa: F401
     from translucency_addon.scene import fresnel  # noqa: F401
+    from translucency_addon.fluid import solver as fluid  # noqa: F401

@@ -3,8 +3,8 @@
 void main()
 {
   ivec3 p = ivec3(gl_GlobalInvocationID);
-  vec3 diag = diagonal(texelFetch(off_r, p, 0), texelFetch(off_g, p, 0),
-                       texelFetch(off_b, p, 0), texelFetch(ext, p, 0));
+  vec3 diag;
+  DIAGONAL(diag, p, texelFetch(ext, p, 0));
   if (!all(greaterThan(diag, vec3(0.0)))) {
     imageStore(d_out, p, vec4(0.0));
     return;

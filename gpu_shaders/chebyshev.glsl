@@ -9,18 +9,14 @@
 void main()
 {
   ivec3 p = ivec3(gl_GlobalInvocationID);
-  vec4 o_r = texelFetch(off_r, p, 0);
-  vec4 o_g = texelFetch(off_g, p, 0);
-  vec4 o_b = texelFetch(off_b, p, 0);
   vec4 ex = texelFetch(ext, p, 0);
-  vec3 diag = diagonal(o_r, o_g, o_b, ex);
+  vec3 s;
+  vec3 diag;
+  LINKS(s, diag, d_in, p, ex);
   if (!all(greaterThan(diag, vec3(0.0)))) {
     imageStore(d_out, p, vec4(0.0));
     return;
   }
-  uvec4 nb = texelFetch(nbr, p, 0);
-  vec3 s;
-  NEIGHBOUR_SUM(s, d_in, nb, o_r, o_g, o_b);
   vec3 d = texelFetch(d_in, p, 0).rgb;
   vec3 r = imageLoad(r_io, p).rgb - (diag * d - s);
   imageStore(x_io, p, vec4(imageLoad(x_io, p).rgb + d, 0.0));

@@ -15,16 +15,6 @@ ivec3 node_texel(uint a)
   return ivec3(int(a & 0x3FFFu), int((a >> 14u) & 0x3FFFu), int(a >> 28u));
 }
 
-/* Per-channel diagonal a_ii = e_i + sum_k c_ik (e = ext.rgb, the part of the
- * diagonal that is not the sum of the off-diagonal coefficients: absorption
- * and boundary terms).  Forming it here in fp32 keeps the small absorption
- * term exact when the coefficients are stored in fp16. */
-vec3 diagonal(vec4 o_r, vec4 o_g, vec4 o_b, vec4 ext)
-{
-  const vec4 one = vec4(1.0);
-  return ext.rgb + vec3(dot(o_r, one), dot(o_g, one), dot(o_b, one));
-}
-
 /* Exact unpolarised Fresnel transmittance F_t = 1 - F_r for light leaving
  * through the surface at cos_i (twin: translucency_addon.scene.fresnel; used by
  * radiance.glsl and single_scattering.glsl).  eta = 1: no interface, F_t = 1. */
@@ -41,14 +31,36 @@ float fresnel_transmittance(float cos_i, float n)
   return 1.0 - 0.5 * (r_par * r_par + r_perp * r_perp);
 }
 
-/* s = sum_j c_ij v_j over the links nb of one node (c_ij per channel in
- * o_r, o_g, o_b; v the sampler holding the vector).  Shared by the Jacobi,
- * residual and Chebyshev kernels.  A macro, not a function: samplers as
- * function arguments are not portable across Blender's GPU backends. */
-#define NEIGHBOUR_SUM(s, v, nb, o_r, o_g, o_b) \
+/* The links of node texel p, over its link pages (gpu_shaders/pack.py: 4 links per page, page g in
+ * layer p.z + g * page_layers of nbr and off_*; push constants pages and page_layers):
+ *
+ *   s = sum_j c_ij v_j,   dg = a_ii = e_i + sum_j c_ij   (per channel; e = ex.rgb)
+ *
+ * (c_ij per channel in off_r, off_g, off_b; v the sampler holding the vector).  Forming the diagonal
+ * here in fp32 keeps the small absorption term e exact when the coefficients are stored in fp16.
+ * Shared by the Jacobi, residual and Chebyshev kernels.  Macros, not functions: samplers as function
+ * arguments are not portable across Blender's GPU backends. */
+#define DIAGONAL(dg, p, ex) \
+  dg = ex.rgb; \
+  for (int g_ = 0; g_ < pages; g_++) { \
+    ivec3 t_ = ivec3(p.xy, p.z + g_ * page_layers); \
+    dg += vec3(dot(texelFetch(off_r, t_, 0), vec4(1.0)), dot(texelFetch(off_g, t_, 0), vec4(1.0)), \
+               dot(texelFetch(off_b, t_, 0), vec4(1.0))); \
+  }
+
+#define LINKS(s, dg, v, p, ex) \
   s = vec3(0.0); \
-  for (int k_ = 0; k_ < 4; k_++) { \
-    if (nb[k_] != NONE) { \
-      s += vec3(o_r[k_], o_g[k_], o_b[k_]) * texelFetch(v, node_texel(nb[k_]), 0).rgb; \
+  dg = ex.rgb; \
+  for (int g_ = 0; g_ < pages; g_++) { \
+    ivec3 t_ = ivec3(p.xy, p.z + g_ * page_layers); \
+    vec4 o_r_ = texelFetch(off_r, t_, 0); \
+    vec4 o_g_ = texelFetch(off_g, t_, 0); \
+    vec4 o_b_ = texelFetch(off_b, t_, 0); \
+    dg += vec3(dot(o_r_, vec4(1.0)), dot(o_g_, vec4(1.0)), dot(o_b_, vec4(1.0))); \
+    uvec4 nb_ = texelFetch(nbr, t_, 0); \
+    for (int k_ = 0; k_ < 4; k_++) { \
+      if (nb_[k_] != NONE) { \
+        s += vec3(o_r_[k_], o_g_[k_], o_b_[k_]) * texelFetch(v, node_texel(nb_[k_]), 0).rgb; \
+      } \
     } \
   }

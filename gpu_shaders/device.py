@@ -34,6 +34,7 @@ class GPULevel:
         self.fmt = "RGBA16F" if precision == "fp16" else "RGBA32F"
         self.uploads = Counter()
         shape = layout.shape
+        self.pages = pack.link_pages(np.asarray(nbr).reshape(layout.n_nodes, -1).shape[1])
         self.nbr = uint_texture(pack.neighbor_texels(layout, nbr))
         self.uploads["graph"] += 1
         self.x = [float_texture(None, shape), float_texture(None, shape)]  # ping-pong (Jacobi)
@@ -152,11 +153,14 @@ class GPULevel:
         d.update(self.tex_coef)
         return d
 
+    def _pages(self) -> dict:
+        return {"pages": self.pages, "page_layers": self.layout.layers}
+
     def jacobi(self, src, dst) -> None:
         """dst <- one Jacobi sweep from src."""
         s = self._coef()
         s.update(q=self.q, x_in=src)
-        dispatch("jacobi", self._groups(), samplers=s, images={"x_out": dst})
+        dispatch("jacobi", self._groups(), samplers=s, images={"x_out": dst}, ints=self._pages())
 
     def jacobi_step(self) -> None:
         """One sweep of the resident iterate (ping-pong)."""
@@ -167,14 +171,16 @@ class GPULevel:
         """out (default self.r) <- b - A x (x default: the current iterate)."""
         s = self._coef()
         s.update(q=self.q, x_in=self.x[self.cur] if x is None else x)
-        dispatch("residual", self._groups(), samplers=s, images={"r_out": self.r if out is None else out})
+        dispatch("residual", self._groups(), samplers=s, images={"r_out": self.r if out is None else out},
+                 ints=self._pages())
 
     def cheb_init(self, theta) -> None:
         """d[0] <- r / (theta diag)."""
         s = dict(self.tex_coef)
         s["r_in"] = self.r
         dispatch("cheb_init", self._groups(), samplers=s, images={"d_out": self.d[0]},
-                 floats={"inv_theta": tuple(float(v) for v in 1.0 / np.asarray(theta) * np.ones(3))})
+                 floats={"inv_theta": tuple(float(v) for v in 1.0 / np.asarray(theta) * np.ones(3))},
+                 ints=self._pages())
 
     def chebyshev(self, d_in, d_out, coef_d, coef_r) -> None:
         """One fused step on (x current, r) in place, d_in -> d_out."""
@@ -183,7 +189,8 @@ class GPULevel:
         dispatch("chebyshev", self._groups(), samplers=s,
                  images={"x_io": self.x[self.cur], "r_io": self.r, "d_out": d_out},
                  floats={"coef_d": tuple(float(v) for v in np.asarray(coef_d) * np.ones(3)),
-                         "coef_r": tuple(float(v) for v in np.asarray(coef_r) * np.ones(3))})
+                         "coef_r": tuple(float(v) for v in np.asarray(coef_r) * np.ones(3))},
+                 ints=self._pages())
 
     def upsample_from(self, coarse: "GPULevel", src=None, dst=None) -> None:
         """dst (default: x[0], made current) <- eq. 10 from the coarse level's iterate."""

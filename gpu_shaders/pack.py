@@ -27,6 +27,8 @@ Data per level (``(layers, height, width, 4)`` float32 arrays, uint32 for addres
 
 * ``nbr``: the 4 neighbour addresses (RGBA32UI), once per bake;
 * ``off_r, off_g, off_b``: c_ij for the 4 links, one texture per colour channel;
+* a graph with more than 4 link slots per node (a particle fluid's cells: 15-25) keeps them in link
+  pages, 4 per page, page g in layers ``g * layers ...`` of ``nbr`` and ``off_*`` (:func:`link_pages`);
 * ``ext``: rgb = e_i = a_ii - sum_j c_ij (absorption/boundary part of the
   diagonal; the kernels form a_ii = e_i + sum_j c_ij in fp32), a = b_scale_i;
   with ``off_*`` re-uploaded after a material edit;
@@ -226,21 +228,49 @@ def gather(layout: Layout, texels: np.ndarray) -> np.ndarray:
     return t[layout.flat_index()]
 
 
+def link_pages(k: int) -> int:
+    """Link pages of a graph with ``k`` link slots per node: 4 links per texel, ceil(k / 4) texels.
+
+    A QuadGraph level has 4 slots (one page); a particle fluid's Voronoi-fluid cells 15-25.  Page g of
+    a node at texel (x, y, layer) sits at (x, y, layer + g * layout.layers) of the ``nbr`` and ``off_*``
+    textures (``common.glsl``'s ``LINKS``); node values (q, the iterates) have one page.
+    """
+    return max(1, -(-int(k) // 4))
+
+
+def _paged(layout: Layout, per_node: np.ndarray, dtype=np.float32, fill=0) -> np.ndarray:
+    """(N, 4 P) values per link slot -> (P * layers, height, width, 4) texels, page after page."""
+    pages = per_node.shape[1] // 4
+    return np.concatenate([scatter(layout, per_node[:, 4 * g:4 * g + 4], dtype=dtype, fill=fill)
+                           for g in range(pages)], axis=0)
+
+
+def _pad_links(a: np.ndarray, fill) -> np.ndarray:
+    """(N, K, ...) -> (N, 4 P, ...), the new slots filled with ``fill``."""
+    k = a.shape[1]
+    extra = 4 * link_pages(k) - k
+    if not extra:
+        return a
+    pad = np.full((a.shape[0], extra) + a.shape[2:], fill, dtype=a.dtype)
+    return np.concatenate([a, pad], axis=1)
+
+
 def neighbor_texels(layout: Layout, nbr: np.ndarray) -> np.ndarray:
-    """(N, 4) node indices (-1: none) -> (layers, height, width, 4) uint32 addresses (NONE padding)."""
-    nbr = np.asarray(nbr, dtype=np.int64)
+    """(N, K) node indices (-1: none) -> (P * layers, height, width, 4) uint32 addresses (NONE padding),
+    P = :func:`link_pages` (K)."""
+    nbr = _pad_links(np.asarray(nbr, dtype=np.int64).reshape(layout.n_nodes, -1), -1)
     addr = layout.address()
     a = np.where(nbr >= 0, addr[np.maximum(nbr, 0)], NONE).astype(np.uint32)
-    return scatter(layout, a, dtype=np.uint32, fill=NONE)
+    return _paged(layout, a, dtype=np.uint32, fill=NONE)
 
 
 @dataclass
 class PackedCoefficients:
-    off: tuple  # (off_r, off_g, off_b) texel arrays
+    off: tuple  # (off_r, off_g, off_b) texel arrays, P pages (link_pages) along the layers
     ext: np.ndarray  # rgb = e, a = b_scale (scaled by `scale`)
     scale: float  # power of two the coefficients were multiplied by
     diag: np.ndarray  # (N, 3) float64 diagonal of the stored (quantized, scaled) matrix
-    off_nodes: np.ndarray  # (N, 4, 3) float64 stored off-diagonals (scaled)
+    off_nodes: np.ndarray  # (N, 4 P, 3) float64 stored off-diagonals (scaled; padded slots 0)
     b_scale: np.ndarray  # (n_surface,) float64 stored b_scale (scaled)
     gershgorin: np.ndarray  # (3,) Gershgorin bound of D^-1 A of the stored matrix
     subnormal: int  # stored nonzero values in fp16's subnormal range (precision loss)
@@ -255,7 +285,7 @@ def pack_coefficients(layout: Layout, off: np.ndarray, diag: np.ndarray, b_scale
     ``assembly.assemble``'s schemes); it is stored once per node in ext.a.
     """
     N = layout.n_nodes
-    off = np.asarray(off, dtype=np.float64).reshape(N, 4, 3)
+    off = _pad_links(np.asarray(off, dtype=np.float64).reshape(N, -1, 3), 0.0)
     diag = np.asarray(diag, dtype=np.float64).reshape(N, 3)
     bs = np.asarray(b_scale, dtype=np.float64)
     if bs.ndim == 2:
@@ -285,7 +315,7 @@ def pack_coefficients(layout: Layout, off: np.ndarray, diag: np.ndarray, b_scale
             f"{int(np.count_nonzero(~(diag_q > 0)))} nodes have a non-positive diagonal in {precision} storage")
     with np.errstate(divide="ignore", invalid="ignore"):
         gersh = (1.0 + off_q.sum(axis=1) / np.where(diag_q > 0, diag_q, np.inf)).max(axis=0)
-    off_tex = tuple(scatter(layout, off_q[:, :, c]) for c in range(3))
+    off_tex = tuple(_paged(layout, off_q[:, :, c]) for c in range(3))
     ext_tex = scatter(layout, np.column_stack([e_q, b_q]))
     return PackedCoefficients(off=off_tex, ext=ext_tex, scale=scale, diag=diag_q, off_nodes=off_q,
                               b_scale=b_q[layout.n_inner:], gershgorin=gersh, subnormal=subnormal,
@@ -354,12 +384,13 @@ def pack_vertex_map(vl: VertexLayout, layout: Layout, idx: np.ndarray, w: np.nda
             vertex_scatter(vl, w8[:, :4].astype(np.float32)), vertex_scatter(vl, w8[:, 4:].astype(np.float32)))
 
 
-def texture_bytes(layout: Layout, precision: str = "fp32", transfer: bool = False) -> int:
-    """GPU memory of one level's textures (graph, coefficients, q, iterates, transfer)."""
+def texture_bytes(layout: Layout, precision: str = "fp32", transfer: bool = False, pages: int = 1) -> int:
+    """GPU memory of one level's textures (graph, coefficients, q, iterates, transfer); ``pages``: its
+    :func:`link_pages`."""
     t = layout.texels
     f = 8 if precision == "fp16" else 16
-    graph = 16 * t  # nbr
-    coef = 4 * f * t  # off_r/g/b, ext
+    graph = 16 * t * pages  # nbr
+    coef = (3 * pages + 1) * f * t  # off_r/g/b, ext
     q = f * t
     iterates = 5 * 16 * t  # x ping-pong, r, d ping-pong
     tr = (2 * 16 + 2 * f) * t if transfer else 0

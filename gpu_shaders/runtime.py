@@ -55,16 +55,19 @@ _COEF = (("nbr", U), ("off_r", F), ("off_g", F), ("off_b", F), ("ext", F))
 W = frozenset({"WRITE"})
 RW = frozenset({"READ", "WRITE"})
 
+_PAGES = (("INT", "pages"), ("INT", "page_layers"))  # link pages (pack.link_pages; common.glsl's LINKS)
+
 KERNELS = {
-    "jacobi": KernelSpec("jacobi.glsl", _COEF + (("q", F), ("x_in", F)), (("x_out", "RGBA32F", W),)),
-    "residual": KernelSpec("residual.glsl", _COEF + (("q", F), ("x_in", F)), (("r_out", "RGBA32F", W),)),
+    "jacobi": KernelSpec("jacobi.glsl", _COEF + (("q", F), ("x_in", F)), (("x_out", "RGBA32F", W),), push=_PAGES),
+    "residual": KernelSpec("residual.glsl", _COEF + (("q", F), ("x_in", F)), (("r_out", "RGBA32F", W),),
+                           push=_PAGES),
     "chebyshev": KernelSpec(
         "chebyshev.glsl", _COEF + (("d_in", F),),
         (("x_io", "RGBA32F", RW), ("r_io", "RGBA32F", RW), ("d_out", "RGBA32F", W)),
-        push=(("VEC3", "coef_d"), ("VEC3", "coef_r"))),
+        push=(("VEC3", "coef_d"), ("VEC3", "coef_r")) + _PAGES),
     "cheb_init": KernelSpec(
         "cheb_init.glsl", _COEF[1:] + (("r_in", F),), (("d_out", "RGBA32F", W),),
-        push=(("VEC3", "inv_theta"),)),
+        push=(("VEC3", "inv_theta"),) + _PAGES),
     "reduce_sq": KernelSpec(
         "reduce.glsl", (("src", F),), (("dst", "RGBA32F", W),),
         defines=(("SQUARE", "1"), ("TILE", str(REDUCE_TILE))), local=(REDUCE_LOCAL, REDUCE_LOCAL, 1)),

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from . import device, pack, runtime
-from ._engine import diffusion, errors, iterative, kernels, spectral
+from ._engine import diffusion, errors, fluid, iterative, kernels, quadgraph, spectral
 
 READBACKS = ("surface", "phi", "none")
 _LIVE = weakref.WeakSet()  # every GPU solver, for free_all()
@@ -150,9 +150,16 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
                 max_size = gpu.capabilities.max_texture_size_get()
             if max_layers is None:
                 max_layers = gpu.capabilities.max_texture_layers_get()
-        layouts = [pack.plan_layout(lv.n_inner, lv.n_surface, lv.block_size, max_size, max_layers, what=f"level {i}")
-                   for i, lv in enumerate(self.bake.levels)]
-        vl = pack.plan_vertex_layout(len(self.bake.vertex_map[0]), max_size)
+        layouts = []
+        for i, lv in enumerate(self.bake.levels):
+            pages = pack.link_pages(np.asarray(lv.neighbors).shape[1])  # the link pages share the layer budget
+            lay = pack.plan_layout(lv.n_inner, lv.n_surface, getattr(lv, "block_size", quadgraph.BLOCK_SIZE),
+                                   max_size, max(1, max_layers // pages), what=f"level {i}")
+            layouts.append(lay)
+        idx = self.bake.vertex_map[0]
+        # A vertex map of more than 8 nodes per point (a fluid's surface map: up to 24) has no GPU packing:
+        # its output is the CPU formula on the read-back surface (vertex_radiance).
+        vl = pack.plan_vertex_layout(len(idx), max_size) if np.asarray(idx).shape[1] <= 8 else None
         return layouts, vl
 
     def _upload_graph(self) -> None:
@@ -165,7 +172,8 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
                 g.set_transfer(self.layouts[i - 1], idx, w)
             levels.append(g)
         idx, w = self.bake.vertex_map
-        self._vmap = device.GPUVertexMap(self.vertex_layout, self.layouts[-1], idx, w)
+        self._vmap = None if self.vertex_layout is None else device.GPUVertexMap(self.vertex_layout,
+                                                                                  self.layouts[-1], idx, w)
         self._gpu_levels = levels
         self._resident_generation = -1
         self._freed = False
@@ -211,7 +219,8 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         return self._gpu_levels
 
     def gpu_bytes(self) -> int:
-        return sum(pack.texture_bytes(lay, self.precision, transfer=i > 0) for i, lay in enumerate(self.layouts))
+        return sum(pack.texture_bytes(lay, self.precision, transfer=i > 0, pages=g.pages)
+                   for i, (lay, g) in enumerate(zip(self.layouts, self.gpu_levels)))
 
     # ------------------------------------------------------------ solve
     def solve_steps(self, lights=(), environment=None, **kw):
@@ -399,7 +408,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
 
     def vertex_radiance(self, result, view_dirs=None) -> np.ndarray:
         """L_o at the user's vertices: on the GPU when the result is resident, else the CPU formula."""
-        if not self.is_resident(result):
+        if not self.is_resident(result) or self._vmap is None:
             return super().vertex_radiance(result, view_dirs)
         g = self._gpu_levels[-1]
         cos_o = None
@@ -420,6 +429,18 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
                                            scheme=result.scheme, q_incident=result.q_incident, single=result.single,
                                            beams=result.beams)
         return super().power_balance(result, level, clamp)
+
+
+class GPUFluidDiffusionSolver(fluid.FluidDiffusionSolver, GPUDiffusionSolver):
+    """A particle fluid's frame (Kang & Kim 2013) with its diffusion solved on the GPU: the light pass is the
+    fluid's (its ball occluder, ``fluid.FluidDiffusionSolver``), the solve this module's.  The Voronoi-fluid
+    cells have 15-25 links each, packed in link pages (``pack.link_pages``); the graph is new every frame,
+    so it is uploaded every frame, and phi comes back (``readback="phi"``: the next frame's warm start and
+    the per-particle output read it).  Pass it to ``FluidSolver(make_solver=...)``."""
+
+    def __init__(self, frame, material, field_values=None, options=None, **gpu_options):
+        gpu_options.setdefault("readback", "phi")
+        super().__init__(frame, material, field_values, options, **gpu_options)
 
 
 def free_all() -> int:

@@ -12,8 +12,10 @@ points get the radiance) through named steps:
    view towards the camera in renders) and asks the planner
    (``planner.plan_fluid``: lit, in view, diffusion valid) into a frozen
    :class:`FluidInputs`;
-2. :func:`_solve`: ``FluidSolver.solve`` on the CPU (a fluid cell has 15-25
-   links; the GPU layer packs 4 per node), warm-started from the last frame
+2. :func:`_solve`: ``FluidSolver.solve``, its diffusion where
+   :func:`.backend.placement` puts it (on the GPU the cells' 15-25 links
+   travel in link pages; a GPU failure sends the fluid to the CPU, with the
+   reason), warm-started from the last frame
    by particle id where the source gives ids (the nearest previous particle
    otherwise) while the material and the scale stay the same;
 3. :func:`_write`: the ``translucency_radiance`` attribute on ``obj.data``,
@@ -44,7 +46,7 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
-from . import attributes, fluid_sources, scene_inputs, state, status
+from . import attributes, backend, fluid_sources, scene_inputs, state, status
 
 MEMORY_BUDGET: int | None = None  # bytes a frame's cells may take; None: the engine's default (4 GiB)
 
@@ -77,6 +79,7 @@ class FluidInputs:
     rendering: bool
     off_main: bool
     warnings: tuple
+    prefer: str = "AUTO"  # Scene > Translucency > Solver (AUTO, GPU, CPU)
 
 
 @dataclass
@@ -223,7 +226,8 @@ def gather(obj, scene, depsgraph, st: state.FluidObjectState, use_camera: bool) 
         occluders=occluders, occ_sig=occ_sig, plan=plan, empty=empty,
         tolerance=float(scene.translucency.tolerance), rendering=getattr(depsgraph, "mode", "VIEWPORT") == 'RENDER',
         off_main=threading.current_thread() is not threading.main_thread(),
-        warnings=tuple(w for w in (scale_warning, world_warning) if w))
+        warnings=tuple(w for w in (scale_warning, world_warning) if w),
+        prefer=str(scene.translucency.solver_backend))
 
 
 def _particle_error(message: str):
@@ -268,7 +272,7 @@ def _solver_sig(frame: FluidInputs) -> tuple:
 
 def _solve(st: state.FluidObjectState, frame: FluidInputs):
     """``FluidSolver.solve`` for this frame, warm-started from the last one where that is the same fluid."""
-    from ..translucency_addon.errors import ParticleError, RadiusError
+    from ..translucency_addon.errors import ParticleError, RadiusError, TranslucencyError
     from ..translucency_addon.fluid import FluidOptions, FluidSolver
 
     options = FluidOptions(tol=frame.tolerance)
@@ -278,10 +282,27 @@ def _solve(st: state.FluidObjectState, frame: FluidInputs):
     out = frame.output
     view_dirs = scene_inputs.view_directions(frame.view, out.positions)
     try:
-        return FluidSolver(frame.material, frame.radius, frame.mm, options).solve(
-            frame.particles.points, ids=frame.particles.ids, field_values=frame.field, lights=list(frame.lights),
-            environment=frame.environment, surface=None if frame.use_points else (out.positions, out.faces),
-            view_dirs=view_dirs, occluders=frame.occluders, shadows=True, warm_start=warm)
+        for attempt in (0, 1):
+            where = _placement(st, frame)
+            make = None
+            if where.gpu:
+                from ..gpu_shaders.solver import GPUFluidDiffusionSolver as make
+            if st.result is not None:
+                backend.free_solver(st.result.diffusion)  # the last frame's textures: a new graph every frame
+            try:
+                return FluidSolver(frame.material, frame.radius, frame.mm, options, make_solver=make).solve(
+                    frame.particles.points, ids=frame.particles.ids, field_values=frame.field,
+                    lights=list(frame.lights), environment=frame.environment,
+                    surface=None if frame.use_points else (out.positions, out.faces), view_dirs=view_dirs,
+                    occluders=frame.occluders, shadows=True, warm_start=warm)
+            except TranslucencyError:
+                raise
+            except Exception as ex:  # noqa: BLE001 - a GPU failure (e.g. no GPU context): this fluid goes to the CPU
+                again = backend.after_gpu_failure(ex, rendering=frame.rendering, on_gpu=where.gpu)
+                if attempt or again is None:
+                    raise
+                st.gpu_failed = again.reason
+                state.log(f"'{frame.name}': {again.reason}")
     except RadiusError as ex:  # in scene units, with one suggestion: the panel's settings
         scene = bpy.context.scene
         text = ex.describe(lambda x: length_text(scene, x * frame.scale),
@@ -292,6 +313,17 @@ def _solve(st: state.FluidObjectState, frame: FluidInputs):
         if "radius" in str(ex) and frame.suggested > 0:
             hint = f" [Auto Radius gives {length_text(bpy.context.scene, frame.suggested * frame.scale)} here]"
         raise ParticleError(f"{frame.particles.source}, frame {frame.frame}: {ex}{hint}") from None
+
+
+def _placement(st: state.FluidObjectState, frame: FluidInputs):
+    """Where this frame's diffusion solves (:func:`.backend.placement`, as an object's): the GPU solver takes
+    the cells' 15-25 links in link pages; after a failed GPU solve, the CPU with the reason."""
+    where = (backend.Placement("CPU", st.gpu_failed) if st.gpu_failed
+             else backend.placement(frame.prefer, off_main=frame.off_main))
+    st.backend, st.backend_message = where.backend, "" if where.gpu else where.reason
+    if st.backend_message:
+        state.log(f"'{frame.name}': {where.reason}", once_key=("fluid placement", frame.name, where.reason))
+    return where
 
 
 def _similar_radius(st: state.FluidObjectState, frame: FluidInputs) -> bool:
@@ -373,7 +405,8 @@ def _report(st: state.FluidObjectState, frame: FluidInputs, result, solved: bool
                        output=st.output + (" (through the carrier modifier)" if frame.carried else ""),
                        solved=solved, sweeps=st.iterations, residual=st.residual, warm=st.warm_started,
                        stages=st.stages, view="CAMERA" if frame.view is not None else "NORMAL",
-                       skipped="" if plan is None or plan.run else plan.reason, empty=frame.empty)
+                       skipped="" if plan is None or plan.run else plan.reason, empty=frame.empty,
+                       backend=st.backend)
 
 
 def deferred_report(obj, st: state.FluidObjectState, frame: int) -> FluidReport:

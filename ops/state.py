@@ -163,7 +163,9 @@ class FluidObjectState:
     """
 
     name: str
-    backend: str = "CPU"  # fluid cells have 15-25 links; the GPU layer packs 4 (gpu_shaders/pack.py)
+    backend: str = "CPU"  # where the last frame's diffusion solved (ops.backend.placement)
+    backend_message: str = ""  # why not on the GPU ('' when it was, or when the CPU was chosen)
+    gpu_failed: str = ""  # why a GPU solve of this fluid failed (its frames then stay on the CPU)
     stale_message: str = ""
     sig: tuple | None = None  # the inputs of the frame the attribute holds (the solve's and the view)
     solve_sig: tuple | None = None  # the inputs of the last solve (all but the view)
@@ -196,6 +198,8 @@ class FluidObjectState:
         return self.backend
 
     def free(self) -> None:
+        if self.result is not None:
+            backend.free_solver(self.result.diffusion)  # the last frame's GPU textures (no-op on the CPU)
         self.warm = self.result = None
 
 

@@ -579,3 +579,37 @@ def test_deformed_frames_on_the_gpu_match_the_cpu():
     assert solvers[0].uploads["graph"] == 1 and solvers[0].uploads["coefficients"] == 3
     assert len(og.result.level_solves) == 1  # warm-started: the finest level only, as on the CPU
     solvers[0].free()
+
+
+@pytest.mark.gpu
+def test_a_fluid_frame_on_the_gpu_matches_the_cpu():
+    """Issue 34, item 4 (and 33, item 4): a particle fluid's diffusion through the one solver's GPU backend.
+    Its Voronoi-fluid cells have up to 25 links, packed 4 to a texel in link pages (``pack.link_pages``;
+    the kernels' ``LINKS`` loop over them); two frames of a jittered ball of skim milk under a sun and a
+    world, the second warm-started from the first, equal the CPU's FluidSolver to 1e-4."""
+    from gpu_shaders.solver import GPUFluidDiffusionSolver
+    from translucency_addon.fluid import FluidOptions, FluidSolver, suggest_radius
+
+    k = 6
+    g = np.mgrid[-k:k + 1, -k:k + 1, -k:k + 1].reshape(3, -1).T.astype(np.float64)
+    rest = g[np.linalg.norm(g, axis=1) <= k]
+    R = suggest_radius(rest)
+    V, F = primitives.icosphere(k + 0.5 * R, 3)
+    milk = materials.material_from_preset("skimmilk")
+    opts = FluidOptions(tol=1e-5)
+    cpu = FluidSolver(milk, R, 0.5, opts)
+    gpu = FluidSolver(milk, R, 0.5, opts, make_solver=GPUFluidDiffusionSolver)
+    light = dict(lights=[lights.Light("sun", irradiance=1000.0, direction=(0.3, -0.5, -0.8))],
+                 environment=lights.Environment((1.0, 1.0, 1.0)))
+    rng = np.random.default_rng(2)
+    prev_c = prev_g = None
+    for _ in range(2):
+        P = rest + rng.uniform(-0.1, 0.1, rest.shape)
+        rc = cpu.solve(P, surface=(V, F), warm_start=prev_c, **light)
+        rg = gpu.solve(P, surface=(V, F), warm_start=prev_g, **light)
+        assert isinstance(rg.diffusion, GPUFluidDiffusionSolver) and rg.diffusion.gpu_levels[0].pages > 1
+        assert rel_err(rg.vertex_radiance, rc.vertex_radiance) < SOLVE_TOL
+        assert rel_err(rg.phi, rc.phi) < SOLVE_TOL
+        assert rg.stats["warm_start"] == rc.stats["warm_start"]
+        prev_c, prev_g = rc.state, rg.state
+        rg.diffusion.free()

@@ -173,7 +173,8 @@ def test_armature_bend_solves_on_the_deformed_graph(blender, addon, cache_dir, m
     solved = status.solve_status(obj)
     assert solved.deformation.startswith("Deformed, frame 10: worst link compressed to")  # the bend's inside
     assert solved.deformation.startswith(f"Deformed, frame 10: {out.report.worst_link()})")
-    assert f"{out.report.worst_ratio:.2f}x" in solved.deformation and solved.backend == "CPU"
+    # where diffusion is placed: the CPU, or the GPU once an earlier test started a GPU context (llvmpipe)
+    assert f"{out.report.worst_ratio:.2f}x" in solved.deformation and solved.backend == st.deformation.backend
     # independent: a fresh engine bake of Blender's posed mesh, solved cold
     fresh = bake_mod.bake_mesh(V, F, st.bake.settings)
     solver = DiffusionSolver(fresh.with_scale(inputs.mm), inputs.material, options=inputs.solve_options())

@@ -158,6 +158,47 @@ def test_point_cloud_fluid_matches_the_engine(blender, addon):
     assert f"fluid: {len(P):,} particles, diffusion valid" in status.plan_summary("Milk")
 
 
+@pytest.mark.gpu
+def test_a_fluid_solves_on_the_gpu_like_the_engine(blender, addon):
+    """Solver = GPU (llvmpipe here): the fluid's diffusion runs on the GPU solver (its cells' links in link
+    pages; issue 34, item 4), the attribute is the engine's CPU frame, and the last frame's textures are
+    freed when the next frame solves; a GPU solve that fails sends the fluid to the CPU with the reason."""
+    from translucency.ops import state
+    from translucency.translucency_addon.fluid import suggest_radius
+
+    P = blob()
+    obj = as_fluid(point_cloud("Milk", P))
+    bpy.context.scene.unit_settings.scale_length = 0.01
+    light = sun()
+    bpy.context.scene.translucency.solver_backend = 'GPU'
+    try:
+        activate(obj)
+        assert bpy.ops.translucency.solve() == {'FINISHED'}
+        st = state.fluid_state_of("Milk")
+        assert st.backend == "GPU" and st.backend_message == ""
+        want = engine_solve(P, suggest_radius(P), 10.0, ids=np.arange(len(P)),
+                            light_dir=sun_direction(light)).point_radiance
+        np.testing.assert_allclose(radiance(obj), want, rtol=1e-4, atol=1e-4 * want.max())
+        light.rotation_euler[0] += 0.1  # the next frame: new inputs, a new solve (and a failing GPU)
+        from translucency.gpu_shaders import solver as gpu_solver
+
+        def broken(*_a, **_k):
+            raise SystemError("no GPU context (test)")
+
+        old = gpu_solver.GPUDiffusionSolver.solve_systems
+        gpu_solver.GPUDiffusionSolver.solve_systems = broken
+        try:
+            assert bpy.ops.translucency.solve() == {'FINISHED'}
+        finally:
+            gpu_solver.GPUDiffusionSolver.solve_systems = old
+        assert st.backend == "CPU" and "the GPU solve failed (SystemError: no GPU context (test))" in st.backend_message
+        want = engine_solve(P, suggest_radius(P), 10.0, ids=np.arange(len(P)),
+                            light_dir=sun_direction(light)).point_radiance
+        np.testing.assert_allclose(radiance(obj), want, rtol=1e-4, atol=1e-4 * want.max())
+    finally:
+        bpy.context.scene.translucency.solver_backend = 'AUTO'
+
+
 def test_emitter_particles_onto_a_mesh_every_frame_warm_started_by_id(blender, addon):
     """A particle system's particles (evaluated object, world space) into the target's object space; each
     frame re-solves, warm-started from the last by particle index."""

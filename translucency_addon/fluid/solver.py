@@ -149,11 +149,15 @@ class FluidSolver:
         res.vertex_radiance   # (n_vertices, 3) W/(m^2 sr), for the translucency_radiance attribute
     """
 
-    def __init__(self, material, radius: float, mm_per_unit: float, options: FluidOptions | None = None):
+    def __init__(self, material, radius: float, mm_per_unit: float, options: FluidOptions | None = None, *,
+                 make_solver=None):
         self.material = material
         self.radius = float(radius)
         self.mm_per_unit = check_mm_per_unit(mm_per_unit)
         self.options = options or FluidOptions()
+        # (frame, material, field_values, options) -> the frame's diffusion solver: FluidDiffusionSolver (the
+        # CPU), or the GPU's (gpu_shaders.solver.GPUFluidDiffusionSolver)
+        self.make_solver = make_solver or FluidDiffusionSolver
 
     def solve(self, points, *, ids=None, field_values=None, lights=(), environment=None, surface=None,
               surface_normals=None, view_dirs=None, occluders=None, shadows: bool = True,
@@ -215,7 +219,7 @@ class FluidSolver:
         t = time.perf_counter()
         fv = None if ps.field_values is None else np.concatenate(
             [ps.field_values[graph.cell], ps.field_values[graph.cell[graph.surface_cell]]])
-        solver = FluidDiffusionSolver(frame, self.material, None if fv is None else [fv], opts.solve_options())
+        solver = self.make_solver(frame, self.material, None if fv is None else [fv], opts.solve_options())
         ws, warm = self._warm_start(warm_start, ps, graph, solver)
         seconds["assemble"] = time.perf_counter() - t
         result = solver.solve(lights, environment, warm_start=ws, shadows=shadows, occluders=occluders)
