@@ -182,7 +182,7 @@ def main(argv=None) -> int:
 
         out = Path(a.out)
         old = out.read_text() if out.exists() else ""
-        out.write_text(replace_section(old, HEADING, text[len(HEADING):]))
+        out.write_text(replace_section(old, HEADING, text[len(HEADING):].rstrip("\n") + "\n\n"))
     return 0
 
 
