@@ -10,7 +10,7 @@ import pytest
 
 from translucency_addon.geometry import primitives
 from translucency_addon.geometry.raycast import (
-    LEAF, TriangleBVH, _balanced_order, check_order, closest_point_on_triangles, mesh_bvh)
+    LEAF, TriangleBVH, _balanced_order, check_order, closest_point_on_triangles, compiled_intersect, mesh_bvh)
 
 
 def _brute_hits(V, F, o, d):
@@ -30,8 +30,14 @@ def _brute_hits(V, F, o, d):
     return np.where(ok, t, np.inf).min(axis=1)
 
 
+@pytest.mark.parametrize("walk", ["compiled", "numpy"])
 @pytest.mark.parametrize("drop", [0, 1, 3, 37])
-def test_hits_and_closest_points_equal_brute_force(drop):
+def test_hits_and_closest_points_equal_brute_force(drop, walk, monkeypatch):
+    """Both traversals (compiled_raycast.py where numba is installed, and the numpy walk)."""
+    if walk == "numpy":
+        monkeypatch.setenv("TRANSLUCENCY_NUMPY_RAYS", "1")
+    else:
+        assert compiled_intersect() is not None  # the test environment installs numba
     rng = np.random.default_rng(drop)
     V, F = primitives.icosphere(2.0, 3)
     V = V * (1.0 + 0.2 * rng.random((len(V), 1)))  # a bumpy closed surface
@@ -91,3 +97,28 @@ def test_mesh_bvh_is_shared_by_content_not_by_identity():
     V2 = V.copy()
     V2[0, 0] += 1e-3
     assert mesh_bvh(V2, F) is not a  # an edited mesh never gets the old tree
+
+
+def test_the_compiled_walk_returns_the_numpy_walks_hits(monkeypatch):
+    """compiled_raycast.intersect against the numpy traversal on 20k rays through a bumpy sphere of 20k
+    triangles: the same triangles for closest hits and for any-hit shadow rays with a tmax per ray,
+    distances and barycentrics to rounding (the same arithmetic; LLVM may fuse a multiply-add)."""
+    rng = np.random.default_rng(5)
+    V, F = primitives.icosphere(10.0, 5)
+    V = V * (1.0 + 0.05 * np.sin(0.7 * V[:, :1]))
+    bvh = TriangleBVH(V, F)
+    o = rng.normal(size=(20000, 3)) * 4.0
+    d = rng.normal(size=(20000, 3))
+    d[:50, 1:] = 0.0  # rays along an axis: 1/d is 1e300 there, in both walks
+    tmax = rng.uniform(1.0, 30.0, 20000)
+    fast = bvh.intersect(o, d, tmin=1e-9)
+    fast_any = bvh.intersect(o, d, tmax=tmax, any_hit=True)[1] >= 0
+    monkeypatch.setenv("TRANSLUCENCY_NUMPY_RAYS", "1")
+    slow = bvh.intersect(o, d, tmin=1e-9)
+    slow_any = bvh.intersect(o, d, tmax=tmax, any_hit=True)[1] >= 0
+    np.testing.assert_array_equal(fast[1], slow[1])
+    assert (fast[1] >= 0).mean() > 0.3
+    hit = fast[1] >= 0
+    for a, b in zip(fast, slow):
+        np.testing.assert_allclose(a[hit], b[hit], rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(fast_any, slow_any)

@@ -304,6 +304,13 @@ class TriangleBVH:
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / d
         inv = np.where(np.isfinite(inv), inv, 1e300)
+        kernel = compiled_intersect()
+        if kernel is not None:  # the same walk, one ray per thread (compiled_raycast.py)
+            kernel(np.ascontiguousarray(o), np.ascontiguousarray(d), np.ascontiguousarray(inv), float(tmin),
+                   best_t.copy(), bool(any_hit), self.lo, self.hi, self.nonempty, int(self.first_leaf),
+                   self.split_axis, self.second_is_plus, self.v0, self.e1, self.e2, self.valid, self.leaf_tris,
+                   int(self.depth), best_t, best_tri, best_u, best_v)
+            return best_t, best_tri, best_u, best_v
         stack = np.zeros((R, self.depth + 2), dtype=np.int64)
         sp = np.ones(R, dtype=np.int64)
         active = np.arange(R)
@@ -429,6 +436,26 @@ def _cross(a, b):
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+_COMPILED: dict = {}  # {"fn": the compiled traversal} or {"error": why not}; filled at the first cast
+
+
+def compiled_intersect():
+    """The compiled traversal (:mod:`.compiled_raycast`), or None where numba is missing or cannot compile it
+    (then the numpy walk runs: the same hits).  ``TRANSLUCENCY_NUMPY_RAYS=1`` forces the numpy walk (tests)."""
+    import os
+
+    if os.environ.get("TRANSLUCENCY_NUMPY_RAYS") == "1":
+        return None
+    if not _COMPILED:
+        try:
+            from . import compiled_raycast
+
+            _COMPILED["fn"] = compiled_raycast.intersect
+        except Exception as ex:  # noqa: BLE001 - numba missing or broken: the numpy walk
+            _COMPILED["error"] = f"{type(ex).__name__}: {ex}"
+    return _COMPILED.get("fn")
 
 
 def ray_triangle(o, d, v0, e1, e2):
