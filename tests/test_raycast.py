@@ -10,7 +10,8 @@ import pytest
 
 from translucency_addon.geometry import primitives
 from translucency_addon.geometry.raycast import (
-    LEAF, TriangleBVH, _balanced_order, check_order, closest_point_on_triangles, compiled_intersect, mesh_bvh)
+    LEAF, TriangleBVH, _balanced_order, check_order, closest_point_on_triangles, compiled_intersect, mesh_bvh,
+    ray_path_note)
 
 
 def _brute_hits(V, F, o, d):
@@ -122,3 +123,18 @@ def test_the_compiled_walk_returns_the_numpy_walks_hits(monkeypatch):
     for a, b in zip(fast, slow):
         np.testing.assert_allclose(a[hit], b[hit], rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(fast_any, slow_any)
+
+
+def test_the_numpy_walk_says_why(monkeypatch):
+    """A fallback says why and what it costs: the bake's report carries the note (the same hits, slower)."""
+    from translucency_addon.quadgraph.bake import format_stats
+    from bakes import baked
+
+    assert ray_path_note() == ""
+    monkeypatch.setenv("TRANSLUCENCY_NUMPY_RAYS", "1")
+    note = ray_path_note()
+    assert note.startswith("ray casts take the numpy walk (TRANSLUCENCY_NUMPY_RAYS=1 is set)") and "12x" in note
+    from dataclasses import replace
+
+    bake = baked("sphere")
+    assert f"note: {note}" in format_stats(replace(bake, stats={**bake.stats, "ray_casts": note}))

@@ -34,7 +34,7 @@ from ..geometry import tetra
 from ..errors import BakeCancelled, MeshError
 from ..scene.materials import check_mm_per_unit
 from .levels import BLOCK_SIZE, GraphLevel, build_level
-from ..geometry.raycast import KeptThickness, inward_thickness, mesh_bvh, thickness_digest
+from ..geometry.raycast import KeptThickness, inward_thickness, mesh_bvh, ray_path_note, thickness_digest
 
 BAKE_FORMAT = 1
 
@@ -440,6 +440,7 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
         "settings": asdict(s),
     }
     stats["graph_bytes"] = bake.graph_bytes()
+    stats["ray_casts"] = ray_path_note()  # '' when compiled
     return bake
 
 
@@ -470,4 +471,6 @@ def format_stats(bake: Bake) -> str:
     lines.append(f"graph memory: {bake.graph_bytes() / 2**20:.1f} MiB")
     for w in st["mesh"]["warnings"]:
         lines.append(f"warning: {w}")
+    if st.get("ray_casts"):
+        lines.append(f"note: {st['ray_casts']}")
     return "\n".join(lines)
