@@ -8,6 +8,8 @@ count is not a multiple of the leaf size exercise the padding slots.
 import numpy as np
 import pytest
 
+from translucency_addon.geometry import raycast
+
 from translucency_addon.geometry import primitives
 from translucency_addon.geometry.raycast import (
     LEAF, TriangleBVH, _balanced_order, check_order, closest_point_on_triangles, compiled_intersect, mesh_bvh,
@@ -39,6 +41,7 @@ def test_hits_and_closest_points_equal_brute_force(drop, walk, monkeypatch):
         monkeypatch.setenv("TRANSLUCENCY_NUMPY_RAYS", "1")
     else:
         assert compiled_intersect() is not None  # the test environment installs numba
+        monkeypatch.setattr(raycast, "COMPILED_MIN_RAYS", 1)  # these 600 rays through the compiled walk too
     rng = np.random.default_rng(drop)
     V, F = primitives.icosphere(2.0, 3)
     V = V * (1.0 + 0.2 * rng.random((len(V), 1)))  # a bumpy closed surface

@@ -304,12 +304,9 @@ class TriangleBVH:
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / d
         inv = np.where(np.isfinite(inv), inv, 1e300)
-        kernel = compiled_intersect()
+        kernel = compiled_intersect() if R >= COMPILED_MIN_RAYS else None
         if kernel is not None:  # the same walk, one ray per thread (compiled_raycast.py)
-            kernel(np.ascontiguousarray(o), np.ascontiguousarray(d), np.ascontiguousarray(inv), float(tmin),
-                   best_t.copy(), bool(any_hit), self.lo, self.hi, self.nonempty, int(self.first_leaf),
-                   self.split_axis, self.second_is_plus, self.v0, self.e1, self.e2, self.valid, self.leaf_tris,
-                   int(self.depth), best_t, best_tri, best_u, best_v)
+            _walk(kernel, self, o, d, inv, tmin, any_hit, best_t, best_tri, best_u, best_v)
             return best_t, best_tri, best_u, best_v
         stack = np.zeros((R, self.depth + 2), dtype=np.int64)
         sp = np.ones(R, dtype=np.int64)
@@ -439,6 +436,11 @@ def _cross(a, b):
 
 
 _COMPILED: dict = {}  # {"fn": the compiled traversal} or {"error": why not}; filled at the first cast
+# Casts of fewer rays take the numpy walk: loading numba and the compiled walk costs a process ~0.5 s (2.5 s
+# the first time on a machine), what the numpy walk spends on ~40k rays.  By the call's size only, so a
+# frame's rays take the same walk whatever the process did before (a farm's frames do not depend on the
+# worker's history, not even in the last bit).
+COMPILED_MIN_RAYS = 4096
 
 
 def ray_path_note() -> str:
@@ -464,11 +466,54 @@ def compiled_intersect():
     if not _COMPILED:
         try:
             from . import compiled_raycast
-
-            _COMPILED["fn"] = compiled_raycast.intersect
         except Exception as ex:  # noqa: BLE001 - numba missing or broken: the numpy walk
             _COMPILED["error"] = f"{type(ex).__name__}: {ex}"
+            return None
+        try:
+            _warm_up(compiled_raycast.intersect)
+        except Exception:  # noqa: BLE001 - a stale on-disk cache (below): compile afresh, once
+            try:
+                from numba.core.caching import NullCache
+
+                compiled_raycast.intersect._cache = NullCache()
+                _warm_up(compiled_raycast.intersect)
+            except Exception as ex:  # noqa: BLE001 - it does not compile here: the numpy walk, with the reason
+                _COMPILED["error"] = f"the compiled walk could not be built ({type(ex).__name__}: {ex})"
+                return None
+        _COMPILED["fn"] = compiled_raycast.intersect
     return _COMPILED.get("fn")
+
+
+def _c(a, dtype=np.float64):
+    """C-contiguous, writable, of ``dtype``: every call of the compiled walk has the one signature its warm-up
+    compiled (numba compiles, and caches, one version per layout, read-only flag and dtype)."""
+    return np.require(a, dtype, ["C", "W"])
+
+
+def _walk(kernel, bvh, o, d, inv, tmin, any_hit, best_t, best_tri, best_u, best_v) -> None:
+    """Run the compiled walk on ``bvh``'s arrays (normalised once per tree) into the ``best_*`` arrays."""
+    tree = getattr(bvh, "_walk_arrays", None)
+    if tree is None:
+        tree = bvh._walk_arrays = (
+            _c(bvh.lo), _c(bvh.hi), _c(bvh.nonempty, np.bool_), int(bvh.first_leaf), _c(bvh.split_axis, np.int64),
+            _c(bvh.second_is_plus, np.bool_), _c(bvh.v0), _c(bvh.e1), _c(bvh.e2), _c(bvh.valid, np.bool_),
+            _c(bvh.leaf_tris, np.int64), int(bvh.depth))
+    kernel(_c(o), _c(d), _c(inv), float(tmin), _c(best_t.copy()), bool(any_hit), *tree, best_t, best_tri, best_u,
+           best_v)
+
+
+def _warm_up(fn) -> None:
+    """One ray against one triangle, through :func:`_walk` as every cast: numba compiles the walk, or loads
+    it from its on-disk cache.  A cache written for the same file under another package name (the
+    repository's ``translucency_addon`` where the add-on runs as ``translucency.translucency_addon``) cannot
+    be loaded and raises here, not mid-cast; :func:`compiled_intersect` then compiles without the cache."""
+    bvh = TriangleBVH(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), np.array([[0, 1, 2]]))
+    o, d = np.array([[0.2, 0.2, 1.0]]), np.array([[0.0, 0.0, -1.0]])
+    inv = np.where(d != 0, 1.0 / np.where(d != 0, d, 1.0), 1e300)
+    t, tri, u, v = np.full(1, np.inf), np.full(1, -1, dtype=np.int64), np.zeros(1), np.zeros(1)
+    _walk(fn, bvh, o, d, inv, 0.0, False, t, tri, u, v)
+    if tri[0] != 0 or abs(t[0] - 1.0) > 1e-12:
+        raise RuntimeError(f"the compiled walk missed a test triangle (t {t[0]}, triangle {tri[0]})")
 
 
 def ray_triangle(o, d, v0, e1, e2):
