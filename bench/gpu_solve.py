@@ -311,8 +311,10 @@ def _frame_costs(fn):
 def bench_passes(args) -> list:
     """The passes a frame runs besides the plain solve, each on the CPU and the GPU solver, the second of two
     frames (the first builds and warms; the second is what a user's next frame costs): the cavity exchange
-    (a marble cube 20 mm across with a hollow 6 mm in radius, Draft, the sun turned 2 degrees) and a deformed
-    frame (a marble bar 40 x 10 x 10 mm twisted 10 then 12 degrees, Draft, sky visibility, a sun)."""
+    (a marble cube 20 mm across with a hollow 6 mm in radius, Draft, the sun turned 2 degrees), a deformed
+    frame (a marble bar 40 x 10 x 10 mm twisted 10 then 12 degrees, Draft, sky visibility, a sun) and a
+    particle fluid's frame (bench/fluid.py's ball, the particles jittered again, warm-started: cells, light
+    pass and output on the CPU in both columns, the diffusion solve on each backend)."""
     import gpu_shaders
     from gpu_shaders.solver import GPUDiffusionSolver
     from translucency_addon import __main__ as cli
@@ -365,6 +367,24 @@ def bench_passes(args) -> list:
         out[label] = dict(seconds=dt, dispatches=disp, up=up, down=down, solves=1, L=o.radiance)
         getattr(o.solver, "free", lambda: None)()
     rows.append(_pass_row("deformed frame (bar, twisted)", bar.finest.n_nodes, out))
+
+    from bench.fluid import scene as fluid_scene
+    from gpu_shaders.solver import GPUFluidDiffusionSolver
+    from translucency_addon.fluid import FluidSolver
+
+    rest, R, surface, fs, light = fluid_scene(args.fluid_particles)
+    rng = np.random.default_rng(1)
+    frames = [rest + rng.uniform(-0.1, 0.1, rest.shape) for _ in range(2)]
+    out = {}
+    for label, make in (("CPU", None), ("GPU", GPUFluidDiffusionSolver)):
+        solver = FluidSolver(fs.material, R, fs.mm_per_unit, fs.options, make_solver=make)
+        first = solver.solve(frames[0], surface=surface, **light)
+        res, dt, disp, up, down = _frame_costs(lambda: solver.solve(frames[1], surface=surface,
+                                                                     warm_start=first.state, **light))
+        out[label] = dict(seconds=dt, dispatches=disp, up=up, down=down, solves=1, L=res.vertex_radiance)
+        for r in (first, res):
+            getattr(r.diffusion, "free", lambda: None)()
+    rows.append(_pass_row(f"particle fluid ({len(rest):,} particles, jittered)", res.graph.n_nodes, out))
     return rows
 
 
@@ -380,7 +400,8 @@ def passes_markdown(rows, renderer: str) -> str:
     out = [PASSES_HEADING, f"`.venv/bin/python bench/gpu_solve.py --passes --out docs/bench_gpu.md` on **{renderer}**"
            + (" (Mesa's software rasteriser on the 2 CPU cores: the GPU times are CPU times and say nothing about a "
               "real GPU; the dispatches, bytes and errors carry over)." if soft else "."), "",
-           "The passes that ran on the CPU only before (the cavity exchange's solves, deformed frames), each the "
+           "The passes that ran on the CPU only before (the cavity exchange's solves, deformed frames, a particle "
+           "fluid's diffusion), each the "
            "second of two frames on the CPU solver and on the GPU solver in the same run; per frame: the solves "
            "it took, the GPU's compute dispatches, the texture data uploaded (q per solve; per pose the "
            "coefficients) and read back (the cavity exchange reads every solve's phi), the wall time, and the "
@@ -469,6 +490,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tol", type=float, default=1e-4)
     ap.add_argument("--cache-dir", type=Path, default=Path(tempfile.gettempdir()),
                     help="where the bakes are cached between runs")
+    ap.add_argument("--fluid-particles", type=int, default=16384, help="the fluid row's ball (--passes)")
     ap.add_argument("--passes", action="store_true",
                     help="only the passes besides the plain solve (cavity exchange, deformed frame), written as "
                          "their section of --out")
