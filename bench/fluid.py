@@ -76,8 +76,9 @@ NOTES = """**Reading the table.**
   tolerance 1e-4 leaves errors far below the frame-to-frame change (the tolerance table); 1e-3 would save
   about 30 % of the sweeps at an error still 200x below it. The warm solve is now as large as the cells.
 * **Targets missed, by about 4x** on these 2 shared cores (16k: 441 ms against 100 ms). What is left: the
-  solve (a coarser level for the sweeps, which grow with the diameter, or the GPU path: `gpu_shaders/pack.py`
-  packs 4 links per node, a fluid cell has 15-25), the numpy stages around the compiled faces (neighbour
+  solve (a coarser level for the sweeps, which grow with the diameter, or the GPU path, which runs since
+  issue 34's item 4 -- a cell's 15-25 links in link pages, `gpu_shaders/pack.py`, parity on llvmpipe,
+  `bench/gpu_solve.py --passes` -- and is untimed on a GPU), the numpy stages around the compiled faces (neighbour
   pairs, graph, occluder, assembly). The extension's zips bundle numba and llvmlite for Linux
   x86-64, Windows x86-64 and macOS arm64 (2.4-2.6x the zip: linux-x64 74 -> 195 MiB); macOS x86-64 has no
   numba wheel and keeps the numpy path (`tools/build_extension.py`, README).
