@@ -219,8 +219,9 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         return self._gpu_levels
 
     def gpu_bytes(self) -> int:
-        return sum(pack.texture_bytes(lay, self.precision, transfer=i > 0, pages=g.pages)
-                   for i, (lay, g) in enumerate(zip(self.layouts, self.gpu_levels)))
+        return sum(pack.texture_bytes(lay, self.precision, transfer=i > 0,
+                                      pages=pack.link_pages(np.asarray(lv.neighbors).shape[1]))
+                   for i, (lay, lv) in enumerate(zip(self.layouts, self.bake.levels)))  # freed or not: no upload
 
     # ------------------------------------------------------------ solve
     def solve_steps(self, lights=(), environment=None, **kw):

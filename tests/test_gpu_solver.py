@@ -613,3 +613,6 @@ def test_a_fluid_frame_on_the_gpu_matches_the_cpu():
         assert rg.stats["warm_start"] == rc.stats["warm_start"]
         prev_c, prev_g = rc.state, rg.state
         rg.diffusion.free()
+        # its memory counts the link pages, and asking a freed solver uploads nothing again
+        lay = rg.diffusion.layouts[0]
+        assert rg.diffusion.gpu_bytes() > pack.texture_bytes(lay, "fp32") and rg.diffusion.is_freed
