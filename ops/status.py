@@ -251,6 +251,8 @@ def fluid_lines(obj) -> list[str]:
                      f"{st.surface_cells:,} at the surface")
         lines.append(f"{st.iterations} sweeps, residual {st.residual:.2e}"
                      + (", warm-started from the last frame" if st.warm_started else ", cold start"))
+        if st.backend_message:  # why not on the GPU (a fallback, or the GPU cannot run here)
+            lines.append(f"Diffusion on the CPU: {st.backend_message}")
     if st.seconds > FLUID_LIVE_BUDGET:
         lines.append(f"Playback: frames over {FLUID_LIVE_BUDGET:g} s are left to the live check, which solves the "
                      f"frame shown about every {min(st.seconds, 1.0):.1f} s; renders solve every frame")

@@ -192,6 +192,9 @@ def test_a_fluid_solves_on_the_gpu_like_the_engine(blender, addon):
         finally:
             gpu_solver.GPUDiffusionSolver.solve_systems = old
         assert st.backend == "CPU" and "the GPU solve failed (SystemError: no GPU context (test))" in st.backend_message
+        from translucency.ops import status
+
+        assert f"Diffusion on the CPU: {st.backend_message}" in status.fluid_lines(obj)
         want = engine_solve(P, suggest_radius(P), 10.0, ids=np.arange(len(P)),
                             light_dir=sun_direction(light)).point_radiance
         np.testing.assert_allclose(radiance(obj), want, rtol=1e-4, atol=1e-4 * want.max())
