@@ -141,3 +141,22 @@ def test_the_numpy_walk_says_why(monkeypatch):
 
     bake = baked("sphere")
     assert f"note: {note}" in format_stats(replace(bake, stats={**bake.stats, "ray_casts": note}))
+
+
+def test_the_compiled_leaf_fit_equals_the_numpy_fit_bit_for_bit(monkeypatch):
+    """compiled_raycast.leaf_fit (trees of COMPILED_MIN_FIT slots or more) against the numpy fit, on a tree
+    with padding slots and on a refit to moved vertices: every array of the tree equal, bit for bit."""
+    V, F = primitives.icosphere(3.0, 4)
+    F = F[:-3]  # padding slots in the last leaf
+    rng = np.random.default_rng(2)
+    arrays = ("v0", "e1", "e2", "valid", "lo", "hi", "nonempty", "split_axis", "second_is_plus")
+    monkeypatch.setattr(raycast, "COMPILED_MIN_FIT", 1)
+    assert raycast.compiled_leaf_fit() is not None
+    fast = TriangleBVH(V, F)
+    fast_moved = fast.refit(V + 0.1 * rng.normal(size=V.shape))
+    monkeypatch.setattr(raycast, "COMPILED_MIN_FIT", 1 << 60)
+    slow = TriangleBVH.from_order(V, F, fast.leaf_tris)
+    slow_moved = slow.refit(fast_moved.V)
+    for a, b in ((fast, slow), (fast_moved, slow_moved)):
+        for name in arrays:
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)

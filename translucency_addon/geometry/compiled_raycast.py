@@ -95,3 +95,40 @@ def intersect(o, d, inv, tmin, tmax, any_hit, lo, hi, nonempty, first_leaf, spli
         best_tri[r] = btri
         best_u[r] = bu
         best_v[r] = bv
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def leaf_fit(V, F, leaf_tris, v0, e1, e2, valid, leaf_lo, leaf_hi):
+    """The leaves of :meth:`.raycast.TriangleBVH._fit` for vertex positions ``V``: each slot's triangle as
+    ``v0, e1 = v1 - v0, e2 = v2 - v0`` (zeros in padding slots), whether it is one, and each leaf's box (the
+    elementwise minimum and maximum of its triangles' vertices, +-inf for an empty leaf): the numpy fit's
+    operations, one leaf per thread, so the same numbers bit for bit (min, max and one subtraction each)."""
+    for lf in numba.prange(leaf_tris.shape[0]):
+        lo0, lo1, lo2 = np.inf, np.inf, np.inf
+        hi0, hi1, hi2 = -np.inf, -np.inf, -np.inf
+        for k in range(leaf_tris.shape[1]):
+            t = leaf_tris[lf, k]
+            if t < 0:
+                valid[lf, k] = False
+                for j in range(3):
+                    v0[lf, k, j] = 0.0
+                    e1[lf, k, j] = 0.0
+                    e2[lf, k, j] = 0.0
+                continue
+            valid[lf, k] = True
+            ia, ib, ic = F[t, 0], F[t, 1], F[t, 2]
+            for j in range(3):
+                a, b, c = V[ia, j], V[ib, j], V[ic, j]
+                v0[lf, k, j] = a
+                e1[lf, k, j] = b - a
+                e2[lf, k, j] = c - a
+                lo = min(min(a, b), c)
+                hi = max(max(a, b), c)
+                if j == 0:
+                    lo0, hi0 = min(lo0, lo), max(hi0, hi)
+                elif j == 1:
+                    lo1, hi1 = min(lo1, lo), max(hi1, hi)
+                else:
+                    lo2, hi2 = min(lo2, lo), max(hi2, hi)
+        leaf_lo[lf, 0], leaf_lo[lf, 1], leaf_lo[lf, 2] = lo0, lo1, lo2
+        leaf_hi[lf, 0], leaf_hi[lf, 1], leaf_hi[lf, 2] = hi0, hi1, hi2

@@ -236,21 +236,29 @@ class TriangleBVH:
     def _fit(self, V):
         """Leaf triangles, boxes and traversal hints of the tree for vertex positions ``V``."""
         n_leaves = self.n_leaves
-        slots = self.leaf_tris.ravel()
-        valid = slots >= 0
-        tri = self.F[np.maximum(slots, 0)]
-        a, b, c = (np.where(valid[:, None], V[tri[:, k]], 0.0) for k in range(3))
-        self.v0 = a.reshape(n_leaves, LEAF, 3)
-        self.e1 = (b - a).reshape(n_leaves, LEAF, 3)
-        self.e2 = (c - a).reshape(n_leaves, LEAF, 3)
-        self.valid = valid.reshape(n_leaves, LEAF)
-        # Elementwise minima over the 3 vertices and the LEAF slots (a reduction along such short
-        # axes costs numpy several times more).
-        lo3 = np.where(valid[:, None], np.minimum(np.minimum(a, b), c), np.inf).reshape(n_leaves, LEAF, 3)
-        hi3 = np.where(valid[:, None], np.maximum(np.maximum(a, b), c), -np.inf).reshape(n_leaves, LEAF, 3)
-        tmin, tmax = lo3[:, 0], hi3[:, 0]
-        for k in range(1, LEAF):
-            tmin, tmax = np.minimum(tmin, lo3[:, k]), np.maximum(tmax, hi3[:, k])
+        fit = compiled_leaf_fit() if self.leaf_tris.size >= COMPILED_MIN_FIT else None
+        if fit is not None:  # the same numbers bit for bit, one leaf per thread (compiled_raycast.leaf_fit)
+            self.v0, self.e1, self.e2 = (np.empty((n_leaves, LEAF, 3)) for _ in range(3))
+            self.valid = np.empty((n_leaves, LEAF), dtype=np.bool_)
+            tmin, tmax = np.empty((n_leaves, 3)), np.empty((n_leaves, 3))
+            fit(_c(V), _c(self.F, np.int64), _c(self.leaf_tris, np.int64), self.v0, self.e1, self.e2, self.valid,
+                tmin, tmax)
+        else:
+            slots = self.leaf_tris.ravel()
+            valid = slots >= 0
+            tri = self.F[np.maximum(slots, 0)]
+            a, b, c = (np.where(valid[:, None], V[tri[:, k]], 0.0) for k in range(3))
+            self.v0 = a.reshape(n_leaves, LEAF, 3)
+            self.e1 = (b - a).reshape(n_leaves, LEAF, 3)
+            self.e2 = (c - a).reshape(n_leaves, LEAF, 3)
+            self.valid = valid.reshape(n_leaves, LEAF)
+            # Elementwise minima over the 3 vertices and the LEAF slots (a reduction along such short
+            # axes costs numpy several times more).
+            lo3 = np.where(valid[:, None], np.minimum(np.minimum(a, b), c), np.inf).reshape(n_leaves, LEAF, 3)
+            hi3 = np.where(valid[:, None], np.maximum(np.maximum(a, b), c), -np.inf).reshape(n_leaves, LEAF, 3)
+            tmin, tmax = lo3[:, 0], hi3[:, 0]
+            for k in range(1, LEAF):
+                tmin, tmax = np.minimum(tmin, lo3[:, k]), np.maximum(tmax, hi3[:, k])
         n_nodes = 2 * n_leaves - 1
         lo = np.empty((n_nodes, 3))
         hi = np.empty((n_nodes, 3))
@@ -441,6 +449,9 @@ _COMPILED: dict = {}  # {"fn": the compiled traversal} or {"error": why not}; fi
 # frame's rays take the same walk whatever the process did before (a farm's frames do not depend on the
 # worker's history, not even in the last bit).
 COMPILED_MIN_RAYS = 4096
+# Trees of at least this many triangle slots fit their leaves in compiled code: the same numbers bit for bit
+# (min, max and one subtraction per value), so which path ran never shows; 1.3 M triangles: 0.5 s in numpy.
+COMPILED_MIN_FIT = 1 << 17
 
 
 def ray_path_note() -> str:
@@ -500,6 +511,43 @@ def _walk(kernel, bvh, o, d, inv, tmin, any_hit, best_t, best_tri, best_u, best_
             _c(bvh.leaf_tris, np.int64), int(bvh.depth))
     kernel(_c(o), _c(d), _c(inv), float(tmin), _c(best_t.copy()), bool(any_hit), *tree, best_t, best_tri, best_u,
            best_v)
+
+
+def compiled_leaf_fit():
+    """The compiled leaf fit (:func:`.compiled_raycast.leaf_fit`), or None (then the numpy fit: the same
+    numbers).  Built with the ray walk, and dropped with it where that cannot be built."""
+    if compiled_intersect() is None:
+        return None
+    if "fit" not in _COMPILED:
+        from . import compiled_raycast
+
+        fn = compiled_raycast.leaf_fit
+        try:
+            _fit_warm_up(fn)
+        except Exception:  # noqa: BLE001 - a stale on-disk cache (see _warm_up): compile afresh, once
+            try:
+                from numba.core.caching import NullCache
+
+                fn._cache = NullCache()
+                _fit_warm_up(fn)
+            except Exception:  # noqa: BLE001 - the numpy fit, the same numbers
+                fn = None
+        _COMPILED["fit"] = fn
+    return _COMPILED["fit"]
+
+
+def _fit_warm_up(fn) -> None:
+    """Two triangles in a leaf of four slots, through the types every fit passes."""
+    V = _c(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))
+    F = _c(np.array([[0, 1, 2], [0, 1, 3]]), np.int64)
+    leaf = _c(np.array([[0, 1, -1, -1]]), np.int64)
+    v0, e1, e2 = (np.empty((1, LEAF, 3)) for _ in range(3))
+    valid = np.empty((1, LEAF), dtype=np.bool_)
+    lo, hi = np.empty((1, 3)), np.empty((1, 3))
+    fn(V, F, leaf, v0, e1, e2, valid, lo, hi)
+    if not (valid.tolist() == [[True, True, False, False]] and lo.tolist() == [[0.0, 0.0, 0.0]]
+            and hi.tolist() == [[1.0, 1.0, 1.0]]):
+        raise RuntimeError("the compiled leaf fit gave a wrong box for a test leaf")
 
 
 def _warm_up(fn) -> None:
