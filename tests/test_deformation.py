@@ -276,17 +276,23 @@ def test_cli_solve_deformed(bar, tmp_path):
 
 def test_rebind_takes_a_pose_of_the_same_graph_only(bar):
     """``DiffusionSolver.rebind`` moves a solver to a pose of its graph: the same systems as a new solver on
-    that pose; a graph with other links is refused with the reason."""
+    that pose, and the same shadows, also with another object's triangles as occluders (whose combined tree
+    the solver had built with the rest pose's mesh); a graph with other links is refused with the reason."""
     V, F, bake, rig = bar
     marble = material_from_preset("marble")
     pose = rig.deform(primitives.twist(V, 15.0, along=0))
+    sun = [Light("sun", irradiance=1000.0, direction=SUN)]
+    wall = primitives.box((1.0, 3.0, 3.0), n=(1, 2, 2))
+    wall = (wall[0] + np.array([1.5, 1.2, 1.5]), wall[1])  # beside the bar's tip, towards the sun
     solver = DiffusionSolver(bake, marble)
+    solver.solve(sun, occluders=wall)  # the rest pose's tree of the bar and the wall, kept
     solver.rebind(pose.bake)
     fresh = DiffusionSolver(pose.bake, marble)
     for a, b in zip(solver.systems, fresh.systems):
         assert np.array_equal(a.diag, b.diag) and np.array_equal(a.off, b.off)
-    np.testing.assert_array_equal(solver.vertex_radiance(solver.solve([Light("sun", irradiance=1000.0, direction=SUN)])),
-                                  fresh.vertex_radiance(fresh.solve([Light("sun", irradiance=1000.0, direction=SUN)])))
+    for occ in (None, wall):
+        np.testing.assert_array_equal(solver.vertex_radiance(solver.solve(sun, occluders=occ)),
+                                      fresh.vertex_radiance(fresh.solve(sun, occluders=occ)))
     other = bake_mesh(*primitives.box((4.0, 1.0, 1.0), n=(8, 2, 2)), BakeSettings(quality="draft", mm_per_unit=MPU))
     with pytest.raises(TranslucencyError, match="rebind needs a pose of the same graph"):
         solver.rebind(other)

@@ -226,6 +226,7 @@ class DiffusionSolver:
         if self.options.solver not in SOLVERS:
             raise TranslucencyError(f"unknown solver {self.options.solver!r}; choose one of {', '.join(SOLVERS)}")
         self._shadow_bvh = bake.surface_bvh  # None: built on the first shadow ray
+        self._occluder_cache = None  # (content key of other objects' triangles, BVH of the mesh and them)
         self.warnings: list[str] = []  # of the latest light pass (incident)
         # What this solver derives once and reuses, owned here: "inside" (whether a light position lies
         # inside the mesh, :meth:`lights_inside`), "bounce_G" and "bounced" (``interreflection``: the
@@ -261,7 +262,8 @@ class DiffusionSolver:
         """This solver on another pose of its bake (Wang et al. sec. 6.4): the same graph -- levels, links,
         transfers, vertex map -- with moved nodes, so the systems are assembled again from its lengths,
         areas and volumes with the material and field as they are (attached to the rest pose); what
-        depended on the geometry (the shadow tree, the bounce's operators) is dropped.  The spectral bounds
+        depended on the geometry (the shadow trees, with or without other objects, the bounce's operators)
+        is dropped.  The spectral bounds
         are the caller's to carry (:func:`.deformation.frames.carry_spectral_bounds`)."""
         old, new = self.bake.levels, bake.levels
         if len(old) != len(new) or any(a.n_inner != b.n_inner or a.n_surface != b.n_surface
@@ -270,6 +272,7 @@ class DiffusionSolver:
                                     "another graph needs a solver of its own")
         self.bake = bake
         self._shadow_bvh = bake.surface_bvh
+        self._occluder_cache = None  # it holds the last pose's triangles
         self.cache = {}
         self.set_material(self.material, self.field_values)
 
@@ -292,7 +295,7 @@ class DiffusionSolver:
             return self._shadow_bvh
         Vo, Fo = (np.ascontiguousarray(a) for a in occluders)
         key = content_key(Vo, Fo)
-        cached = getattr(self, "_occluder_cache", None)
+        cached = self._occluder_cache
         if cached is not None and cached[0] == key:
             return cached[1]
         V = np.vstack([self.bake.mesh_vertices, Vo])
