@@ -455,14 +455,20 @@ COMPILED_MIN_FIT = 1 << 17
 
 
 def ray_path_note() -> str:
-    """'' where ray casts run compiled, else why they take the numpy walk and what that costs (the bake's
-    report says it: the results are the same, the sky visibility and shadow rays about 12x slower)."""
-    if compiled_intersect() is not None:
-        return ""
+    """'' where large ray casts run compiled, else why they take the numpy walk and what that costs (the bake's
+    report says it: the results are the same, the sky visibility and shadow rays about 12x slower).  It does
+    not load numba to find out: a process that cast no large batch says only whether numba is installed."""
+    import importlib.util
     import os
 
-    why = ("TRANSLUCENCY_NUMPY_RAYS=1 is set" if os.environ.get("TRANSLUCENCY_NUMPY_RAYS") == "1"
-           else _COMPILED.get("error", "numba is not available"))
+    if os.environ.get("TRANSLUCENCY_NUMPY_RAYS") == "1":
+        why = "TRANSLUCENCY_NUMPY_RAYS=1 is set"
+    elif "error" in _COMPILED:
+        why = _COMPILED["error"]
+    elif not _COMPILED and importlib.util.find_spec("numba") is None:
+        why = "numba is not installed"
+    else:
+        return ""
     return (f"ray casts take the numpy walk ({why}): the same hits, about 12x slower than compiled; the "
             "extension's zips bundle numba except for macOS x86-64")
 
@@ -480,19 +486,30 @@ def compiled_intersect():
         except Exception as ex:  # noqa: BLE001 - numba missing or broken: the numpy walk
             _COMPILED["error"] = f"{type(ex).__name__}: {ex}"
             return None
-        try:
-            _warm_up(compiled_raycast.intersect)
-        except Exception:  # noqa: BLE001 - a stale on-disk cache (below): compile afresh, once
-            try:
-                from numba.core.caching import NullCache
-
-                compiled_raycast.intersect._cache = NullCache()
-                _warm_up(compiled_raycast.intersect)
-            except Exception as ex:  # noqa: BLE001 - it does not compile here: the numpy walk, with the reason
-                _COMPILED["error"] = f"the compiled walk could not be built ({type(ex).__name__}: {ex})"
-                return None
-        _COMPILED["fn"] = compiled_raycast.intersect
+        fn, why = _built(compiled_raycast.intersect, _warm_up)
+        if fn is None:
+            _COMPILED["error"] = f"the compiled walk could not be built ({why})"
+        else:
+            _COMPILED["fn"] = fn
     return _COMPILED.get("fn")
+
+
+def _built(fn, warm_up):
+    """``(fn, '')`` once ``warm_up(fn)`` ran it (numba compiled it, or loaded it from its on-disk cache), else
+    ``(None, why)``.  A cache that cannot be loaded (see :func:`_warm_up`) is dropped and ``fn`` compiled
+    afresh, once."""
+    try:
+        warm_up(fn)
+        return fn, ""
+    except Exception:  # noqa: BLE001 - a stale on-disk cache: compile afresh, once
+        try:
+            from numba.core.caching import NullCache
+
+            fn._cache = NullCache()
+            warm_up(fn)
+            return fn, ""
+        except Exception as ex:  # noqa: BLE001 - it does not compile here: the numpy path, with the reason
+            return None, f"{type(ex).__name__}: {ex}"
 
 
 def _c(a, dtype=np.float64):
@@ -521,18 +538,7 @@ def compiled_leaf_fit():
     if "fit" not in _COMPILED:
         from . import compiled_raycast
 
-        fn = compiled_raycast.leaf_fit
-        try:
-            _fit_warm_up(fn)
-        except Exception:  # noqa: BLE001 - a stale on-disk cache (see _warm_up): compile afresh, once
-            try:
-                from numba.core.caching import NullCache
-
-                fn._cache = NullCache()
-                _fit_warm_up(fn)
-            except Exception:  # noqa: BLE001 - the numpy fit, the same numbers
-                fn = None
-        _COMPILED["fit"] = fn
+        _COMPILED["fit"] = _built(compiled_raycast.leaf_fit, _fit_warm_up)[0]
     return _COMPILED["fit"]
 
 
