@@ -57,7 +57,7 @@ def off_main_thread() -> bool:
 
 
 def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "fast", off_main: bool | None = None,
-              failed_in_render: str = "", built: bool = False) -> Placement:
+              failed_in_render: str = "", built: bool = False, gpu_failed: str = "") -> Placement:
     """Where a pass of ``kind`` (``"diffusion"``, ``"single scattering"`` or ``"Voxel Number Map"``) may run.
 
     ``prefer``: the scene's Solver setting (AUTO, GPU, CPU); ``solver``: the
@@ -65,11 +65,14 @@ def placement(prefer: str = "AUTO", *, kind: str = "diffusion", solver: str = "f
     (default: the current thread's); ``failed_in_render``: why an earlier GPU
     solve of this object failed in a render ('' when none did); ``built``: the
     GPU solver exists already (a frame asks whether it may use it), so only
-    the rules that change from frame to frame apply (thread, render failure).
-    Deformed frames and the cavity exchange run on either: the GPU solver of a pose is rebound to the
+    the rules that change from frame to frame apply (thread, render failure);
+    ``gpu_failed``: why an earlier GPU solve of this work failed (:func:`solve_with_cpu_retry`): the CPU, with
+    that reason.  Deformed frames and the cavity exchange run on either: the GPU solver of a pose is rebound to the
     next pose (``DiffusionSolver.rebind``: new coefficients, the same graph textures), and it reads every
     solve's phi back for a cavity exchange (``gpu_shaders.solver.default_readback``).
     """
+    if gpu_failed:
+        return Placement("CPU", gpu_failed)
     prefer = (prefer or "AUTO").upper()
     if prefer == "CPU":
         return Placement("CPU")
@@ -194,6 +197,26 @@ def after_gpu_failure(ex: BaseException, *, rendering: bool, on_gpu: bool = True
         return None
     return Placement("CPU", f"the GPU solve failed ({type(ex).__name__}: {ex}); using the CPU solver"
                             + (" for renders" if rendering else ""))
+
+
+def solve_with_cpu_retry(solve, *, on_gpu, rendering: bool, gpu_failed):
+    """``solve()``; where it raises on the GPU (not a :class:`TranslucencyError`: a missing GPU context, a
+    driver failure), ``gpu_failed(reason)`` sends the work to the CPU (:func:`after_gpu_failure`'s reason) and
+    ``solve()`` runs once more.  ``on_gpu()``: whether the failed solve ran on the GPU (a CPU failure is
+    raised as it is).  The deformed frames' and the fluids' solves; an object's own solver keeps its retry
+    in ``runtime._diffuse`` (its solution so far and render twin)."""
+    from ..translucency_addon.errors import TranslucencyError
+
+    try:
+        return solve()
+    except TranslucencyError:
+        raise
+    except Exception as ex:  # noqa: BLE001 - a GPU failure: once more on the CPU
+        where = after_gpu_failure(ex, rendering=rendering, on_gpu=on_gpu())
+        if where is None:
+            raise
+        gpu_failed(where.reason)
+        return solve()
 
 
 def free_solver(solver) -> None:

@@ -71,7 +71,7 @@ def diffuse(st: state.ObjectState, frame: FrameInputs, number: int, solve_sig, f
     the view changed.  Raises the engine's :class:`DeformationError`/:class:`GraphFolded` for a pose it
     refuses, with the frame, the numbers and which result the object keeps.
     """
-    from ..translucency_addon.errors import DeformationError, GraphFolded, TranslucencyError
+    from ..translucency_addon.errors import DeformationError, GraphFolded
 
     d = st.deformation
     d.frame = number
@@ -84,22 +84,19 @@ def diffuse(st: state.ObjectState, frame: FrameInputs, number: int, solve_sig, f
         if not force and last is not None and d.solve_sig == solve_sig:
             d.report, d.refused = last.report, ""
             return _radiance(st, last, frame), last.solver, False, 0.0, last.result
-        for attempt in (0, 1):
-            try:
-                out = frames.solve(V, list(frame.lights), frame.environment, frame=number,
-                                   view_dirs=view_directions(frame.view, V) if same else None, shadows=True,
-                                   occluders=_shadow_bvh(d, V, st.bake.mesh_faces, frame),
-                                   channels=frame.ms_channels, single=frame.single_channels)
-                break
-            except TranslucencyError:
-                raise
-            except Exception as ex:  # noqa: BLE001 - a GPU failure (e.g. no GPU context): the poses go to the CPU
-                where = backend.after_gpu_failure(ex, rendering=frame.rendering, on_gpu=d.backend == "GPU")
-                if attempt or where is None:
-                    raise
-                d.gpu_failed = where.reason
-                state.log(f"'{st.name}': deformed frames: {where.reason}")
-                frames = _frames(st, frame)
+        def solve():  # the frames again after a GPU failure: the CPU's
+            return _frames(st, frame).solve(
+                V, list(frame.lights), frame.environment, frame=number,
+                view_dirs=view_directions(frame.view, V) if same else None, shadows=True,
+                occluders=_shadow_bvh(d, V, st.bake.mesh_faces, frame), channels=frame.ms_channels,
+                single=frame.single_channels)
+
+        def gpu_failed(reason):
+            d.gpu_failed = reason
+            state.log(f"'{st.name}': deformed frames: {reason}")
+
+        out = backend.solve_with_cpu_retry(solve, on_gpu=lambda: d.backend == "GPU", rendering=frame.rendering,
+                                           gpu_failed=gpu_failed)
     except DeformationError as ex:
         d.report = ex.report if isinstance(ex, GraphFolded) else None
         d.refused = str(ex)
@@ -136,8 +133,7 @@ def _frames(st: state.ObjectState, frame: FrameInputs):
         d.rig_seconds = time.perf_counter() - t0
         state.log(f"'{st.name}': deformation rig built in {d.rig_seconds:.2f} s; deformed frames solve on it")
     options = frame.solve_options()
-    where = (backend.Placement("CPU", d.gpu_failed) if d.gpu_failed
-             else backend.placement(frame.prefer, solver=options.solver, off_main=frame.off_main))
+    where = backend.placement(frame.prefer, solver=options.solver, off_main=frame.off_main, gpu_failed=d.gpu_failed)
     sig = (round(frame.mm, 9), frame.tolerance, where.backend)
     if d.frames is None or d.frames_sig != sig:
         d.free()  # the last pose solver's GPU textures, if any

@@ -272,7 +272,7 @@ def _solver_sig(frame: FluidInputs) -> tuple:
 
 def _solve(st: state.FluidObjectState, frame: FluidInputs):
     """``FluidSolver.solve`` for this frame, warm-started from the last one where that is the same fluid."""
-    from ..translucency_addon.errors import ParticleError, RadiusError, TranslucencyError
+    from ..translucency_addon.errors import ParticleError, RadiusError
     from ..translucency_addon.fluid import FluidOptions, FluidSolver
 
     options = FluidOptions(tol=frame.tolerance)
@@ -281,28 +281,24 @@ def _solve(st: state.FluidObjectState, frame: FluidInputs):
     warm = st.warm if st.solver_sig == _solver_sig(frame) and _similar_radius(st, frame) else None
     out = frame.output
     view_dirs = scene_inputs.view_directions(frame.view, out.positions)
+    def solve():
+        make = None
+        if _placement(st, frame).gpu:
+            from ..gpu_shaders.solver import GPUFluidDiffusionSolver as make
+        if st.result is not None:
+            backend.free_solver(st.result.diffusion)  # the last frame's textures: a new graph every frame
+        return FluidSolver(frame.material, frame.radius, frame.mm, options, make_solver=make).solve(
+            frame.particles.points, ids=frame.particles.ids, field_values=frame.field, lights=list(frame.lights),
+            environment=frame.environment, surface=None if frame.use_points else (out.positions, out.faces),
+            view_dirs=view_dirs, occluders=frame.occluders, shadows=True, warm_start=warm)
+
+    def gpu_failed(reason):
+        st.gpu_failed = reason
+        state.log(f"'{frame.name}': {reason}")
+
     try:
-        for attempt in (0, 1):
-            where = _placement(st, frame)
-            make = None
-            if where.gpu:
-                from ..gpu_shaders.solver import GPUFluidDiffusionSolver as make
-            if st.result is not None:
-                backend.free_solver(st.result.diffusion)  # the last frame's textures: a new graph every frame
-            try:
-                return FluidSolver(frame.material, frame.radius, frame.mm, options, make_solver=make).solve(
-                    frame.particles.points, ids=frame.particles.ids, field_values=frame.field,
-                    lights=list(frame.lights), environment=frame.environment,
-                    surface=None if frame.use_points else (out.positions, out.faces), view_dirs=view_dirs,
-                    occluders=frame.occluders, shadows=True, warm_start=warm)
-            except TranslucencyError:
-                raise
-            except Exception as ex:  # noqa: BLE001 - a GPU failure (e.g. no GPU context): this fluid goes to the CPU
-                again = backend.after_gpu_failure(ex, rendering=frame.rendering, on_gpu=where.gpu)
-                if attempt or again is None:
-                    raise
-                st.gpu_failed = again.reason
-                state.log(f"'{frame.name}': {again.reason}")
+        return backend.solve_with_cpu_retry(solve, on_gpu=lambda: st.backend == "GPU", rendering=frame.rendering,
+                                            gpu_failed=gpu_failed)
     except RadiusError as ex:  # in scene units, with one suggestion: the panel's settings
         scene = bpy.context.scene
         text = ex.describe(lambda x: length_text(scene, x * frame.scale),
@@ -318,8 +314,7 @@ def _solve(st: state.FluidObjectState, frame: FluidInputs):
 def _placement(st: state.FluidObjectState, frame: FluidInputs):
     """Where this frame's diffusion solves (:func:`.backend.placement`, as an object's): the GPU solver takes
     the cells' 15-25 links in link pages; after a failed GPU solve, the CPU with the reason."""
-    where = (backend.Placement("CPU", st.gpu_failed) if st.gpu_failed
-             else backend.placement(frame.prefer, off_main=frame.off_main))
+    where = backend.placement(frame.prefer, off_main=frame.off_main, gpu_failed=st.gpu_failed)
     st.backend, st.backend_message = where.backend, "" if where.gpu else where.reason
     if st.backend_message:
         state.log(f"'{frame.name}': {where.reason}", once_key=("fluid placement", frame.name, where.reason))

@@ -34,6 +34,12 @@ class DeformationState:
     backend: str = "CPU"  # where deformed frames solve (ops.backend.placement)
     reason: str = ""  # why not on the GPU
     gpu_failed: str = ""  # why a GPU solve of a pose failed (then the poses stay on the CPU)
+    frame: int | None = None  # the scene frame of the current pose
+    report: object | None = None  # its DeformationReport (None when the pose could not be deformed at all)
+    refused: str = ""  # why the current pose was not solved ('' when it was)
+    solved_frame: int | None = None  # the frame whose radiance the attribute holds
+    solve_sig: tuple | None = None  # what frames.last was solved for
+    occluders: tuple | None = None  # (occluder signature, their vertices, BVH of the posed object + them)
 
     def free(self) -> None:
         """Release the pose solver's GPU textures (no-op on the CPU); the frames are made again when needed."""
@@ -41,12 +47,6 @@ class DeformationState:
         if last is not None:
             backend.free_solver(last.solver)
         self.frames = self.frames_sig = self.solve_sig = None
-    frame: int | None = None  # the scene frame of the current pose
-    report: object | None = None  # its DeformationReport (None when the pose could not be deformed at all)
-    refused: str = ""  # why the current pose was not solved ('' when it was)
-    solved_frame: int | None = None  # the frame whose radiance the attribute holds
-    solve_sig: tuple | None = None  # what frames.last was solved for
-    occluders: tuple | None = None  # (occluder signature, their vertices, BVH of the posed object + them)
 
     def describe(self) -> str:
         """The panel's line about the current pose ('' before the first deformed frame)."""
