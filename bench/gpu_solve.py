@@ -315,7 +315,6 @@ def bench_passes(args) -> list:
     frame (a marble bar 40 x 10 x 10 mm twisted 10 then 12 degrees, Draft, sky visibility, a sun) and a
     particle fluid's frame (bench/fluid.py's ball, the particles jittered again, warm-started: cells, light
     pass and output on the CPU in both columns, the diffusion solve on each backend)."""
-    import gpu_shaders
     from gpu_shaders.solver import GPUDiffusionSolver
     from translucency_addon import __main__ as cli
     from translucency_addon.cache import load_bake
@@ -328,7 +327,6 @@ def bench_passes(args) -> list:
     from translucency_addon.quadgraph import bake as bake_mod
     from translucency_addon.scene import lights, materials
 
-    del gpu_shaders
     marble = materials.material_from_preset("marble")
     opts = diffusion.SolveOptions(tol=args.tol)
     d2 = np.radians(2.0)

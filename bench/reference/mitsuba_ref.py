@@ -449,7 +449,7 @@ def render_reference(
     W, H = scene.resolution
     spp = int(spp or scene.spp)
     batches = max(int(batches), 2)
-    k_refl = max(int(reflection_spp_factor), 1)
+    k_refl = 1 if minus is not None else max(int(reflection_spp_factor), 1)  # minus: no absorber render
     if variant.startswith(("llvm", "cuda")):
         batches = max(batches, math.ceil(W * H * spp * k_refl / MAX_LANES))
     spp_batch = max(1, math.ceil(spp / batches))
@@ -470,7 +470,6 @@ def render_reference(
             if minus is not None:
                 absorb = mi.load_dict(scene_dict(minus, c, variant=variant, ply_path=ply, max_depth=max_depth,
                                                  _grid_cache={}))
-                k_refl = 1
             elif subtract_reflection and not (grey_lights and c > 0):
                 absorb = mi.load_dict(scene_dict(scene, c, absorber=True, variant=variant, ply_path=ply))
             for b in range(batches):
