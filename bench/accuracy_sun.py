@@ -17,21 +17,18 @@ next-event estimation towards the lamp (exact for an index-matched sphere; every
 a grid of polar angles, interpolated to each vertex's angle; checked against the half-space transport
 solution at the pole of a large sphere to 0.3 %.  The noise floor is the walk's standard error.
 
-Rows: the incidence-aware split (``diffusion/split.py`` eq. 6, issue 31 item 1) and, in the same run,
-the split with the diffuse light's tables for the lamp too (what the engine did before; the lamps' part
-of q zeroed in ``scene.lights.LampBeams``, a bench-only switch).  Columns: the profile's relative RMS
-from the lit pole to the terminator (polar angle <= 90 degrees; the issue's measure), the lit cap's mean
-(within 30 degrees of the pole), the band around the terminator (80-100 degrees) and the shaded half's
-mean, each ours over the walk.  A diagnostic row (sun, Preview graph, not the engine): diffusion alone
-with the sun's uncollided beam as a *volume* source ``sigma_s' E e^{-sigma_t d}`` at the graph's inner
-nodes instead of the boundary source, by a direct sparse solve of the engine's own assembly -- what moving
-the lamps' light into the volume would give.
+Rows: the lamps' light as a volume source along its refracted chords (``diffusion/beam_source.py``, the
+engine's default, ``--lamp-source volume``) and, in the same run, as a boundary source where it enters with
+the incidence-aware split (``diffusion/split.py`` eq. 6; ``--lamp-source boundary``, what the engine did
+before).  Columns: the profile's relative RMS from the lit pole to the terminator (polar angle <= 90
+degrees; the issue's measure), the lit cap's mean (within 30 degrees of the pole), the band around the
+terminator (80-100 degrees) and the shaded half's mean, each ours over the walk; the frame's time (light
+pass and solve, the cache's load excluded).
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
 import tempfile
@@ -64,19 +61,6 @@ LAMPS = {
     "disk light": (["--area", f"0,0,{POINT_MM}:{2 * DISK_MM},0,0:0,{2 * DISK_MM},0:{np.pi!r}:disk"],
                    {"point_mm": POINT_MM, "disk_mm": DISK_MM}),
 }
-
-
-@contextlib.contextmanager
-def diffuse_tables_for_lamps():
-    """The split as it was before eq. (6): every lamp's light split with the diffuse light's tables."""
-    from translucency_addon.scene import lights
-
-    add = lights.LampBeams.add
-    lights.LampBeams.add = lambda self, dq, cos_i: None
-    try:
-        yield
-    finally:
-        lights.LampBeams.add = add
 
 
 def reference(n_walk: int, lamp: dict) -> dict:
@@ -117,52 +101,15 @@ def run_quality(work: Path, mesh: Path, quality: str, refs: dict) -> list:
     theta_v = np.degrees(np.arccos(np.clip(V[:, 2] / np.linalg.norm(V, axis=1), -1.0, 1.0)))
     rows = []
     for lamp, (args, _) in LAMPS.items():
-        for label, ctx in (("incidence-aware split (eq. 6)", contextlib.nullcontext()),
-                           ("diffuse tables for the lamp too (before)", diffuse_tables_for_lamps())):
+        for label, source in (("volume source (now)", "volume"), ("boundary source, eq. 6 (before)", "boundary")):
             out, stats = work / "L.npy", work / "stats.json"
-            with ctx:
-                cli(["solve", cache, "-o", out, *material, *args, "--stats", stats])
+            cli(["solve", cache, "-o", out, *material, *args, "--lamp-source", source, "--stats", stats])
             st = json.loads(stats.read_text())
             L = np.load(out).astype(np.float64)
             rows.append({"lamp": lamp, "quality": quality, "split": label, "bake_s": t_bake,
                          "frame_s": st["seconds"]["total"] - st["seconds"]["load"], **regions(theta_v, L, refs[lamp])})
             print(lamp, quality, label, rows[-1]["profile"]["rms"], rows[-1]["cap"]["mean"], file=sys.stderr)
-    if quality == "preview":
-        rows.append({"lamp": "sun", "quality": quality, "split": "diagnostic: diffusion alone, the beam as a volume "
-                     "source (direct solve)", "bake_s": t_bake, "frame_s": float("nan"),
-                     **regions(theta_v, volume_source_radiance(cache), refs["sun"])})
     return rows
-
-
-def volume_source_radiance(cache: Path) -> np.ndarray:
-    """The diagnostic row: the engine's finest-level assembly solved directly with the sun's uncollided beam
-    as a volume source at the inner nodes (no boundary source), radiance through the engine's output."""
-    from dataclasses import replace
-
-    from scipy.sparse.linalg import spsolve
-
-    from translucency_addon import cache as cache_io
-    from translucency_addon.diffusion import solver as dmod
-    from translucency_addon.diffusion.assembly import sparse_matrix
-    from translucency_addon.scene import materials
-
-    bake = cache_io.load_bake(cache)
-    mat = replace(materials.material_from_preset("skin1"), eta=1.0)
-    s = dmod.DiffusionSolver(bake, mat, options=dmod.SolveOptions(single_scattering=False))
-    fine = len(bake.levels) - 1
-    lv, system = bake.levels[fine], s.systems[fine]
-    P = lv.position[: lv.n_inner] * bake.mm_per_unit
-    bz, cz = P[:, 2], (P * P).sum(axis=1) - RADIUS_MM**2
-    d_sun = -bz + np.sqrt(np.maximum(bz * bz - cz, 0.0))  # mm to the surface towards the sun (+z)
-    vol = lv.volume[: lv.n_inner] * bake.mm_per_unit**3
-    phi = np.zeros((system.n, 3))
-    for c in range(3):
-        b = np.zeros(system.n)
-        b[: lv.n_inner] = SIGMA_S[c] * np.exp(-(SIGMA_A[c] + SIGMA_S[c]) * d_sun) * vol
-        phi[:, c] = spsolve(sparse_matrix(system, c).tocsc(), b)
-    res = dmod.SolveResult(phi=[None] * fine + [phi], q=[None] * fine + [np.zeros((lv.n_surface, 3))],
-                           level_solves=[])
-    return s.vertex_radiance(res)
 
 
 def _c3(v, pct=True, sign=False) -> str:
@@ -175,7 +122,7 @@ def markdown(results: dict, command: str) -> str:
     lines = [HEADING, f"From one run of `{command}` ({results['date']}, engine {results['commit']}; two shared CPU "
              "cores shared with other work, no GPU: the frame times are a guide only).  " +
              "  ".join(p.replace("\n", " ") for p in __doc__.split("\n\n")[2:5]) + "\n",
-             "| lamp | quality | split | profile RMS, pole to terminator (R, G, B) | lit cap: ours / walk | terminator "
+             "| lamp | quality | the lamp's light enters | profile RMS, pole to terminator (R, G, B) | lit cap: ours / walk | terminator "
              "80-100 deg: ours / walk | shaded half: ours / walk | walk noise (profile) | frame (s) |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in results["rows"]:
@@ -188,47 +135,41 @@ def markdown(results: dict, command: str) -> str:
 
 def findings(results: dict) -> str:
     """What the table says, with the numbers of the same run."""
-    rows = {(r["lamp"], r["quality"], r["split"][:9]): r for r in results["rows"]}
+    rows = {(r["lamp"], r["quality"], r["split"][:6]): r for r in results["rows"]}
     out = ["Findings:\n"]
-    best = "final" if ("sun", "final", "incidence") in rows else "preview"
-    now, before = rows.get(("sun", best, "incidence")), rows.get(("sun", best, "diffuse t"))
-    diag = rows.get(("sun", "preview", "diagnosti"))
+    best = "final" if ("sun", "final", "volume") in rows else "preview"
+    now, before = rows.get(("sun", best, "volume")), rows.get(("sun", best, "bounda"))
     if now and before:
-        out.append(f"* **The incidence-aware split** (eq. 6 of `diffusion/split.py`; per incidence within the walk's "
-                   f"noise in `tests/test_scattering_split.py`) brings the sun's lit cap ({best.title()}) from "
-                   f"{_c3(before['cap']['mean'], False)} of the walk to {_c3(now['cap']['mean'], False)}: head-on light "
-                   "goes deeper, and less of it comes back; the grazing light near the terminator comes back "
-                   f"more ({_c3(before['terminator']['mean'], False)} -> {_c3(now['terminator']['mean'], False)} at "
-                   "80-100 degrees). The profile's RMS moves from "
-                   f"{_c3(before['profile']['rms'])} to {_c3(now['profile']['rms'])}. Issue 31's target, 5 %: "
-                   "**missed**.")
-        out.append(f"* **What is left is the terminator and the shaded half**: ours over the walk "
-                   f"{_c3(now['terminator']['mean'], False)} at 80-100 degrees and {_c3(now['shaded']['mean'], False)} on "
-                   "the shaded half. The diffusion's source sits on the boundary (Wang et al. eq. 3) and a lamp's "
-                   "light enters only where the surface faces it, while transport carries the uncollided beam "
-                   "along chords through the volume, past the terminator (skin's mean free path is 1.3 mm in red).")
-    if diag:
-        out.append(f"* **The cause, measured**: the diagnostic row solves the same Preview graph with the beam as a "
-                   f"volume source, diffusion alone: profile RMS {_c3(diag['profile']['rms'])}, terminator "
-                   f"{_c3(diag['terminator']['mean'], False)}, shaded half {_c3(diag['shaded']['mean'], False)}. "
-                   "The same with only a local half-space's depth (each inner node lit through the surface point "
-                   "above it, no chords; measured once, not in the table) leaves the terminator at 0.40, 0.24, 0.10: "
-                   "it is the chords. The engine does not do this yet: it needs the uncollided beam ray-traced to "
-                   "the inner nodes per lamp, its split calibrated against the volume source's half-space return, "
-                   "and a discretisation of the part shallower than the first inner node (on marble's 0.45 mm mean "
-                   "free path, R = 5 mm, the point-sampled volume source came out 4-22 % dark at 30-90 degrees).")
-    pt = rows.get(("point light", best, "incidence"))
-    if pt:
-        out.append(f"* **The point light** (20 mm from the surface): lit cap {_c3(pt['cap']['mean'], False)}, "
-                   f"terminator band {_c3(pt['terminator']['mean'], False)}; its geometric terminator lies at "
-                   "70.5 degrees, so the 80-100 degree band is lit only through the volume.")
-    for lamp, what in (("spot light", "its cone reaches 36 degrees from the pole"),
+        out.append(f"* **The sun's light through the volume** ({best.title()}): the profile's RMS from the lit pole "
+                   f"to the terminator {_c3(before['profile']['rms'])} -> {_c3(now['profile']['rms'])}; the lit cap "
+                   f"{_c3(before['cap']['mean'], False)} -> {_c3(now['cap']['mean'], False)} of the walk, the band at "
+                   f"80-100 degrees {_c3(before['terminator']['mean'], False)} -> {_c3(now['terminator']['mean'], False)}, "
+                   f"the shaded half {_c3(before['shaded']['mean'], False)} -> {_c3(now['shaded']['mean'], False)}. "
+                   "Transport carries the uncollided beam along chords through the volume, past the terminator "
+                   "(skin's mean free path is 1.3 mm in red); a source on the surface where the light enters "
+                   "cannot, and the half-space split put too much of the head-on light back out at the cap. "
+                   "Issue 31's target, 5 %: **missed**.")
+        out.append(f"* **What is left** is the shaded half ({_c3(now['shaded']['mean'], False)} of the walk): light "
+                   "that reaches it has crossed the sphere by diffusion from sources within a few mean free paths of "
+                   "the lit surface, where diffusion carries too little sideways; and red's deep tail decides it "
+                   "(the shaded half moved by 15 % between 8 and 96 pieces per chord before the pieces followed the "
+                   "most penetrating channel, `diffusion/beam_source.py`).")
+        t_now = [r["frame_s"] for r in results["rows"] if r["quality"] == best and r["split"].startswith("volume")]
+        t_before = [r["frame_s"] for r in results["rows"] if r["quality"] == best and r["split"].startswith("bounda")]
+        out.append(f"* **Cost**: the frames with the volume source take {sum(t_now):.2f} s for the four lamps at "
+                   f"{best.title()} against {sum(t_before):.2f} s with the boundary source "
+                   f"({sum(t_now) / sum(t_before):.2f}x; one chord cast per lit surface node of the finest level "
+                   "and 16 deposits along it, binned into every level's cells by a k-d tree).")
+    for lamp, what in (("point light", "20 mm from the surface; its geometric terminator lies at 70.5 degrees, so "
+                                       "the 80-100 degree band is lit only through the volume"),
+                       ("spot light", "its cone reaches 36 degrees from the pole"),
                        ("disk light", "points up to 80 degrees from the pole see part of the disk")):
-        r = rows.get((lamp, best, "incidence"))
-        if r:
-            out.append(f"* **The {lamp}** ({what}): lit cap {_c3(r['cap']['mean'], False)} of the walk, profile RMS "
-                       f"{_c3(r['profile']['rms'])}; the same pattern, since the boundary source lights only "
-                       "where the lamp reaches the surface.")
+        r, b = rows.get((lamp, best, "volume")), rows.get((lamp, best, "bounda"))
+        if r and b:
+            out.append(f"* **The {lamp}** ({what}): profile RMS {_c3(b['profile']['rms'])} -> "
+                       f"{_c3(r['profile']['rms'])}, lit cap {_c3(b['cap']['mean'], False)} -> "
+                       f"{_c3(r['cap']['mean'], False)}, terminator band {_c3(b['terminator']['mean'], False)} -> "
+                       f"{_c3(r['terminator']['mean'], False)} of the walk.")
     return "\n".join(out)
 
 

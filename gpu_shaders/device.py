@@ -43,6 +43,7 @@ class GPULevel:
         self.cur = 0  # which of self.x holds the current iterate
         self.q = float_texture(None, shape, self.fmt)
         self.q_stored = np.zeros((layout.n_surface, 3))
+        self.volume_stored = None  # the lamps' volume source at the inner nodes as stored, or None
         self.q_scale = 1.0
         self.coef: pack.PackedCoefficients | None = None
         self.tex_coef: dict = {}
@@ -70,9 +71,12 @@ class GPULevel:
         self.uploads["coefficients"] += 1
         return pc
 
-    def upload_q(self, q, scale: float = 1.0) -> np.ndarray:
-        """Incident light at the surface nodes (n_surface, 3), multiplied by ``scale``."""
-        tex, stored = pack.pack_q(self.layout, q, self.precision, scale)
+    def upload_q(self, q, scale: float = 1.0, volume=None) -> np.ndarray:
+        """Incident light at the surface nodes (n_surface, 3) and the lamps' volume source at the inner nodes
+        (n_inner, 3) or None, multiplied by ``scale``."""
+        if volume is not None:  # the inner nodes' a is coef.inner_unit (pack.pack_coefficients)
+            volume = np.asarray(volume, dtype=np.float64) / self.coef.inner_unit
+        tex, stored, self.volume_stored = pack.pack_q(self.layout, q, self.precision, scale, volume)
         self.q = float_texture(tex, fmt=self.fmt)
         self.q_stored = stored
         self.q_scale = float(scale)
@@ -80,9 +84,12 @@ class GPULevel:
         return stored
 
     def stored_rhs(self) -> np.ndarray:
-        """b = b_scale q of the stored (quantized, scaled) data, float64 (N, 3)."""
+        """b = b_scale q (and the volume source at the inner nodes) of the stored (quantized, scaled) data,
+        float64 (N, 3)."""
         b = np.zeros((self.layout.n_nodes, 3))
         b[self.layout.n_inner:] = self.coef.b_scale[:, None] * self.q_stored
+        if self.volume_stored is not None:
+            b[: self.layout.n_inner] = self.coef.b_inner * self.volume_stored
         return b
 
     def set_transfer(self, coarse: pack.Layout, idx, w) -> None:

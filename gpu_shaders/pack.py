@@ -30,10 +30,11 @@ Data per level (``(layers, height, width, 4)`` float32 arrays, uint32 for addres
 * a graph with more than 4 link slots per node (a particle fluid's cells: 15-25) keeps them in link
   pages, 4 per page, page g in layers ``g * layers ...`` of ``nbr`` and ``off_*`` (:func:`link_pages`);
 * ``ext``: rgb = e_i = a_ii - sum_j c_ij (absorption/boundary part of the
-  diagonal; the kernels form a_ii = e_i + sum_j c_ij in fp32), a = b_scale_i;
-  with ``off_*`` re-uploaded after a material edit;
-* ``q``: the incident light at surface nodes (0 elsewhere), per frame;
-  b_i = b_scale_i q_i is formed in the kernels;
+  diagonal; the kernels form a_ii = e_i + sum_j c_ij in fp32), a = b_scale_i at surface nodes and the
+  largest b_scale at inner nodes (``inner_unit``: a unit of the others' size, so fp16's scale stays
+  theirs), times the coefficients' scale; with ``off_*`` re-uploaded after a material edit;
+* ``q``: the incident light at surface nodes and the lamps' volume source over ``inner_unit`` at inner
+  nodes (``diffusion.beam_source``; 0 without one), per frame; b_i = a_i q_i is formed in the kernels;
 * Shepard transfer (eq. 10, levels >= 1): 8 coarse addresses in two RGBA32UI
   textures and 8 weights in two float textures;
 * the vertex map (finest level) in a separate row-major vertex layout.
@@ -272,6 +273,8 @@ class PackedCoefficients:
     diag: np.ndarray  # (N, 3) float64 diagonal of the stored (quantized, scaled) matrix
     off_nodes: np.ndarray  # (N, 4 P, 3) float64 stored off-diagonals (scaled; padded slots 0)
     b_scale: np.ndarray  # (n_surface,) float64 stored b_scale (scaled)
+    b_inner: float  # the stored a of the inner nodes: inner_unit, scaled (b = a q there: the volume source)
+    inner_unit: float  # the largest b_scale (1 without surface nodes): the inner nodes' q is volume / inner_unit
     gershgorin: np.ndarray  # (3,) Gershgorin bound of D^-1 A of the stored matrix
     subnormal: int  # stored nonzero values in fp16's subnormal range (precision loss)
     precision: str
@@ -282,7 +285,8 @@ def pack_coefficients(layout: Layout, off: np.ndarray, diag: np.ndarray, b_scale
     """The matrix (kernel form of ``assembly.LevelSystem``) as textures.
 
     ``b_scale`` must be the same for the three channels (it is for both of
-    ``assembly.assemble``'s schemes); it is stored once per node in ext.a.
+    ``assembly.assemble``'s schemes); it is stored once per node in ext.a, and 1 at the inner nodes, whose
+    q texels hold a volume source's right-hand side over ``inner_unit``.
     """
     N = layout.n_nodes
     off = _pad_links(np.asarray(off, dtype=np.float64).reshape(N, -1, 3), 0.0)
@@ -295,11 +299,12 @@ def pack_coefficients(layout: Layout, off: np.ndarray, diag: np.ndarray, b_scale
     if bs.shape != (layout.n_surface,):
         raise errors.TranslucencyError(f"b_scale has {bs.shape} values for {layout.n_surface} surface nodes")
     e = diag - off.sum(axis=1)
-    bfull = np.zeros(N)
+    inner_unit = float(np.abs(bs).max(initial=0.0)) or 1.0
+    bfull = np.full(N, inner_unit)
     bfull[layout.n_inner:] = bs
     scale = 1.0
     if precision == "fp16":
-        scale = pow2_scale(max(np.abs(off).max(initial=0.0), np.abs(e).max(initial=0.0), np.abs(bs).max(initial=0.0)))
+        scale = pow2_scale(max(np.abs(off).max(initial=0.0), np.abs(e).max(initial=0.0), np.abs(bfull).max(initial=0.0)))
     off_q = quantize(off * scale, precision).astype(np.float64)
     e_q = quantize(e * scale, precision).astype(np.float64)
     b_q = quantize(bfull * scale, precision).astype(np.float64)
@@ -318,17 +323,25 @@ def pack_coefficients(layout: Layout, off: np.ndarray, diag: np.ndarray, b_scale
     off_tex = tuple(_paged(layout, off_q[:, :, c]) for c in range(3))
     ext_tex = scatter(layout, np.column_stack([e_q, b_q]))
     return PackedCoefficients(off=off_tex, ext=ext_tex, scale=scale, diag=diag_q, off_nodes=off_q,
-                              b_scale=b_q[layout.n_inner:], gershgorin=gersh, subnormal=subnormal,
+                              b_scale=b_q[layout.n_inner:],
+                              b_inner=float(quantize(np.array([inner_unit * scale]), precision)[0]),
+                              inner_unit=inner_unit,
+                              gershgorin=gersh, subnormal=subnormal,
                               precision=precision)
 
 
-def pack_q(layout: Layout, q: np.ndarray, precision: str = "fp32", scale: float = 1.0):
-    """Incident light (n_surface, 3) -> (texels, stored values (n_surface, 3) float64)."""
+def pack_q(layout: Layout, q: np.ndarray, precision: str = "fp32", scale: float = 1.0, volume=None):
+    """Incident light (n_surface, 3) and a volume source (n_inner, 3) or None -> (texels, stored q
+    (n_surface, 3) float64, stored volume source (n_inner, 3) float64 or None)."""
     q = np.asarray(q, dtype=np.float64).reshape(layout.n_surface, 3)
     qq = quantize(q * scale, precision)
     full = np.zeros((layout.n_nodes, 3), dtype=np.float32)
     full[layout.n_inner:] = qq
-    return scatter(layout, full), qq.astype(np.float64)
+    vq = None
+    if volume is not None:
+        vq = quantize(np.asarray(volume, dtype=np.float64).reshape(layout.n_inner, 3) * scale, precision)
+        full[: layout.n_inner] = vq
+    return scatter(layout, full), qq.astype(np.float64), None if vq is None else vq.astype(np.float64)
 
 
 def pack_transfer(layout_fine: Layout, layout_coarse: Layout, idx: np.ndarray, w: np.ndarray,

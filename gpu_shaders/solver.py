@@ -233,7 +233,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         return GPUSolveResult(phi=res.phi, q=res.q, level_solves=res.level_solves, seconds=res.seconds,
                               scheme=res.scheme, warnings=res.warnings, phi_surface=self.last_surface,
                               q_incident=res.q_incident, single=res.single, beams=res.beams,
-                              precision=self.precision,
+                              volume=res.volume, precision=self.precision,
                               generation=self._resident_generation, solver_id=id(self))
 
     def can_warm_start(self, warm_start) -> bool:
@@ -244,34 +244,40 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         return (isinstance(ws, GPUSolveResult) and ws.solver_id == id(self) and ws.generation >= 0
                 and ws.generation == self._resident_generation)
 
-    def _q_scale(self, q, active) -> float:
+    def _q_scale(self, q, active, volume=None) -> float:
         if self.precision != "fp16":
             return 1.0
         m = max((float(np.abs(q[i]).max(initial=0.0)) for i in active if q[i] is not None), default=0.0)
+        if volume is not None:  # stored over the inner nodes' unit (pack.pack_coefficients)
+            self._ensure()
+            m = max([m] + [float(np.abs(volume[i]).max(initial=0.0)) / self._gpu_levels[i].coef.inner_unit
+                           for i in active if volume[i] is not None])
         return pack.pow2_scale(m)
 
-    def solve_systems(self, q, active, warm_start=None, cols=(0, 1, 2)):
+    def solve_systems(self, q, active, warm_start=None, cols=(0, 1, 2), volume=None):
         """The GPU replacement of ``DiffusionSolver.solve_systems`` (same contract).  Every channel is solved
         whatever ``cols`` says (the kernels run on vec4s: three channels cost one); the driver zeroes the
-        channels the planner turned off."""
+        channels the planner turned off.  ``volume``: the lamps' volume source per level, uploaded in the
+        inner nodes' texels of q."""
         opts = self.options
         if opts.solver == "direct":
-            return super().solve_systems(q, active, warm_start, cols)
+            return super().solve_systems(q, active, warm_start, cols, volume)
         self._ensure()
         n_lv = len(self.bake.levels)
         phi = [None] * n_lv
         surface = [None] * n_lv
         solves = []
-        sq = self._q_scale(q, active)
+        sq = self._q_scale(q, active, volume)
         prev = None
         for i in active:
             t0 = time.perf_counter()
             g = self._gpu_levels[i]
             system = self.systems[i]
             old_scale = g.q_scale
-            g.upload_q(q[i], sq)
+            vol = None if volume is None else volume[i]
+            g.upload_q(q[i], sq, vol)
             self.uploads["q"] += 1
-            if not np.any(q[i]):  # no light on this level: the answer is exactly 0 (as on the CPU)
+            if not np.any(q[i]) and (vol is None or not np.any(vol)):  # no light: exactly 0 (as on the CPU)
                 g.clear_x()
             elif warm_start is not None and i == n_lv - 1:
                 self._warm(g, warm_start, old_scale, sq)
@@ -289,7 +295,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
             x = g.read(g.x_current).astype(np.float64) / sq if self.readback == "phi" or self.guards_solutions \
                 else None
             if self.guards_solutions:  # the shared checks, on the level read back; a redo goes back to the GPU
-                checked, info = self.checked_level(i, system, q[i], system.rhs(q[i]), x, info)
+                checked, info = self.checked_level(i, system, q[i], system.rhs(q[i], vol), x, info)
                 if checked is not x:
                     g.set_x(checked * sq)
                     x = checked
@@ -428,7 +434,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
             phi[level] = self.read_phi(result, level)
             result = diffusion.SolveResult(phi=phi, q=result.q, level_solves=result.level_solves,
                                            scheme=result.scheme, q_incident=result.q_incident, single=result.single,
-                                           beams=result.beams)
+                                           beams=result.beams, volume=result.volume)
         return super().power_balance(result, level, clamp)
 
 

@@ -459,13 +459,15 @@ def test_storage_buffer_probe_names_what_this_blender_lacks():
 @pytest.mark.gpu
 def test_every_term_on_the_gpu_matches_the_cpu(scene):
     """The first-scatter split (closed-form single scattering + the diffusion of m q) on the GPU solver:
-    the source is split on the CPU before the upload, the closed-form term added to the GPU's radiance."""
+    the source is split on the CPU before the upload, the closed-form term added to the GPU's radiance.
+    The sun's light enters as the volume source (diffusion/beam_source.py), in the inner nodes' texels of q."""
     bk, mat, sun, _ = scene
     cpu = diffusion.DiffusionSolver(bk, mat, options=options("fast"))
     gpu = GPUDiffusionSolver(bk, mat, options=options("fast"))
     rc = cpu.solve(sun, single=(True, True, True))
     rg = gpu.solve(sun, single=(True, True, True))
     assert rg.single == (True, True, True) and rg.q_incident is not None
+    assert rg.volume is not None and rg.volume[-1].sum() > 0
     Lc, Lg = cpu.vertex_radiance(rc), gpu.vertex_radiance(rg)
     alone = cpu.vertex_radiance(cpu.solve(sun))
     assert rel_err(Lg, Lc) < 1e-3

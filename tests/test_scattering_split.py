@@ -254,7 +254,7 @@ def test_the_split_of_a_lamp_follows_its_incidence(eta, alpha, mu_in):
     single, multiple = random_walk(alpha, eta, n=200_000, seed=5, bins=bins, mu_in=mu_in)
     a1, mu1 = np.full((1, 3), alpha), np.array([mu_in])
     s_b = float(split.beam_single_escape(a1, mu1)[0, 0])
-    M_b = float(split._lookup_beam(split.M_beam_table, a1, mu1)[0, 0])
+    M_b = float(split.lookup_beam(split.M_beam_table, a1, mu1)[0, 0])
     s_d, M_d = float(split.single_escape(alpha)), float(split.multiple_escape(alpha))
     total = single.sum() + multiple.sum()
     print(f"eta {eta} alpha {alpha} mu {mu_in}: walk {single.sum():.4f} + {multiple.sum():.4f}; beam tables "
@@ -307,7 +307,9 @@ def test_a_solve_splits_each_lamps_light_by_its_incidence():
     """The pipeline end to end (issue 31, item 1): the light pass hands the split the incidence each surface
     node sees its lamp at (n . the direction to the sun), and the diffusion's source is eq. (6)'s at that
     incidence, not the diffuse light's -- a light pass that reported normal incidence everywhere (as one
-    version of this change did) or the diffuse tables both fail here."""
+    version of this change did) or the diffuse tables both fail here.  With the lamps' light on the boundary
+    (``lamp_source="boundary"``; the default sends it through the volume, tests/test_beam_source.py), whose
+    direction the volume source also takes from the light pass (checked here too)."""
     from translucency_addon.diffusion import solver as dmod
     from translucency_addon.geometry import primitives
     from translucency_addon.quadgraph import bake as bake_mod
@@ -317,14 +319,16 @@ def test_a_solve_splits_each_lamps_light_by_its_incidence():
     V, F = primitives.icosphere(1.0, 3)
     bk = bake_mod.bake_mesh(V, F, bake_mod.BakeSettings(quality="draft", levels=2, base_triangles=200,
                                                         mm_per_unit=10.0))
-    s = dmod.DiffusionSolver(bk, material_from_preset("skin1"), options=dmod.SolveOptions(single_scattering=True))
+    s = dmod.DiffusionSolver(bk, material_from_preset("skin1"), options=dmod.SolveOptions(single_scattering=True,
+                                                                                         lamp_source="boundary"))
     d = np.array([0.3, -0.2, -1.0])
     r = s.solve([Light("sun", irradiance=1000.0, direction=tuple(d))])
-    q_beam, mu = r.beams[-1]
+    q_beam, mu, to_light = r.beams[-1]
     lit = q_beam.mean(axis=1) > 0
     assert lit.sum() > 50
     n = bk.levels[-1].normal
     np.testing.assert_allclose(mu[lit], np.clip(n[lit] @ (-d / np.linalg.norm(d)), 0.0, 1.0), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(to_light[lit], np.broadcast_to(-d / np.linalg.norm(d), (lit.sum(), 3)), atol=1e-12)
     split = half_space_split(s.eta)
     alpha, q_in = s.surface_albedo[-1][lit], r.q_incident[-1][lit]
     np.testing.assert_allclose(r.q[-1][lit], split.beam_source_factor(alpha, mu[lit]) * q_in, rtol=1e-12)

@@ -258,10 +258,13 @@ def test_one_block_solve_carries_the_first_scatter_split(torus_bake):
     beams = [None] * len(torus_bake.levels)
     q = s.incident(sun, UNIFORM, levels=[fine], beams=beams)[fine]
     block = bounced_system(s, (0, 1, 2), split)
-    direct = direct_light(s, block, q, beams[fine], (0, 1, 2), split)  # the sun's incidence (split.py eq. 6)
+    volume = s.lamp_volume(beams, split)[fine]  # the sun's light through the volume (beam_source.py)
+    assert res.volume is not None and np.allclose(res.volume[fine], volume)
+    # the sun's incidence (split.py eq. 6), its part of q in the volume
+    direct = direct_light(s, block, q, beams[fine], (0, 1, 2), split, beam_in_volume=True)
     assert direct is not None
     block.set_frame(direct)
-    B = block.rhs(q, direct)
+    B = block.rhs(q, direct, volume)
     for c in range(3):
         direct = splu(block.matrix(c).tocsc()).solve(np.concatenate([B[:, c], B[:, 3 + c]]))
         assert np.abs(direct[block.n:] - res.phi[-1][:, c]).max() < 1e-8 * np.abs(direct[block.n:]).max()

@@ -121,6 +121,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "direct: sparse LU (exact, memory grows fast)")
     s.add_argument("--tol", type=arg.tolerance, default=1e-4,
                    help="relative residual tolerance, in (0, 1) (default 1e-4)")
+    s.add_argument("--lamp-source", choices=["volume", "boundary"], default="volume",
+                   help="where a lamp's light enters the diffusion: volume, along its refracted chords "
+                        "(default), or boundary, all of it at the surface it reaches (the model before; "
+                        "for comparisons)")
     s.add_argument("--no-shadows", action="store_true", help="ignore occlusion of point and sun lights")
     s.add_argument("--mm-per-unit", type=arg.mm_per_unit, default=None,
                    help="override the baked scene scale: millimetres per mesh unit, a finite number > 0")

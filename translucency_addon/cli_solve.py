@@ -101,7 +101,8 @@ def cmd_solve(a) -> int:
             from .inner_parts.bake import diffusion_material
 
             solver_material, solver_field = diffusion_material(material, bake.composite, field_values)
-        solver = DiffusionSolver(bake, solver_material, solver_field, SolveOptions(solver=a.solver, tol=a.tol))
+        opts = SolveOptions(solver=a.solver, tol=a.tol, lamp_source=getattr(a, "lamp_source", "volume"))
+        solver = DiffusionSolver(bake, solver_material, solver_field, opts)
     view = ("PERSP", tuple(a.camera)) if a.camera is not None else None
     ss_stats = _single_scattering_stats(a, bake, outer_material, spec) if passes.use_ss else None
     vnm_stats = {"enabled": False, "reason": (

@@ -641,6 +641,8 @@ def check(run: Run, *, strict: bool = True) -> tuple[dict, list[str]]:
             problems.append(f"level {i}: NaN or Inf in phi or q")
             continue
         g = (4.0 * q / (1.0 - fdr)).max(axis=0)  # largest boundary source per channel
+        if r.volume is not None and r.volume[i] is not None:  # or the lamps' volume source's bound
+            g = np.maximum(g, s.phi_bound(r, i))
         if np.all(g == 0):
             if np.any(phi != 0):
                 problems.append(f"level {i}: no light, but phi is not exactly zero (max {np.abs(phi).max():.3g})")
@@ -757,6 +759,8 @@ def power(run: Run, level: int):
     m = run.scenario.bake.mm_per_unit * 1e-3
     a = lv.area * m * m
     p_in = a @ r.q[level]
+    if r.volume is not None and r.volume[level] is not None:  # the lamps' volume source (mm^2 W/m^2)
+        p_in = p_in + np.asarray(r.volume[level]).sum(axis=0) * 1e-6
     p_out = a @ ((1.0 - s.fdr) * np.asarray(s.surface_partial_current(r, level)))
     imbalance = 0.0
     if r.scheme == "fv":

@@ -95,6 +95,8 @@ def measure(bake, medium, lights, *, env=None, eta=None) -> Outcome:
     # own lights (q on the wall minus the exchange's share, which is light that already was in the medium)
     q_ext_wall = q[ex.nodes] - res.cavity_q
     p_in = a[outer] @ q[outer] + a[ex.nodes] @ q_ext_wall
+    if res.volume is not None and res.volume[-1] is not None:  # the lamps' light entered through the volume
+        p_in = p_in + np.asarray(res.volume[-1]).sum(axis=0) * 1e-6
     p_abs = solver.power_balance(res, clamp=False)["absorbed"]
     p = exchange_power(solver, res, ex)
     L = solver.vertex_radiance(res)
@@ -105,7 +107,7 @@ def measure(bake, medium, lights, *, env=None, eta=None) -> Outcome:
         # relative to the gross power through the wall: the net J+ may change sign where diffusion fails
         gross = (1.0 - solver.fdr) * (a[ex.nodes] @ np.abs(jp[ex.nodes]))
         hollow = np.where(gross > 0, np.abs(p["out"] - p["back"]) / gross, np.abs(p["back"]))
-    g = (4.0 * q / (1.0 - solver.fdr)).max(axis=0)
+    g = solver.phi_bound(res)  # max 4q/(1 - F_dr), or the lamps' volume source's bound
     phi_max = res.phi[-1].max(axis=0)
     mp = float(np.max(np.where(g > 0, phi_max / np.where(g > 0, g, 1.0), np.where(phi_max > 0, np.inf, 0.0))))
     bounds = finite_nonnegative("radiance", L) + [

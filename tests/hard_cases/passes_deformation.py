@@ -74,7 +74,7 @@ def solve_bounds(solver, result, radiance=None, label="") -> list[Bound]:
         phi, q = result.phi[i], result.q[i]
         if phi is None or q is None:
             continue
-        g = (4.0 * q / (1.0 - solver.fdr)).max(axis=0)
+        g = solver.phi_bound(result, i)  # max 4q/(1 - F_dr), or the lamps' volume source's bound
         gg = np.where(g > 0, g, np.inf)
         mp = max(mp, float((phi.max(axis=0) / gg).max()))
         low = max(low, float(-(phi.min(axis=0) / gg).min()))  # phi >= 0 to a relative EPS, as cases.py

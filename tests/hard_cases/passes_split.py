@@ -80,8 +80,8 @@ def solve_bounds(solver, res, L, label="") -> list[Bound]:
         pb.update(incident=pb["in"], single=np.zeros(3))
     inc = np.where(pb["incident"] > 0, pb["incident"], np.inf)
     ratio = float(((pb["out"] + pb["single"]) / inc).max())
-    phi, q = res.phi[-1], res.q[-1]
-    g = (4.0 * q / (1.0 - solver.fdr)).max(axis=0)
+    phi = res.phi[-1]
+    g = solver.phi_bound(res)  # max 4q/(1 - F_dr), or the lamps' volume source's bound
     gg = np.where(g > 0, g, np.inf)
     mp = float((phi.max(axis=0) / gg).max())
     # phi >= 0 as cases.py holds it: an iterate stopped at the tolerance may dip below 0 by a relative MP_EPS

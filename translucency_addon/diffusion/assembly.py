@@ -39,7 +39,7 @@ SCHEMES = ("fv", "paper")
 class LevelSystem:
     """One level's linear system in kernel form: diag_i x_i - sum_j off_ij x_j = b_i.
 
-    ``b`` is zero at inner nodes and ``b_scale * q`` at surface nodes.
+    ``b`` is ``b_scale * q`` at surface nodes and zero at inner nodes, or a volume source there (:meth:`rhs`).
     """
 
     scheme: str
@@ -129,9 +129,13 @@ class LevelSystem:
         w[self.level.n_inner:] -= self.boundary_diag
         return w
 
-    def rhs(self, q: np.ndarray) -> np.ndarray:
+    def rhs(self, q: np.ndarray, volume: np.ndarray | None = None) -> np.ndarray:
+        """b: ``b_scale q`` at the surface nodes, and ``volume`` (n_inner, C) -- a volume source's power in
+        each inner node's cell (``diffusion.beam_source``) -- or zero at the inner nodes."""
         b = np.zeros((self.n, self.diag.shape[1]))
         b[self.level.n_inner:] = self.b_scale * q
+        if volume is not None:
+            b[: self.level.n_inner] = volume
         return b
 
 

@@ -232,13 +232,14 @@ class BouncedSystem:
         c = self.base.diag.shape[1]
         return np.hstack([self.base.apply(x[:, :c]), self.base.apply(x[:, c:]) - self.coupling(x[:, :c])])
 
-    def rhs(self, q: np.ndarray, direct=None) -> np.ndarray:
+    def rhs(self, q: np.ndarray, direct=None, volume=None) -> np.ndarray:
         """The right-hand side of (1) for the level's direct light q (n_s, C), (N, 2C); ``direct``: the
         frame's :class:`DirectLight` where the lamps' incidence changes the split of q (eq. 6 of
-        :mod:`.split`), else None."""
+        :mod:`.split`), else None; ``volume``: the lamps' volume source at the inner nodes (n_inner, C)
+        (:mod:`.beam_source`), which drives phi0 and phi1 alike, or None."""
         s0 = self.source(q, None if direct is None else direct.m)
         qb_const = self.bounce(np.zeros_like(q), q, direct)  # G (0 - 2 m q) + H q: the bounce without phi0
-        return np.hstack([self.base.rhs(s0), self.base.rhs(s0 + self.source(qb_const))])
+        return np.hstack([self.base.rhs(s0, volume), self.base.rhs(s0 + self.source(qb_const), volume)])
 
     def set_frame(self, direct=None) -> None:
         """c_v of (1') for this frame: the direct light's multiple-scattering shape along the normal, which
@@ -315,10 +316,11 @@ class DirectLight:
     hq: np.ndarray
 
 
-def direct_light(solver, system, q_light, beam, cols, single):
+def direct_light(solver, system, q_light, beam, cols, single, beam_in_volume: bool = False):
     """:class:`DirectLight` of the finest level's entering light ``q_light`` (n_s, 3) with the lamps' part
     ``beam`` = (q_beam, mu), as the two-pass solve's output sees it (``split_radiance_at`` along the
-    normal); None without a split or without lamps."""
+    normal); None without a split or without lamps.  ``beam_in_volume``: the lamps' light enters the
+    diffusion as a volume source (:mod:`.beam_source`), so m takes none of it."""
     if beam is None or system.m is None:
         return None
     from .split import half_space_split
@@ -326,10 +328,10 @@ def direct_light(solver, system, q_light, beam, cols, single):
     split = half_space_split(solver.eta)
     on = np.array([bool(single[c]) for c in cols])
     cl = list(cols)
-    m_all = split.source_factors(solver.surface_albedo[-1], q_light, beam)
+    m_all = split.source_factors(solver.surface_albedo[-1], q_light, beam, beam_in_volume=beam_in_volume)
     idx, w = solver.bake.vertex_map
     q_v, a_v, beam_v = solver.split_inputs_at(q_light, beam, idx, w)
-    shape, single_v = split.output_terms(q_v, a_v, np.ones(len(q_v)), beam_v)
+    shape, single_v = split.output_terms(q_v, a_v, np.ones(len(q_v)), beam_v, beam_in_volume=beam_in_volume)
     Bg, _ = system.factors
     hq = Bg @ (np.where(on, single_v[:, cl], 0.0) / current_to_radiance(solver))
     return DirectLight(m=np.where(on, m_all[:, cl], 1.0), ms_shape=np.where(on, shape[:, cl], 1.0), hq=hq)
@@ -353,7 +355,7 @@ def solve_finest_bounced(solver, q_light, coarser, warm_start, cols, single) -> 
     return drain(finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single))
 
 
-def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, partial=None, beam=None):
+def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, partial=None, beam=None, volume=None):
     """The finest level of ``DiffusionSolver.solve(bounced=True)``: the block system (1) -- (1') in the
     split's channels -- by Chebyshev, in the channels ``cols``; a generator that returns the
     :class:`FinestStep` and yields after every sweep a function that returns the solve so far through
@@ -365,22 +367,25 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
     driver can start from (its ``first_pass`` starts phi0, when it has one), or None; ``beam``: the
     lamps' part of ``q_light`` and their incidence cosines, ``(q_beam, mu)`` or None: the direct light's
     source, its once-scattered light the bounce sends back (H q) and phi0's shape follow their incidence
-    (eq. 6 of :mod:`.split`, :class:`DirectLight`); the bounce's own light is diffuse light.
+    (eq. 6 of :mod:`.split`, :class:`DirectLight`); the bounce's own light is diffuse light.  ``volume``:
+    the lamps' volume source at the inner nodes (n_inner, 3) (:mod:`.beam_source`), or None: it drives
+    phi0 and phi1 alike, and the lamps' part of ``q_light`` then leaves the boundary source.
     """
     opts = solver.options
     fine = len(solver.bake.levels) - 1
     system = bounced_system(solver, cols, single)
     base = system.base
     qd = np.asarray(q_light)[:, list(cols)]
-    direct = direct_light(solver, system, q_light, beam, cols, single)
+    direct = direct_light(solver, system, q_light, beam, cols, single, beam_in_volume=volume is not None)
     system.set_frame(direct)
-    B = system.rhs(qd, direct)
+    vol = None if volume is None else np.asarray(volume)[:, list(cols)]
+    B = system.rhs(qd, direct, vol)
+    C = len(cols)
     x1 = solver.initial_guess(fine, cols, coarser, warm_start)
     prev0 = getattr(warm_start, "first_pass", None)
     x0 = x1.copy() if prev0 is None else solver.initial_guess(fine, cols, previous=prev0)
     X = np.hstack([x0, x1])
     X[:, ~np.any(B != 0, axis=0)] = 0.0  # no light in a channel: the answer is exactly 0 (solve_systems)
-    C = len(cols)
     steps = chebyshev_steps(system, B, X, solver.level_tolerance(fine), opts.max_iterations, opts.check_every)
     x, info = yield from relay(steps, lambda get: lambda: _bounced_partial(system, qd, get(), C, cols, fine, partial,
                                                                            direct))
@@ -388,7 +393,7 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
     q_dif, q_tot = _entered(system, phi0, qd, direct)
     info = LevelSolve(info.iterations, np.maximum(info.residual[:C], info.residual[C:]), info.history,
                       info.seconds, note="")
-    phi1, info = solver.checked_level(fine, base, q_dif, base.rhs(q_dif), phi1, info)
+    phi1, info = solver.checked_level(fine, base, q_dif, base.rhs(q_dif, vol), phi1, info)
     info.residual = kernels.in_channels(info.residual, cols)
     full = kernels.in_channels
     return FinestStep(phi=full(phi1, cols), q=full(q_dif, cols), q_incident=full(q_tot, cols),

@@ -269,42 +269,64 @@ def outside_maximum_principle(system: LevelSystem, b: np.ndarray, x: np.ndarray,
     The FV matrix of :mod:`.assembly` is a symmetric M-matrix whose surface rows
     are ``... = b_s`` with ``b_s = b_scale q_s``: its solution satisfies
     ``0 <= phi <= max_s b_s / boundary_diag_s`` (= ``max 4 q / (1 - F_dr)``),
-    per channel.  An iterate outside those bounds by more than ``slack`` of the
+    per channel.  With a volume source (``b`` nonzero at inner nodes, :mod:`.beam_source`) the bound
+    is ``max_i b_i / r_i`` over those rows too, ``r = A 1`` the row's absorption (an M-matrix with
+    ``A (x - c 1) <= 0`` for ``c`` at least that).  An iterate outside those bounds by more than ``slack`` of the
     bound (or not finite) has gone wrong, whatever its residual says.
     """
     if system.scheme != "fv" or system.boundary_diag is None:
         return False
     if not np.all(np.isfinite(x)):
         return True
-    ni = system.level.n_inner
-    bound = (b[ni:] / system.boundary_diag).max(axis=0)
-    bound = np.maximum(bound, 0.0)
+    bound = maximum_principle_bound(system, b)
     tiny = 1e-300
     return bool(np.any(x.max(axis=0) > bound * (1.0 + slack) + tiny)
                 or np.any(x.min(axis=0) < -slack * bound - tiny))
 
 
+def maximum_principle_bound(system: LevelSystem, b: np.ndarray) -> np.ndarray:
+    """The upper bound of :func:`outside_maximum_principle` per channel, (C,): ``max_s b_s / boundary_diag_s``
+    (``max 4 q / (1 - F_dr)``) and, where ``b`` holds a volume source, ``max_i b_i / r_i`` over those rows
+    too.  FV scheme only."""
+    ni = system.level.n_inner
+    bound = (b[ni:] / system.boundary_diag).max(axis=0, initial=0.0)
+    if np.any(b[:ni] > 0):
+        r = _absorption(system)[:ni]
+        bound = np.maximum(bound, np.where(b[:ni] > 0, b[:ni] / np.maximum(r, 1e-300), 0.0).max(axis=0))
+    return np.maximum(bound, 0.0)
+
+
 BALANCE_TOL = 1e-3  # the discrete energy balance an iterative FV solve must keep (fraction of the light in)
 
 
-def energy_imbalance(system: LevelSystem, q: np.ndarray, x: np.ndarray, fdr: float) -> float:
+def _absorption(system: LevelSystem) -> np.ndarray:
+    """``w = A 1 - boundary term`` (:meth:`.assembly.LevelSystem.absorption_weights`) for this system's
+    channels (a subset may hold fewer than 3), cached on the system."""
+    w = system.cache.get("absorption_w")
+    if w is None:
+        w = system.apply(np.ones((system.n, system.diag.shape[1])))
+        w[system.level.n_inner:] -= system.boundary_diag
+        system.cache["absorption_w"] = w
+    return w
+
+
+def energy_imbalance(system: LevelSystem, q: np.ndarray, x: np.ndarray, fdr: float, volume=None) -> float:
     """``max_c |in - out - absorbed| / in`` of a level's FV solution (0 for the paper's scheme).
 
-    Summing the FV rows gives exactly ``sum_s a_s q_s = sum_s a_s (1 - F_dr) J+_s + sum_i w_i phi_i``
-    with the unclamped ``J+ = (phi_s - 2 q)/(2 (1 + F_dr))`` and ``w = A 1 - boundary term``
+    Summing the FV rows gives exactly ``sum_s a_s q_s + sum_i v_i = sum_s a_s (1 - F_dr) J+_s + sum_i w_i phi_i``
+    with the unclamped ``J+ = (phi_s - 2 q)/(2 (1 + F_dr))``, ``v`` the volume source at the inner nodes
+    (or none) and ``w = A 1 - boundary term``
     (:meth:`.assembly.LevelSystem.absorption_weights`, mm^2): a solution that misses it by more than
     the solver tolerance allows has not converged, whatever its residual norm says.
     """
     if system.scheme != "fv" or system.boundary_diag is None:
         return 0.0
     ni = system.level.n_inner
-    w = system.cache.get("absorption_w")
-    if w is None:  # absorption_weights() for this system's channels (a subset may hold fewer than 3)
-        w = system.apply(np.ones((system.n, system.diag.shape[1])))
-        w[ni:] -= system.boundary_diag
-        system.cache["absorption_w"] = w
+    w = _absorption(system)
     a = system.level.area * system.mm_per_unit**2
     p_in = a @ q
+    if volume is not None:
+        p_in = p_in + np.asarray(volume).sum(axis=0)
     jp = kernels.partial_current(x[ni:], q, fdr)
     gap = np.abs(p_in - a @ ((1.0 - fdr) * jp) - np.einsum("nc,nc->c", w, x))
     lit = p_in > 0

@@ -134,6 +134,7 @@ from .radiance import clamp_scale, map_to_points, outgoing_radiance
 from .split import albedo, half_space_split
 
 SOLVERS = ("fast", "paper", "direct", "jacobi")
+LAMP_SOURCES = ("volume", "boundary")
 
 
 @dataclass
@@ -149,6 +150,10 @@ class SolveOptions:
     # output, the diffusion's boundary source reduced to what scatters more, so the two add up.  True: every
     # channel; a solve's ``single=`` (the planner's channels) overrides it.
     single_scattering: bool = False
+    # Where a lamp's light enters the diffusion in the split's channels: "volume", the uncollided beam
+    # along its refracted chords as a volume source (beam_source.py), or "boundary", all of it at the
+    # surface node it enters (eq. 3 with eq. 6's share).  The world's light is always a boundary source.
+    lamp_source: str = "volume"
 
     def scheme(self) -> str:
         return "paper" if self.solver == "paper" else "fv"
@@ -170,6 +175,8 @@ class SolveResult:
     # Per level, the lamps' part of the entering light and their mean incidence cosine, (q_beam, mu), or
     # None: the incidence-aware split (split.py eq. 6) of that part (scene.lights.LampBeams)
     beams: list | None = None
+    # Per level, the lamps' volume source (n_inner, 3) at the inner nodes (beam_source.py), or None
+    volume: list | None = None
 
     @property
     def iterations(self) -> int:
@@ -194,6 +201,7 @@ class SolveResult:
         return replace(self, phi=finest(self.phi, response.phi), q=finest(self.q, response.q),
                        q_incident=finest(self.q_incident, response.q_incident),
                        beams=_sum_beams(self.beams, response.beams),
+                       volume=_sum_volumes(self.volume, response.volume),
                        level_solves=self.level_solves[:-1] + response.level_solves[-1:],
                        seconds=dict(self.seconds), warnings=list(self.warnings), first_pass=None)
 
@@ -225,6 +233,9 @@ class DiffusionSolver:
         self.options = options or SolveOptions()
         if self.options.solver not in SOLVERS:
             raise TranslucencyError(f"unknown solver {self.options.solver!r}; choose one of {', '.join(SOLVERS)}")
+        if self.options.lamp_source not in LAMP_SOURCES:
+            raise TranslucencyError(f"unknown lamp source {self.options.lamp_source!r}; choose one of "
+                                    f"{', '.join(LAMP_SOURCES)}")
         self._shadow_bvh = bake.surface_bvh  # None: built on the first shadow ray
         self._occluder_cache = None  # (content key of other objects' triangles, BVH of the mesh and them)
         self.warnings: list[str] = []  # of the latest light pass (incident)
@@ -250,12 +261,14 @@ class DiffusionSolver:
             raise MaterialError(f"field values needed for {len(levels)} levels, got {len(field_values)}")
         self.systems = []
         self.surface_albedo = []  # per level (n_surface, 3): sigma_s'/sigma_t at the surface nodes (the split)
+        self.surface_sigma_t = []  # per level (n_surface, 3): sigma_t per mm there (the lamps' volume source)
         for i, lv in enumerate(levels):
             fv = None if field_values is None else np.asarray(field_values[i])
             if fv is not None and fv.shape[0] != lv.n_nodes:
                 raise MaterialError(f"level {i}: field has {fv.shape[0]} values for {lv.n_nodes} nodes")
             sa, ss = node_coefficients(material, fv, lv.n_nodes)
             self.surface_albedo.append(albedo(sa[lv.n_inner:], ss[lv.n_inner:]))
+            self.surface_sigma_t.append(sa[lv.n_inner:] + ss[lv.n_inner:])
             self.systems.append(assemble(lv, sa, ss, material.eta, self.bake.mm_per_unit, self.options.scheme()))
 
     def rebind(self, bake: SolverInput) -> None:
@@ -451,7 +464,9 @@ class DiffusionSolver:
                               bounce=bounce, beams=beams)
             warnings = list(self.warnings)
         q_light = q
-        q, q_incident, single = self.split_source(q, single, beams)
+        single = self.split_channels(single)
+        volume = self.lamp_volume(beams, single)
+        q, q_incident, single = self.split_source(q, single, beams, volume)
         if q_incident is None:
             beams = None
         t1 = time.perf_counter()
@@ -464,19 +479,21 @@ class DiffusionSolver:
             solves = [LevelSolve(0, np.zeros(3), [0.0], 0.0) for _ in active]
         else:
             levels = active[:-1] if bounced else active
-            partial = self._partial_result(q, q_incident, single, cols, beams)
+            partial = self._partial_result(q, q_incident, single, cols, beams, volume)
             if not levels:
                 phi, solves = [None] * n_lv, []
             elif type(self).solve_systems is DiffusionSolver.solve_systems and opts.solver == "fast":
-                phi, solves = yield from self._systems_steps(q, levels, warm_start, cols, partial)
+                phi, solves = yield from self._systems_steps(q, levels, warm_start, cols, partial, volume)
             else:
-                phi, solves = self.solve_systems(q, levels, warm_start, cols)
+                kw = {} if volume is None else {"volume": volume}  # a backend without volume sources sees none
+                phi, solves = self.solve_systems(q, levels, warm_start, cols, **kw)
             if bounced:
                 from .interreflection import finest_bounced_steps
 
                 step = yield from finest_bounced_steps(self, q_light[fine], phi[fine - 1] if levels else None,
                                                        warm_start if usable else None, cols, single, partial,
-                                                       beam=None if beams is None else beams[fine])
+                                                       beam=None if beams is None else beams[fine],
+                                                       volume=None if volume is None else volume[fine])
                 phi[fine], q = step.phi, list(q)
                 q[fine], first_pass = step.q, step.first_pass
                 if q_incident is not None:
@@ -492,10 +509,59 @@ class DiffusionSolver:
         t2 = time.perf_counter()
         return SolveResult(phi=phi, q=q, level_solves=solves, scheme=self.systems[-1].scheme,
                            seconds={"lights": t1 - t0, "solve": t2 - t1, "total": t2 - t0}, warnings=warnings,
-                           q_incident=q_incident, single=single, first_pass=first_pass, beams=beams)
+                           q_incident=q_incident, single=single, first_pass=first_pass, beams=beams,
+                           volume=volume)
 
     # -- the first-scatter split -----------------------------------------------------------
-    def split_source(self, q, single=None, beams=None):
+    def split_channels(self, single=None) -> tuple:
+        """The channels in which the first-scatter split runs: ``single`` (the planner's), else every
+        channel when ``options.single_scattering``, else none."""
+        if single is None:
+            single = (bool(self.options.single_scattering),) * 3
+        return tuple(bool(c) for c in single)
+
+    def lamp_volume(self, beams, single) -> list | None:
+        """The lamps' volume source per level, (n_inner, 3), in the split's channels ``single`` (zero in the
+        others, where the lamps stay boundary sources), or None: with ``options.lamp_source == "volume"``
+        and lamp light on some level (:mod:`.beam_source`; ``beams`` per level ``(q_beam, mu, to_light)``)."""
+        if self.options.lamp_source != "volume" or beams is None or not any(single):
+            return None
+        if all(b is None or not np.any(b[0]) for b in beams):
+            return None
+        from scipy.spatial import cKDTree
+
+        from .beam_source import beam_deposits, deposit_in_cells
+
+        # The beams are traced once, from the finest level that has them (its surface is the closest to
+        # the mesh), and their deposits binned into every level's cells, scaled on a coarser level to the
+        # lamp light its own surface takes in (its nodes' areas and normals differ), so that each level
+        # keeps its own energy balance: a coarser level is the finer one's starting guess only.
+        src = max(i for i, b in enumerate(beams) if b is not None and np.any(b[0]))
+
+        def lamp_power(i):
+            return (self.bake.levels[i].area[:, None] * np.asarray(beams[i][0])).sum(axis=0)
+        lv = self.bake.levels[src]
+        diag = float(np.linalg.norm(np.ptp(self.bake.mesh_vertices, axis=0)))
+        points, power = beam_deposits(lv, self.shadow_bvh(None), self.bake.mm_per_unit, beams[src],
+                                      self.surface_sigma_t[src], self.surface_albedo[src], self.eta, diag)
+        power = power * np.array(single, dtype=float)
+        trees = self.cache.setdefault("inner_tree", {})
+        out = []
+        for i, beam in enumerate(beams):
+            lv = self.bake.levels[i]
+            if beam is None or lv.n_inner == 0:
+                out.append(None)
+                continue
+            if i not in trees:
+                trees[i] = cKDTree(np.asarray(lv.position[: lv.n_inner], dtype=np.float64))
+            scale = 1.0
+            if i != src:
+                p_src, p_i = lamp_power(src), lamp_power(i)
+                scale = np.where(p_src > 0, p_i / np.where(p_src > 0, p_src, 1.0), 0.0)
+            out.append(deposit_in_cells(trees[i], lv.n_inner, points, power) * scale)
+        return out
+
+    def split_source(self, q, single=None, beams=None, volume=None):
         """``(diffusion source per level, incident q per level or None, channels)`` of the split.
 
         In the channels of ``single`` (default: all when ``options.single_scattering``) the light that
@@ -505,10 +571,11 @@ class DiffusionSolver:
         source whose half-space return is the multiple scattering M(alpha); alpha is each surface node's.
         So both terms add up, each path once, node by node in a heterogeneous medium.  ``beams`` (per
         level ``(q_beam, mu)`` or None): the lamps' part of q is split by its incidence (eq. 6 there).
+        ``volume`` (:meth:`lamp_volume`, or None): on the levels where it holds a source, the lamps' light
+        enters the diffusion through it, so their part of q leaves the boundary source (the output still
+        adds their single scattering).
         """
-        if single is None:
-            single = (bool(self.options.single_scattering),) * 3
-        single = tuple(bool(c) for c in single)
+        single = self.split_channels(single)
         if not any(single):
             return q, None, (False, False, False)
         split = half_space_split(self.eta)
@@ -518,7 +585,8 @@ class DiffusionSolver:
             if qi is None:
                 out.append(None)
                 continue
-            m = split.source_factors(self.surface_albedo[i], qi, None if beams is None else beams[i])
+            m = split.source_factors(self.surface_albedo[i], qi, None if beams is None else beams[i],
+                                     beam_in_volume=volume is not None and volume[i] is not None)
             out.append(np.asarray(qi) * np.where(on, m, 1.0))
         return out, list(q), single
 
@@ -538,7 +606,8 @@ class DiffusionSolver:
         cos_o = np.ones(len(n)) if view_dirs is None else np.einsum("vj,vj->v", n, view_dirs)
         split = half_space_split(self.eta)
         on = np.array(result.single, dtype=bool)
-        shape, single = split.output_terms(q_v, a_v, cos_o, beam)
+        shape, single = split.output_terms(q_v, a_v, cos_o, beam,
+                                           beam_in_volume=result.volume is not None and result.volume[-1] is not None)
         return np.asarray(L) * np.where(on, shape, 1.0) + single * on
 
     def split_inputs_at(self, q_incident, beam, idx, w) -> tuple:
@@ -588,18 +657,19 @@ class DiffusionSolver:
             L = self.vertex_radiance(res)
         return res, L
 
-    def solve_systems(self, q, active, warm_start=None, cols=(0, 1, 2)):
+    def solve_systems(self, q, active, warm_start=None, cols=(0, 1, 2), volume=None):
         """Run the linear solves on the ``active`` levels, coarse to fine (eq. 10 between them), in the
         channels ``cols``.
 
         This is the part a GPU backend replaces (``gpu_shaders.solver``); the
         assembly, the light pass, the solution checks after each level
-        (:meth:`checked_level`) and the output stay shared.
+        (:meth:`checked_level`) and the output stay shared.  ``volume``: the lamps' volume source per level
+        (:meth:`lamp_volume`) or None.
         Returns ``(phi per level (None where inactive), [LevelSolve])``.
         """
-        return drain(self._systems_steps(q, active, warm_start, cols))
+        return drain(self._systems_steps(q, active, warm_start, cols, volume=volume))
 
-    def _systems_steps(self, q, active, warm_start=None, cols=(0, 1, 2), partial=None):
+    def _systems_steps(self, q, active, warm_start=None, cols=(0, 1, 2), partial=None, volume=None):
         """:meth:`solve_systems` as a generator: with the fast solver (Chebyshev) it yields
         ``partial(level, iterate)`` (a function, see :meth:`solve_steps`) after every sweep."""
         opts = self.options
@@ -610,7 +680,7 @@ class DiffusionSolver:
         coarser = None
         for i in active:
             system = self.systems[i].subset(cols)
-            b = system.rhs(q[i][:, cols])
+            b = system.rhs(q[i][:, cols], None if volume is None or volume[i] is None else volume[i][:, cols])
             x0 = self.initial_guess(i, cols, coarser, warm_start)
             # No light on this level in a channel: the (non-singular) system's answer is exactly 0.  A warm
             # start from a coarser level that did see light (a light grazing the surface) would otherwise
@@ -644,7 +714,7 @@ class DiffusionSolver:
             return kernels.shepard_upsample(idx, w, np.asarray(coarser)[:, cols])
         return np.zeros((self.bake.levels[level].n_nodes, len(cols)))
 
-    def _partial_result(self, q, q_incident, single, cols, beams=None):
+    def _partial_result(self, q, q_incident, single, cols, beams=None, volume=None):
         """``partial(level, iterate, q_fine=None, q_incident_fine=None)``: a :class:`SolveResult` of the solve
         so far (:meth:`solve_steps`): ``iterate`` (n_level, len(cols)) in its channels (0 in the others,
         the ones the planner turned off) carried up to the finest level by eq. 10's Shepard transfers
@@ -664,7 +734,7 @@ class DiffusionSolver:
                 if qi is not None:
                     qi[fine] = q_incident_fine
             return SolveResult(phi=[None] * fine + [x], q=qs, level_solves=[], scheme=self.systems[-1].scheme,
-                               q_incident=qi, single=single, beams=beams)
+                               q_incident=qi, single=single, beams=beams, volume=volume)
         return partial
 
     def level_tolerance(self, level: int) -> float:
@@ -696,8 +766,10 @@ class DiffusionSolver:
         ``q``, ``b``, ``x``: the level's incident light, right-hand side and solution, for the
         channels of ``system``.  Returns ``(x, info)``, unchanged when ``x`` passes.
         """
+        ni = system.level.n_inner
+        volume = b[:ni] if np.any(b[:ni]) else None  # the lamps' volume source (beam_source), if any
         if not self.guards_solutions or not (outside_maximum_principle(system, b, x)
-                                             or energy_imbalance(system, q, x, self.fdr) > BALANCE_TOL):
+                                             or energy_imbalance(system, q, x, self.fdr, volume) > BALANCE_TOL):
             return x, info
         x, direct = solve_direct(system, b)
         return x, LevelSolve(info.iterations, direct.residual, info.history + direct.history,
@@ -749,10 +821,20 @@ class DiffusionSolver:
         cos_o = np.ones(len(n)) if view_dirs is None else np.einsum("vj,vj->v", n, view_dirs)
         return self.split_radiance_at(result, outgoing_radiance(j_v, cos_o, self.eta), idx, w, normals, view_dirs)
 
+    def phi_bound(self, result: SolveResult, level: int = -1) -> np.ndarray:
+        """The discrete maximum principle's bound on the level's phi per channel, (3,)
+        (:func:`.iterative.maximum_principle_bound`): ``max 4 q / (1 - F_dr)`` of the boundary source, or
+        above it where the lamps' volume source (``result.volume``) drives a cell harder."""
+        from .iterative import maximum_principle_bound
+
+        volume = None if result.volume is None else result.volume[level]
+        return maximum_principle_bound(self.systems[level], self.systems[level].rhs(result.q[level], volume))
+
     def power_balance(self, result: SolveResult, level: int = -1, clamp: bool = True) -> dict:
         """Incoming, absorbed and outgoing power (W, per channel) on one level.
 
-        ``out = sum_s a_s (1 - F_dr) J+_s``.  ``absorbed`` is what the
+        ``in`` is the boundary source's ``sum_s a_s q_s`` plus the lamps' volume source (when the result has
+        one), ``out = sum_s a_s (1 - F_dr) J+_s``.  ``absorbed`` is what the
         discrete operator removes: ``(A 1 - a_s/(2A) at surface nodes) . phi``
         (cell absorption mu V plus the absorption inside fitted surface links);
         unclamped, ``in = out + absorbed`` holds to the solver tolerance.
@@ -768,6 +850,8 @@ class DiffusionSolver:
         if clamp:  # what the radiance output emits (surface_partial_current)
             jp = np.maximum(jp, 0.0) * clamp_scale(phi_s, q, lv.area, self.fdr)
         p_in = a @ q
+        if result.volume is not None and result.volume[level] is not None:
+            p_in = p_in + np.asarray(result.volume[level]).sum(axis=0) * 1e-6  # mm^2 -> m^2
         p_out = a @ ((1.0 - self.fdr) * jp)
         p_abs = np.einsum("nc,nc->c", system.absorption_weights(), phi) * 1e-6  # mm^2 -> m^2
         out = {"in": p_in, "out": p_out, "absorbed": p_abs}
@@ -781,16 +865,29 @@ class DiffusionSolver:
         return out
 
 
+def _sum_volumes(a, b):
+    """The lamps' volume sources of two results added on the finest level (:meth:`SolveResult.plus_finest`)."""
+    if b is None or b[-1] is None:
+        return a
+    if a is None or a[-1] is None:
+        return b
+    out = list(a)
+    out[-1] = np.asarray(a[-1]) + np.asarray(b[-1])
+    return out
+
+
 def _sum_beams(a, b):
     """The lamps' parts of two results' entering light added on the finest level (:meth:`SolveResult.plus_finest`):
-    q_beam summed, the incidence cosine weighted by each one's q."""
+    q_beam summed, the incidence cosine and direction weighted by each one's q."""
     if a is None or a[-1] is None:
         return b
     if b is None or b[-1] is None:
         return a
-    (qa, ma), (qb, mb) = a[-1], b[-1]
+    (qa, ma, da), (qb, mb, db) = a[-1], b[-1]
     q = np.asarray(qa) + np.asarray(qb)
     wa, wb = np.asarray(qa).mean(axis=1), np.asarray(qb).mean(axis=1)
+    d = wa[:, None] * np.asarray(da) + wb[:, None] * np.asarray(db)
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
     out = list(a)
-    out[-1] = (q, weighted_cosine(wa * ma + wb * mb, wa + wb))
+    out[-1] = (q, weighted_cosine(wa * ma + wb * mb, wa + wb), np.where(norm > 0, d / np.where(norm > 0, norm, 1.0), 0.0))
     return out

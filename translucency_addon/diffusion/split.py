@@ -442,7 +442,7 @@ class HalfSpaceSplit:
                 out = out + wi * wk * ((1.0 - tm) * T[bb] + tm * T[bb + 1])
         return out
 
-    def _lookup_beam(self, table, alpha, mu) -> np.ndarray:
+    def lookup_beam(self, table, alpha, mu) -> np.ndarray:
         """Bilinear in (sqrt(1 - alpha), mu) of a (alpha grid, N_BEAM) table; alpha (n, C), mu (n,)."""
         return self._beam_bilinear(table, *self._alpha_index(alpha), *self._beam_weights(mu))
 
@@ -454,7 +454,7 @@ class HalfSpaceSplit:
 
     def beam_source_factor(self, alpha, mu) -> np.ndarray:
         """m of a beam entering at outside cosine ``mu`` (n,): its transport M over the graph's B (eq. 6)."""
-        return self._lookup_beam(self.m_beam_table, alpha, mu)
+        return self.lookup_beam(self.m_beam_table, alpha, mu)
 
     def beam_multiple_shape(self, alpha, cos_o, mu) -> np.ndarray:
         """c of eq. (4) for the light a beam at outside cosine ``mu`` sends out after two or more
@@ -492,19 +492,25 @@ class HalfSpaceSplit:
         mixed = (diffuse * q_d + beam_f(mu) * q_b) / np.where(q > 0, q, 1.0)
         return np.where(q > 0, mixed, diffuse)
 
-    def source_factors(self, alpha, q, beam=None) -> np.ndarray:
+    def source_factors(self, alpha, q, beam=None, beam_in_volume: bool = False) -> np.ndarray:
         """The diffusion's source per unit entering light q (n, C): ``m(alpha)`` for diffuse light, eq. (6)'s
-        ``m(alpha, mu)`` for the part ``beam`` = (q_beam, mu) of q that came from lamps."""
-        return self._mixed(self.source_factor(alpha), lambda mu: self.beam_source_factor(alpha, mu), q, beam)
+        ``m(alpha, mu)`` for the part ``beam`` = (q_beam, mu) of q that came from lamps -- or none of that
+        part with ``beam_in_volume``, where it enters the diffusion as a volume source (:mod:`.beam_source`)."""
+        beam_f = (lambda mu: 0.0) if beam_in_volume else (lambda mu: self.beam_source_factor(alpha, mu))
+        return self._mixed(self.source_factor(alpha), beam_f, q, beam)
 
     def single_escapes(self, alpha, q, beam=None) -> np.ndarray:
         """The once-scattered light that leaves per unit q (n, C), diffuse and beam parts as in :meth:`source_factors`."""
         return self._mixed(self.single_escape(alpha), lambda mu: self.beam_single_escape(alpha, mu), q, beam)
 
-    def output_terms(self, q, alpha, cos_o, beam=None):
+    def output_terms(self, q, alpha, cos_o, beam=None, beam_in_volume: bool = False):
         """``(shape, single)`` at points seen at outside cosine ``cos_o``: the factor c on the diffusion's
         isotropic output (eq. 4; the beams' shapes weighted by the source each feeds) and the single-scattering
-        radiance (eq. 2 for the diffuse part, eq. 6 for each beam).
+        radiance (eq. 2 for the diffuse part, eq. 6 for each beam).  With ``beam_in_volume`` the beams feed
+        the diffusion through the volume (:mod:`.beam_source`), not through the local boundary source, and
+        the light the diffusion carries to a point has no local beam's shape: it leaves with the diffuse
+        light's (measured on the skin sphere under a sun: the terminator band 0.73 of the walk with the
+        beam's shape, 0.81 with the diffuse one; the lit cap 0.99 and 1.03).
 
         Per vertex of a render mesh this is the split's output cost, so with beams the lookups of
         :meth:`source_factor`, :meth:`beam_source_factor` and :meth:`beam_multiple_shape` run only where a
@@ -529,7 +535,7 @@ class HalfSpaceSplit:
         m_b = self._beam_bilinear(self.m_beam_table, ia, ta, k, tk)
         c_d = shape[lit]
         c_b = np.where((c > 0)[:, None], self._beam_shape(it, tt, k, tk, j, tm), 1.0)
-        w_d, w_b = m_d * qd, m_b * qb
+        w_d, w_b = m_d * qd, (0.0 if beam_in_volume else m_b) * qb
         w = w_d + w_b
         shape[lit] = np.where(w > 0, (w_d * c_d + w_b * c_b) / np.where(w > 0, w, 1.0), c_d)
         single[lit] += self.beam_single_radiance(qb, a, c, mu)

@@ -53,8 +53,10 @@ class FluidOptions:
     cells: str = "auto"  # the cells' faces: auto (compiled where numba is installed), compiled, numpy
 
     def solve_options(self) -> SolveOptions:
+        # A lamp's light enters a fluid at the surface node it reaches (eq. 3 with eq. 6's share): the
+        # volume source (diffusion/beam_source.py) casts chords through a triangle mesh, a fluid is balls.
         return SolveOptions(solver=self.solver, tol=self.tol, max_iterations=self.max_iterations,
-                            levels="finest", sky_occlusion=False)
+                            levels="finest", sky_occlusion=False, lamp_source="boundary")
 
 
 @dataclass

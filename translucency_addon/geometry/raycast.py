@@ -309,7 +309,7 @@ class TriangleBVH:
         best_v = np.zeros(R)
         if R == 0:
             return best_t, best_tri, best_u, best_v
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # a subnormal component: inf, as 0
             inv = 1.0 / d
         inv = np.where(np.isfinite(inv), inv, 1e300)
         kernel = compiled_intersect() if R >= COMPILED_MIN_RAYS else None

@@ -326,29 +326,41 @@ def weighted_cosine(mu_q, q_mean) -> np.ndarray:
 
 @dataclass
 class LampBeams:
-    """The part of q that came from lamps, (n, 3), and ``mu_q`` (n,): the sum over lamps of each one's q
-    (mean over the channels) times its outside incidence cosine -- what the incidence-aware split
-    (``diffusion.split`` eq. 6) needs of a frame's lamps.  Filled by :func:`incident_flux`."""
+    """The part of q that came from lamps, (n, 3), ``mu_q`` (n,): the sum over lamps of each one's q
+    (mean over the channels) times its outside incidence cosine, and ``dir_q`` (n, 3): the same sum of
+    their unit directions towards the lamp -- what the incidence-aware split (``diffusion.split`` eq. 6)
+    and the lamps' volume source (``diffusion.beam_source``) need of a frame's lamps.  Filled by
+    :func:`incident_flux`."""
 
     q: np.ndarray
     mu_q: np.ndarray
+    dir_q: np.ndarray
 
     @classmethod
     def zeros(cls, n: int) -> "LampBeams":
-        return cls(np.zeros((n, 3)), np.zeros(n))
+        return cls(np.zeros((n, 3)), np.zeros(n), np.zeros((n, 3)))
 
-    def add(self, dq: np.ndarray, cos_i: np.ndarray) -> None:
+    def add(self, dq: np.ndarray, cos_i: np.ndarray, to_light: np.ndarray) -> None:
         self.q += dq
-        self.mu_q += dq.mean(axis=1) * np.clip(cos_i, 0.0, 1.0)
+        w = dq.mean(axis=1)
+        self.mu_q += w * np.clip(cos_i, 0.0, 1.0)
+        self.dir_q += w[:, None] * to_light
 
     @property
     def mu(self) -> np.ndarray:
         """The lamps' q-weighted mean outside incidence cosine per point (1 where no lamp lights it)."""
         return weighted_cosine(self.mu_q, self.q.mean(axis=1))
 
+    @property
+    def direction(self) -> np.ndarray:
+        """The lamps' q-weighted mean unit direction towards them per point (0 where no lamp lights it)."""
+        norm = np.linalg.norm(self.dir_q, axis=1, keepdims=True)
+        return np.where(norm > 0, self.dir_q / np.where(norm > 0, norm, 1.0), 0.0)
+
     def parts(self) -> tuple:
-        """``(q_beam, mu)``: the form ``diffusion.split.HalfSpaceSplit`` takes."""
-        return self.q, self.mu
+        """``(q_beam, mu, to_light)``: the form ``diffusion.split.HalfSpaceSplit`` (the first two) and
+        ``diffusion.beam_source`` take."""
+        return self.q, self.mu, self.direction
 
 
 def incident_flux(
@@ -389,7 +401,7 @@ def incident_flux(
             dq = E * sphere_visibility(light, p, n, to_light, dist, eta, visibility)[:, None]
             q += dq
             if beams is not None:
-                beams.add(dq, np.einsum("ij,ij->i", n, to_light))
+                beams.add(dq, np.einsum("ij,ij->i", n, to_light), to_light)
             continue
         # An extended emitter: every patch's irradiance, shadowed by the ray of its group (shadow_groups)
         groups = shadow_groups(light) if light.is_extended else [(light, [light])]
@@ -405,7 +417,7 @@ def incident_flux(
                 dq = E * np.where(lit, cos_i * fresnel_transmittance(cos_i, eta), 0.0)[:, None]
                 q += dq
                 if beams is not None:
-                    beams.add(dq, cos_i)
+                    beams.add(dq, cos_i, to_light)
     if environment is not None and not environment.is_black:
         q += environment_flux(environment, n, eta)
     return q

@@ -1,0 +1,130 @@
+"""The lamps' light inside the volume (diffusion/beam_source.py): eq. (7)'s escape, the chord deposits, and
+the frame against an index-matched random walk of the same sphere under a sun."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.special import expn
+
+from bakes import baked
+from translucency_addon.diffusion import beam_source
+from translucency_addon.diffusion import solver as dmod
+from translucency_addon.diffusion.split import half_space_split, inside_transmittance
+from translucency_addon.geometry.raycast import mesh_bvh
+from translucency_addon.scene import materials
+from translucency_addon.scene.lights import Light
+
+SKIN_RED = (0.032, 0.74)  # skin1's red channel: sigma_a, sigma_s' per mm
+
+
+def test_escape_once_is_the_exponential_integral_at_eta_1_and_loses_total_internal_reflection():
+    tau = np.array([0.0, 1e-3, 0.1, 0.5, 1.0, 3.0, 10.0])
+    assert np.allclose(beam_source.escape_once(tau, 1.0), 0.5 * expn(2, tau), rtol=2e-4, atol=0.0)
+    # eta 1.3: at the surface the escape is 1/2 int T_in(m) dm, below 1/2 (light past the critical angle stays)
+    x, w = np.polynomial.legendre.leggauss(400)
+    m = 0.5 * (x + 1.0)
+    e0 = 0.25 * (w * inside_transmittance(m, 1.3)).sum()
+    assert beam_source.escape_once(0.0, 1.3) == pytest.approx(e0, rel=1e-3)
+    assert e0 < 0.5 * 0.65
+
+
+def test_the_volume_factor_makes_a_half_space_return_transport():
+    """Eq. (8): v R = M, with R integrated here independently (scipy's quad and E2, eta = 1, A = 1) and M the
+    split's transport tables; v <= 1 (the source never exceeds what scattered and stayed)."""
+    from scipy.integrate import quad
+
+    sp = half_space_split(1.0)
+    for a in (0.3, 0.68, 0.96):
+        for mu in (1.0, 0.5, 0.1):
+            s = np.sqrt(3.0 * (1.0 - a))
+            R = a * quad(lambda u, mu=mu, s=s: np.exp(-u) * (1.0 - 0.5 * expn(2, mu * u)) * np.exp(-s * mu * u), 0.0, 80.0,
+                         limit=200)[0] / (1.0 + 2.0 * s / 3.0)
+            alpha = np.full((1, 3), a)
+            v = float(beam_source.volume_factor(alpha, np.array([mu]), 1.0)[0, 0])
+            M = float(sp.lookup_beam(sp.M_beam_table, alpha, np.array([mu]))[0, 0])
+            assert v * R == pytest.approx(M, rel=5e-3), (a, mu)
+            assert 0.0 < v <= 1.0 + 1e-3
+
+
+def test_deposits_keep_each_chord_s_power():
+    """A beam down the axis of a 10 mm sphere: the 16 pieces deposit, per channel, the integral of eq. (7)
+    along the chord of 20 mm to 3e-3 (eq. 7's escape taken at each piece's mean depth), at points on the chord; a beam along a short chord
+    deposits less."""
+    bk = baked("sphere", "draft", mm_per_unit=10.0)
+    bvh = mesh_bvh(bk.mesh_vertices, bk.mesh_faces)
+
+    class One:  # one surface node at the pole, 1 mm^2, lit head-on
+        normal = np.array([[0.0, 0.0, 1.0]])
+        surface_position = np.array([[0.0, 0.0, 0.99999]])
+        area = np.array([0.01])  # object units^2: 1 mm^2 at 10 mm per unit
+
+    st = np.array([[0.772, 1.05, 1.49]])
+    al = np.array([[0.74, 0.88, 1.01]]) / st
+    beam = (np.ones((1, 3)), np.ones(1), np.array([[0.0, 0.0, 1.0]]))
+    x, p = beam_source.beam_deposits(One, bvh, 10.0, beam, st, al, 1.0, diag=3.46)
+    assert np.allclose(x[:, :2], 0.0, atol=1e-9) and np.all((x[:, 2] < 1.0) & (x[:, 2] > -1.0))
+    t = np.linspace(0.0, 19.998, 200_001)
+    for c in range(3):
+        dens = st[0, c] * np.exp(-st[0, c] * t) * (1.0 - 0.5 * expn(2, st[0, c] * t))
+        want = al[0, c] * float(beam_source.volume_factor(al, np.ones(1), 1.0)[0, c]) * np.trapezoid(dens, t)
+        assert p[:, c].sum() == pytest.approx(want, rel=3e-3)
+    grazing = (np.ones((1, 3)), np.array([0.2]), np.array([[np.sqrt(1 - 0.04), 0.0, 0.2]]))
+    _, pg = beam_source.beam_deposits(One, bvh, 10.0, grazing, st, al, 1.0, diag=3.46)
+    assert np.all(pg.sum(axis=0) < p.sum(axis=0))
+
+
+@pytest.fixture(scope="module")
+def sphere_under_a_sun():
+    from bench.sphere_walk import sphere_lamp_walk
+
+    bk = baked("sphere", "draft", mm_per_unit=10.0)
+    V = bk.mesh_vertices
+    theta = np.degrees(np.arccos(np.clip(V[:, 2] / np.linalg.norm(V, axis=1), -1.0, 1.0)))
+    ang = np.array([0.0, 10.0, 20.0, 30.0, 80.0, 85.0, 90.0, 95.0, 100.0])
+    sa, ss = SKIN_RED
+    ref, _ = sphere_lamp_walk(10.0, sa + ss, ss / (sa + ss), np.radians(ang), n=6000, seed=3)
+    return bk, theta, np.interp(theta, ang, ref)
+
+
+def _cap_and_terminator(bk, theta, ref, lamp_source):
+    mat = replace(materials.material_from_preset("skin1"), eta=1.0)
+    s = dmod.DiffusionSolver(bk, mat, options=dmod.SolveOptions(single_scattering=True, lamp_source=lamp_source,
+                                                                 tol=1e-6))
+    res = s.solve([Light(kind="sun", irradiance=1.0, direction=(0.0, 0.0, -1.0))])
+    L = s.vertex_radiance(res)[:, 0]
+    cap, term = theta <= 30.0, (theta >= 80.0) & (theta <= 100.0)
+    return res, L[cap].mean() / ref[cap].mean(), L[term].mean() / ref[term].mean()
+
+
+def test_a_sun_through_the_volume_lights_the_terminator_as_transport_does(sphere_under_a_sun):
+    """Index-matched skin sphere (10 mm, red: albedo 0.96, mean free path 1.3 mm), sun from the pole, against
+    the adjoint random walk (bench/sphere_walk.py, every order, 1 % noise): the lit cap within 6 % and the
+    band 80-100 degrees at 0.8 or more (measured 0.97 and 0.87).  The boundary source misses both (1.14 and
+    0.54): the beam's light travels along chords past the terminator, which a source on the surface where
+    the light enters cannot carry."""
+    bk, theta, ref = sphere_under_a_sun
+    res, cap, term = _cap_and_terminator(bk, theta, ref, "volume")
+    assert res.volume is not None and np.all(res.volume[-1] >= 0) and res.volume[-1].sum() > 0
+    assert abs(cap - 1.0) < 0.06 and term > 0.8
+    _, cap_b, term_b = _cap_and_terminator(bk, theta, ref, "boundary")
+    assert abs(cap_b - 1.0) > 0.1 and term_b < 0.65
+
+
+def test_the_volume_source_keeps_the_energy_balance(sphere_under_a_sun):
+    """in = out + absorbed with the volume source counted in, every level; the lamps' part leaves q."""
+    bk, theta, ref = sphere_under_a_sun
+    mat = replace(materials.material_from_preset("skin1"), eta=1.3)
+    s = dmod.DiffusionSolver(bk, mat, options=dmod.SolveOptions(single_scattering=True, tol=1e-8))
+    sun = Light(kind="sun", irradiance=1.0, direction=(0.3, 0.1, -1.0))
+    res = s.solve([sun])
+    for level in range(len(bk.levels)):
+        pb = s.power_balance(res, level=level, clamp=False)
+        assert np.allclose(pb["in"], pb["out"] + pb["absorbed"], rtol=1e-5)
+        assert np.all(pb["out"] + pb["single"] <= pb["incident"])
+        assert np.all(s.phi_bound(res, level) >= res.phi[level].max(axis=0) * (1 - 1e-6))
+    boundary = dmod.DiffusionSolver(bk, mat, options=dmod.SolveOptions(single_scattering=True, tol=1e-8,
+                                                                       lamp_source="boundary")).solve([sun])
+    assert res.q[-1].sum() < 1e-9 * boundary.q[-1].sum()  # a sun alone: nothing left on the boundary
