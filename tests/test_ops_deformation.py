@@ -147,8 +147,10 @@ def rel_rms(a, b):
 
 def test_armature_bend_solves_on_the_deformed_graph(blender, addon, cache_dir, memo_bakes):
     """Frame 1 (rest) and frame 10 (the tip bone at 60 degrees): no re-bake, the radiance follows
-    the pose, equals the engine's DeformationFrames on Blender's posed mesh, and is as close to a
-    fresh bake of the posed mesh as the engine's own test allows (8 %)."""
+    the pose, equals the engine's DeformationFrames on Blender's posed mesh, and is close to a fresh bake
+    of the posed mesh: 9 %.  (8 % until the sun's light entered through the volume, diffusion/beam_source.py:
+    its deposits follow each graph's inner nodes, so two graphs of one shape -- the moved bake and a fresh,
+    run-to-run varying fTetWild bake -- now differ by 0.070-0.085 over five runs.)"""
     from translucency.ops import live, state, status
     from translucency.translucency_addon.quadgraph import bake as bake_mod
     from translucency.translucency_addon.diffusion.solver import DiffusionSolver
@@ -180,7 +182,7 @@ def test_armature_bend_solves_on_the_deformed_graph(blender, addon, cache_dir, m
     solver = DiffusionSolver(fresh.with_scale(inputs.mm), inputs.material, options=inputs.solve_options())
     L_fresh = solver.vertex_radiance(solver.solve(list(inputs.lights), inputs.environment, shadows=True,
                                                   single=inputs.single_channels))
-    assert rel_rms(posed, L_fresh) < 0.08
+    assert rel_rms(posed, L_fresh) < 0.09
     assert rel_rms(rest, L_fresh) > 2.0 * rel_rms(posed, L_fresh)  # the rest result shown on the pose is not
 
 
