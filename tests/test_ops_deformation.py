@@ -150,7 +150,7 @@ def test_armature_bend_solves_on_the_deformed_graph(blender, addon, cache_dir, m
     the pose, equals the engine's DeformationFrames on Blender's posed mesh, and is close to a fresh bake
     of the posed mesh: 9 %.  (8 % until the sun's light entered through the volume, diffusion/beam_source.py:
     its deposits follow each graph's inner nodes, so two graphs of one shape -- the moved bake and a fresh,
-    run-to-run varying fTetWild bake -- now differ by 0.070-0.085 over five runs.)"""
+    run-to-run varying fTetWild bake -- now differ by up to 0.085: above 0.08 in two of five runs.)"""
     from translucency.ops import live, state, status
     from translucency.translucency_addon.quadgraph import bake as bake_mod
     from translucency.translucency_addon.diffusion.solver import DiffusionSolver
