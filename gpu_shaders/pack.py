@@ -285,8 +285,8 @@ def pack_coefficients(layout: Layout, off: np.ndarray, diag: np.ndarray, b_scale
     """The matrix (kernel form of ``assembly.LevelSystem``) as textures.
 
     ``b_scale`` must be the same for the three channels (it is for both of
-    ``assembly.assemble``'s schemes); it is stored once per node in ext.a, and 1 at the inner nodes, whose
-    q texels hold a volume source's right-hand side over ``inner_unit``.
+    ``assembly.assemble``'s schemes); it is stored once per node in ext.a, and ``inner_unit`` (the largest
+    b_scale) at the inner nodes, whose q texels hold a volume source's right-hand side over it.
     """
     N = layout.n_nodes
     off = _pad_links(np.asarray(off, dtype=np.float64).reshape(N, -1, 3), 0.0)

@@ -248,8 +248,7 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         if self.precision != "fp16":
             return 1.0
         m = max((float(np.abs(q[i]).max(initial=0.0)) for i in active if q[i] is not None), default=0.0)
-        if volume is not None:  # stored over the inner nodes' unit (pack.pack_coefficients)
-            self._ensure()
+        if volume is not None:  # stored over the inner nodes' unit (pack.pack_coefficients; after _ensure)
             m = max([m] + [float(np.abs(volume[i]).max(initial=0.0)) / self._gpu_levels[i].coef.inner_unit
                            for i in active if volume[i] is not None])
         return pack.pow2_scale(m)

@@ -56,7 +56,7 @@ class LevelSystem:
     # What is derived from the system once and reused, owned here: "off_csr" (the off-diagonal part per
     # channel, :meth:`apply`), "sweep_ops" (:meth:`sweep_operator` per dtype), "subsets" (:meth:`subset`),
     # "rcm" and "sweep_pattern" (``sweeps``, the graph's, shared by channel subsets), "deflation"
-    # (``spectral.deflation``), "absorption_w" (``iterative``'s energy check).
+    # (``spectral.deflation``), "absorption_w" (:meth:`absorption_weights`).
     cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
@@ -121,12 +121,16 @@ class LevelSystem:
         """Per-node weights w with absorbed power = sum w phi (mm^2; FV scheme only).
 
         For the symmetric FV matrix, 1^T A phi = (A 1)^T phi; removing the
-        boundary exchange term a_s/(2A) leaves what the operator absorbs.
+        boundary exchange term a_s/(2A) leaves what the operator absorbs.  In this system's channels (a
+        subset may hold fewer than 3); computed once and kept in ``cache["absorption_w"]`` (read-only).
         """
         if self.scheme != "fv":
             raise TranslucencyError("power accounting is defined for the conservative scheme only")
-        w = self.apply(np.ones((self.n, 3)))
-        w[self.level.n_inner:] -= self.boundary_diag
+        w = self.cache.get("absorption_w")
+        if w is None:
+            w = self.apply(np.ones((self.n, self.diag.shape[1])))
+            w[self.level.n_inner:] -= self.boundary_diag
+            self.cache["absorption_w"] = w
         return w
 
     def rhs(self, q: np.ndarray, volume: np.ndarray | None = None) -> np.ndarray:

@@ -291,23 +291,12 @@ def maximum_principle_bound(system: LevelSystem, b: np.ndarray) -> np.ndarray:
     ni = system.level.n_inner
     bound = (b[ni:] / system.boundary_diag).max(axis=0, initial=0.0)
     if np.any(b[:ni] > 0):
-        r = _absorption(system)[:ni]
+        r = system.absorption_weights()[:ni]
         bound = np.maximum(bound, np.where(b[:ni] > 0, b[:ni] / np.maximum(r, 1e-300), 0.0).max(axis=0))
     return np.maximum(bound, 0.0)
 
 
 BALANCE_TOL = 1e-3  # the discrete energy balance an iterative FV solve must keep (fraction of the light in)
-
-
-def _absorption(system: LevelSystem) -> np.ndarray:
-    """``w = A 1 - boundary term`` (:meth:`.assembly.LevelSystem.absorption_weights`) for this system's
-    channels (a subset may hold fewer than 3), cached on the system."""
-    w = system.cache.get("absorption_w")
-    if w is None:
-        w = system.apply(np.ones((system.n, system.diag.shape[1])))
-        w[system.level.n_inner:] -= system.boundary_diag
-        system.cache["absorption_w"] = w
-    return w
 
 
 def energy_imbalance(system: LevelSystem, q: np.ndarray, x: np.ndarray, fdr: float, volume=None) -> float:
@@ -322,7 +311,7 @@ def energy_imbalance(system: LevelSystem, q: np.ndarray, x: np.ndarray, fdr: flo
     if system.scheme != "fv" or system.boundary_diag is None:
         return 0.0
     ni = system.level.n_inner
-    w = _absorption(system)
+    w = system.absorption_weights()
     a = system.level.area * system.mm_per_unit**2
     p_in = a @ q
     if volume is not None:

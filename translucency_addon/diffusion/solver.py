@@ -128,7 +128,8 @@ from ..scene.fresnel import diffuse_reflectance_internal
 from .graph import SolverInput
 from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, chebyshev_steps, drain, energy_imbalance,
                         outside_maximum_principle, relay, solve_chebyshev, solve_direct)
-from ..scene.lights import LampBeams, environment_flux, incident_flux, shadow_visibility, weighted_cosine
+from ..scene.lights import (LampBeams, environment_flux, incident_flux, shadow_visibility, weighted_cosine,
+                            weighted_direction)
 from ..scene.materials import Material
 from .radiance import clamp_scale, map_to_points, outgoing_radiance
 from .split import albedo, half_space_split
@@ -241,7 +242,8 @@ class DiffusionSolver:
         self.warnings: list[str] = []  # of the latest light pass (incident)
         # What this solver derives once and reuses, owned here: "inside" (whether a light position lies
         # inside the mesh, :meth:`lights_inside`), "bounce_G" and "bounced" (``interreflection``: the
-        # bounce operator per eta and the block system per material, eta and split).
+        # bounce operator per eta and the block system per material, eta and split), "diagonal" (the mesh's,
+        # :meth:`mesh_diagonal`), "inner_tree" (per level, a k-d tree of the inner nodes: :meth:`lamp_volume`).
         self.cache: dict = {}
         self.set_material(material, field_values)
 
@@ -363,10 +365,15 @@ class DiffusionSolver:
                 beams[i] = lamp.parts()
         return out
 
+    def mesh_diagonal(self) -> float:
+        """The mesh's bounding-box diagonal (object units), computed once per bake (a pose: :meth:`rebind`)."""
+        if "diagonal" not in self.cache:
+            self.cache["diagonal"] = float(np.linalg.norm(np.ptp(self.bake.mesh_vertices, axis=0)))
+        return self.cache["diagonal"]
+
     def shadow_offset(self) -> float:
         """How far along the normal (object units) shadow rays start: 1e-4 of the mesh's diagonal."""
-        diag = float(np.linalg.norm(np.ptp(self.bake.mesh_vertices, axis=0)))
-        return 1e-4 * diag
+        return 1e-4 * self.mesh_diagonal()
 
     def lights_inside(self, lights) -> list:
         """The point, spot and area lights whose position lies inside the object.
@@ -540,10 +547,10 @@ class DiffusionSolver:
 
         def lamp_power(i):
             return (self.bake.levels[i].area[:, None] * np.asarray(beams[i][0])).sum(axis=0)
-        lv = self.bake.levels[src]
-        diag = float(np.linalg.norm(np.ptp(self.bake.mesh_vertices, axis=0)))
-        points, power = beam_deposits(lv, self.shadow_bvh(None), self.bake.mm_per_unit, beams[src],
-                                      self.surface_sigma_t[src], self.surface_albedo[src], self.eta, diag)
+        p_src = lamp_power(src)
+        points, power = beam_deposits(self.bake.levels[src], self.shadow_bvh(None), self.bake.mm_per_unit,
+                                      beams[src], self.surface_sigma_t[src], self.surface_albedo[src], self.eta,
+                                      self.mesh_diagonal())
         power = power * np.array(single, dtype=float)
         trees = self.cache.setdefault("inner_tree", {})
         out = []
@@ -556,8 +563,7 @@ class DiffusionSolver:
                 trees[i] = cKDTree(np.asarray(lv.position[: lv.n_inner], dtype=np.float64))
             scale = 1.0
             if i != src:
-                p_src, p_i = lamp_power(src), lamp_power(i)
-                scale = np.where(p_src > 0, p_i / np.where(p_src > 0, p_src, 1.0), 0.0)
+                scale = np.where(p_src > 0, lamp_power(i) / np.where(p_src > 0, p_src, 1.0), 0.0)
             out.append(deposit_in_cells(trees[i], lv.n_inner, points, power) * scale)
         return out
 
@@ -886,8 +892,7 @@ def _sum_beams(a, b):
     (qa, ma, da), (qb, mb, db) = a[-1], b[-1]
     q = np.asarray(qa) + np.asarray(qb)
     wa, wb = np.asarray(qa).mean(axis=1), np.asarray(qb).mean(axis=1)
-    d = wa[:, None] * np.asarray(da) + wb[:, None] * np.asarray(db)
-    norm = np.linalg.norm(d, axis=1, keepdims=True)
     out = list(a)
-    out[-1] = (q, weighted_cosine(wa * ma + wb * mb, wa + wb), np.where(norm > 0, d / np.where(norm > 0, norm, 1.0), 0.0))
+    out[-1] = (q, weighted_cosine(wa * ma + wb * mb, wa + wb),
+               weighted_direction(wa[:, None] * np.asarray(da) + wb[:, None] * np.asarray(db)))
     return out

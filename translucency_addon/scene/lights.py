@@ -317,6 +317,13 @@ def light_irradiance(light: Light, points: np.ndarray, mm_per_unit: float):
     return I, to_light, dist
 
 
+def weighted_direction(dir_q) -> np.ndarray:
+    """The lamps' q-weighted mean unit direction from its weighted sum ``dir_q`` (n, 3); 0 where no lamp's
+    light arrives."""
+    norm = np.linalg.norm(dir_q, axis=1, keepdims=True)
+    return np.where(norm > 0, dir_q / np.where(norm > 0, norm, 1.0), 0.0)
+
+
 def weighted_cosine(mu_q, q_mean) -> np.ndarray:
     """The lamps' q-weighted mean incidence cosine from its weighted sum ``mu_q`` and the weight ``q_mean``
     (their q, mean over the channels); 1 where no lamp's light arrives."""
@@ -354,8 +361,7 @@ class LampBeams:
     @property
     def direction(self) -> np.ndarray:
         """The lamps' q-weighted mean unit direction towards them per point (0 where no lamp lights it)."""
-        norm = np.linalg.norm(self.dir_q, axis=1, keepdims=True)
-        return np.where(norm > 0, self.dir_q / np.where(norm > 0, norm, 1.0), 0.0)
+        return weighted_direction(self.dir_q)
 
     def parts(self) -> tuple:
         """``(q_beam, mu, to_light)``: the form ``diffusion.split.HalfSpaceSplit`` (the first two) and
