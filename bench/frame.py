@@ -377,6 +377,7 @@ def scaling_section(sizes, tol: float) -> str:
             D.__iadd__(T)
 
         xx, rr, dd = x.copy(), b.copy(), b.copy()
+        system.off_csr()  # apply() then takes the per-channel CSR products, not the sweeps' layout
 
         def node_major():
             nonlocal xx, rr, dd
@@ -392,7 +393,7 @@ def scaling_section(sizes, tol: float) -> str:
             times[name] = min(times.get(name, np.inf), dt)
         m = op.neg_a
         mem = (system.off.nbytes + system.diag.nbytes + system.nbr.nbytes + system.b_scale.nbytes
-               + sum(c.data.nbytes + c.indices.nbytes + c.indptr.nbytes for c in system.cache["off_csr"])
+               + sum(c.data.nbytes + c.indices.nbytes + c.indptr.nbytes for c in system.off_csr())
                + m.data.nbytes + m.indices.nbytes + m.indptr.nbytes + op.inv_diag.nbytes + 4 * X.nbytes)
         row = (f"| {g.n_nodes:,} | {g.h:.3f} | {info.iterations} | {1e3 * times['ours']:.2f} | "
                f"{1e3 * times['node']:.2f} | {times['node'] / times['ours']:.2f}x | {1e3 * solve_s:,.0f} | "

@@ -282,6 +282,13 @@ def test_warm_start_from_previous_frame_saves_sweeps():
     assert warm.residual.max() <= 1e-4
     Lw, Lc = s.vertex_radiance(warm), s.vertex_radiance(cold)
     assert np.abs(Lw - Lc).max() < 2e-3 * Lc.max()  # both are within the tolerance of the same solution
+    # a QuadGraph level (4 link slots) keeps Chebyshev as the default solve (iterative.fast_steps)
+    from translucency_addon.diffusion import iterative
+
+    system = s.systems[-1]
+    assert iterative.links_per_node(system) < iterative.CG_MIN_LINKS
+    steps = iterative.fast_steps(system, system.rhs(warm.q[-1]), warm.phi[-1], 1e-4, 10)
+    assert steps.gi_code is iterative.chebyshev_steps.__code__
 
 
 def test_no_light_gives_exactly_zero():

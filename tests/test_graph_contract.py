@@ -18,7 +18,7 @@ from translucency_addon.diffusion.assembly import assemble
 from translucency_addon.errors import TranslucencyError
 from translucency_addon.scene.fresnel import boundary_A, diffuse_reflectance_internal
 from translucency_addon.diffusion.graph import check_graph, graph_components
-from translucency_addon.diffusion.iterative import solve_chebyshev, solve_direct
+from translucency_addon.diffusion.iterative import solve_cg, solve_chebyshev, solve_direct
 from translucency_addon.scene.materials import diffusion_coefficient
 
 
@@ -115,9 +115,10 @@ def test_another_graph_kind_solves_against_the_closed_form_slab(sigma_a, sigma_s
     qs = np.array([[q] * 3, [0.0] * 3])
     b = system.rhs(qs)
     x_direct, _ = solve_direct(system, b)
-    x_cheb, info = solve_chebyshev(system, b, np.zeros_like(b), 1e-10, 200_000)
-    assert info.converged_to <= 1e-10
-    np.testing.assert_allclose(x_cheb, x_direct, rtol=1e-6, atol=1e-12)
+    for solve in (solve_chebyshev, solve_cg):  # the same system by both iterations
+        x_it, info = solve(system, b, np.zeros_like(b), 1e-10, 200_000)
+        assert info.converged_to <= 1e-10, solve.__name__
+        np.testing.assert_allclose(x_it, x_direct, rtol=1e-6, atol=1e-12)
     top, bottom = slab_phi(sigma_a, sigma_s, eta, thickness, q)
     np.testing.assert_allclose(x_direct[g.n_inner, 0], top, rtol=2e-4)  # measured <= 4.2e-5 (400 cells)
     np.testing.assert_allclose(x_direct[g.n_inner + 1, 0], bottom, rtol=2e-4)  # measured <= 4.2e-5 (400 cells)

@@ -67,8 +67,23 @@ class LevelSystem:
         """A x, with scipy CSR products for the off-diagonal part (CPU fast path).
 
         Same operation as ``kernels.apply_matrix`` on the packed layout (a
-        test checks they agree to rounding); CSR is ~3x faster in numpy.
+        test checks they agree to rounding); CSR is ~3x faster in numpy.  Where the fp64 sweeps' operator
+        is built already (the CG solve's, :func:`.iterative.cg_steps`) it is that product, so a system
+        solved once (a fluid's frame) never builds the per-channel CSR as well.
         """
+        op = self.cache.get("sweep_ops", {}).get(np.dtype(np.float64).str)
+        if "off_csr" not in self.cache and op is not None and x.shape[1] == op.C:  # the fp64 sweeps' layout
+            r = np.zeros((op.C, op.n))
+            op.sub_a(r, op.to_cm(x))
+            return -op.from_cm(r)
+        csr = self.off_csr()
+        out = self.diag * x
+        for c in range(x.shape[1]):
+            out[:, c] -= csr[c] @ x[:, c]
+        return out
+
+    def off_csr(self) -> list:
+        """The off-diagonal part per channel as scipy CSR matrices (``sum_j off_ij x_j``), cached."""
         csr = self.cache.get("off_csr")
         if csr is None:
             from scipy.sparse import csr_matrix
@@ -80,10 +95,7 @@ class LevelSystem:
             csr = [csr_matrix((self.off[:, :, c].ravel()[m], (rows[m], cols[m])), shape=(n, n))
                    for c in range(self.off.shape[2])]
             self.cache["off_csr"] = csr
-        out = self.diag * x
-        for c in range(x.shape[1]):
-            out[:, c] -= csr[c] @ x[:, c]
-        return out
+        return csr
 
     def sweep_operator(self, dtype=np.float64):
         """The level laid out for fast CPU Chebyshev sweeps (:class:`.sweeps.SweepOperator`), cached per dtype."""
@@ -102,13 +114,13 @@ class LevelSystem:
             return self
         cache = self.cache.setdefault("subsets", {})
         if cols not in cache:
-            self.apply(np.zeros((self.n, 3)))  # builds the CSR blocks once
+            off_csr = self.off_csr()
             idx = list(cols)
             sub = LevelSystem(scheme=self.scheme, level=self.level, nbr=self.nbr, off=self.off[:, :, idx],
                               diag=self.diag[:, idx], b_scale=self.b_scale[:, idx], sigma_a=self.sigma_a[:, idx],
                               mm_per_unit=self.mm_per_unit,
                               boundary_diag=None if self.boundary_diag is None else self.boundary_diag[:, idx])
-            sub.cache["off_csr"] = [self.cache["off_csr"][c] for c in idx]
+            sub.cache["off_csr"] = [off_csr[c] for c in idx]
             for k in ("rcm", "sweep_pattern"):  # the graph's, shared by every channel subset
                 if k in self.cache:
                     sub.cache[k] = self.cache[k]
@@ -182,7 +194,7 @@ def assemble(level: DiffusionGraph, sigma_a: np.ndarray, sigma_s: np.ndarray, et
         # the mean, which then stops converging under refinement.
         G = np.where(has, level.face_area * s * s / np.where(has, d, 1.0), 0.0)  # mm
         off = kf * G[..., None]
-        diag = off.sum(axis=1)
+        diag = np.einsum("nkc->nc", off)  # = off.sum(axis=1), ~5x faster over the middle axis (numpy 2.3)
         diag[:nI] += mu[:nI] * (level.volume * s**3)[:, None]
         # Surface links: exponentially fitted flux at the surface end (module docstring).
         si = np.arange(nI, level.n_nodes)

@@ -126,8 +126,8 @@ from .assembly import assemble, node_coefficients
 from ..errors import MaterialError, TranslucencyError
 from ..scene.fresnel import diffuse_reflectance_internal
 from .graph import SolverInput
-from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, LevelSolve, chebyshev_steps, drain, energy_imbalance,
-                        outside_maximum_principle, relay, solve_chebyshev, solve_direct)
+from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, STEPS_FUNCTIONS, LevelSolve, drain, energy_imbalance,
+                        outside_maximum_principle, relay, solve_direct)
 from ..scene.lights import (LampBeams, environment_flux, incident_flux, shadow_visibility, weighted_cosine,
                             weighted_direction)
 from ..scene.materials import Material
@@ -692,9 +692,9 @@ class DiffusionSolver:
             # start from a coarser level that did see light (a light grazing the surface) would otherwise
             # leave a small residue the relative stopping test (|b| = 0) accepts.
             x0[:, ~np.any(b != 0, axis=0)] = 0.0
-            if partial is not None and fn is solve_chebyshev:  # its steps (a replaced function runs as it is)
-                steps = chebyshev_steps(system, b, x0, self.level_tolerance(i), opts.max_iterations,
-                                        opts.check_every)
+            if partial is not None and fn in STEPS_FUNCTIONS:  # its steps (a replaced function runs as it is)
+                steps = STEPS_FUNCTIONS[fn](system, b, x0, self.level_tolerance(i), opts.max_iterations,
+                                            opts.check_every)
                 x, info = yield from relay(steps, lambda get, lv=i: lambda: partial(lv, get()))
             else:
                 x, info = fn(system, b, x0, self.level_tolerance(i), opts.max_iterations, opts.check_every)

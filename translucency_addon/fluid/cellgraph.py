@@ -71,6 +71,7 @@ class FluidGraph:
     area: np.ndarray  # (n_surface,)
     cell: np.ndarray  # (n_inner,) cell (particle of the ParticleSet) of each inner node
     surface_cell: np.ndarray  # (n_surface,) inner node each surface node closes
+    local_order: bool = True  # nodes numbered in the cells' spatial order: the sweeps keep it (sweeps.rcm_order)
     stats: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
 
@@ -162,7 +163,7 @@ def build_graph(cells: VoronoiCells) -> FluidGraph:
     dst = np.concatenate([b, a])
     length = np.tile(cells.face_distance[fk], 2)
     farea = np.tile(cells.face_area[fk], 2)
-    order = np.lexsort((dst, src))
+    order = np.argsort(src * max(n_in, 1) + dst)  # by (src, dst): one int64 key sorts ~2x faster than lexsort
     src, dst, length, farea = src[order], dst[order], length[order], farea[order]
     count = np.bincount(src, minlength=n_in)
     first = np.concatenate([[0], np.cumsum(count)[:-1]]) if n_in else np.zeros(0, np.int64)
