@@ -125,6 +125,14 @@ def test_warm_start_by_id_saves_sweeps_and_keeps_the_answer():
     assert warm.stats["warm_start"] and not cold.stats["warm_start"]
     assert warm.stats["sweeps"] < 0.7 * cold.stats["sweeps"], (warm.stats["sweeps"], cold.stats["sweeps"])
     assert nearest.stats["sweeps"] == warm.stats["sweeps"]
+    # no ids, the particles in the same order: matched by index (each moved < R/2), the same start
+    by_index = fs.solve(P1, lights=SUN, environment=ENV1, warm_start=r0.state)
+    assert by_index.stats["sweeps"] == warm.stats["sweeps"]
+    n = len(P0)
+    assert warm.stats["warm_start_match"] == {"id": n, "nearest": 0}
+    assert by_index.stats["warm_start_match"] == {"index": n, "nearest": 0}
+    assert nearest.stats["warm_start_match"]["nearest"] > 0.9 * n  # shuffled: few keep their index's place
+    assert np.abs(by_index.phi - warm.phi[np.argsort(order)]).max() < 1e-9 * warm.phi.max()
     assert np.abs(warm.phi - cold.phi).max() < 2e-3 * cold.phi.max()
 
 

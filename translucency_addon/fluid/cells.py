@@ -118,11 +118,13 @@ class VoronoiCells:
         return np.bincount(np.concatenate([self.face_i, self.face_j]), minlength=self.n_cells)
 
 
-def neighbour_pairs(points: np.ndarray, radius: float):
-    """Pairs (i < j) closer than 2R (their balls overlap): ``cKDTree.query_pairs``."""
+def neighbour_pairs(points: np.ndarray, radius: float, tree=None):
+    """Pairs (i < j) closer than 2R (their balls overlap): ``cKDTree.query_pairs`` (on ``tree``, the points'
+    own, where the caller has built it)."""
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(points)
+    if tree is None:
+        tree = cKDTree(points)
     pairs = tree.query_pairs(2.0 * radius, output_type="ndarray")
     if len(pairs) == 0:
         return tree, np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -209,21 +211,23 @@ def cell_path(method: str = "auto") -> tuple:
     return "numpy", f"{why}: the cells take the numpy path (about 4x slower; install numba to speed it up)"
 
 
-def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK, method: str = "auto") -> VoronoiCells:
+def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK, method: str = "auto",
+                tree=None) -> VoronoiCells:
     """Exact Voronoi-fluid cells of particles ``points`` (N, 3) with ball radius ``radius``.
 
     The input must be finite, without coincident particles and with a
     positive radius (:func:`.particles.prepare_particles` checks and cleans).
     ``chunk`` bounds the candidate triangles handled at once (memory, numpy path).
     ``method``: ``"auto"`` (compiled where numba is installed, else numpy), ``"compiled"`` or
-    ``"numpy"`` (:func:`cell_path`); both give the same cells to rounding.
+    ``"numpy"`` (:func:`cell_path`); both give the same cells to rounding.  ``tree``: the points'
+    ``cKDTree`` where one is built already (:func:`.particles.prepare_particles`'s).
     """
     path, why = cell_path(method)
     t0 = time.perf_counter()
     P = np.ascontiguousarray(points, dtype=np.float64)
     N = len(P)
     R = float(radius)
-    tree, pi, pj = neighbour_pairs(P, R)
+    tree, pi, pj = neighbour_pairs(P, R, tree)
     # Work in a spatial order (slabs of 2R): a face's triangles then lie in nearby rows (chunks, cache).
     order = _spatial_order(P, R)
     rank = np.empty(N, dtype=np.int64)

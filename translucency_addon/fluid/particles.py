@@ -51,20 +51,22 @@ class ParticleSet:
     field_values: np.ndarray | None = None  # (n,) mixing field values, None for a homogeneous material
     spacing: float = 0.0  # particle_spacing() of the points (0 for fewer than 2)
     warnings: list = field(default_factory=list)
+    tree: object = None  # the points' cKDTree (built for the checks; the cells reuse it)
 
     @property
     def n(self) -> int:
         return len(self.points)
 
 
-def particle_spacing(points: np.ndarray, tree=None) -> float:
+def particle_spacing(points: np.ndarray, tree=None, samples: int = 4000) -> float:
     """The mean distance between neighbouring particles, ``(volume per particle)^(1/3)``.
 
     From the distance r_k to the k-th nearest particle (k = 12, fewer when
     there are fewer particles) the local density is ``k / (4/3 pi r_k^3)``;
     the spacing is the median of ``r_k (4 pi / (3 k))^(1/3)`` (0.996 on a
     cubic lattice of spacing 1, 1.001 jittered by 10 %; particles on the
-    boundary, with half their neighbours missing, move the median little).
+    boundary, with half their neighbours missing, move the median little).  The median is taken over
+    ``samples`` particles at most (drawn with a fixed seed).
     """
     P = np.asarray(points, dtype=np.float64)
     if len(P) < 2:
@@ -74,7 +76,7 @@ def particle_spacing(points: np.ndarray, tree=None) -> float:
         from scipy.spatial import cKDTree
 
         tree = cKDTree(P)
-    sample = P if len(P) <= 4000 else P[np.random.default_rng(0).choice(len(P), 4000, replace=False)]
+    sample = P if len(P) <= samples else P[np.random.default_rng(0).choice(len(P), samples, replace=False)]
     d, _ = tree.query(sample, k=k + 1)
     return float(np.median(d[:, k]) * (4.0 * np.pi / (3.0 * k)) ** (1.0 / 3.0))
 
@@ -124,7 +126,7 @@ def prepare_particles(points, radius, ids=None, field_values=None,
     owner = np.full(n_in, -1, dtype=np.int64)
     owner[src] = np.arange(len(src))
     Q = P[src]
-    spacing = 0.0
+    spacing, tree = 0.0, None
     if len(Q):
         from scipy.spatial import cKDTree
 
@@ -146,7 +148,9 @@ def prepare_particles(points, radius, ids=None, field_values=None,
             src = src[uniq]
             Q = Q[uniq]
             tree = cKDTree(Q)
-        spacing = particle_spacing(Q, tree)
+        # for the radius checks only: the median over 1,000 particles is within a few tenths of a per cent of
+        # the spacing, and costs a quarter of 4,000's query (10 ms a frame at 16k particles)
+        spacing = particle_spacing(Q, tree, samples=1000)
         _check_shape(Q, R, spacing)
     id_arr = _check_ids(ids, n_in, src, warnings)
     fv = None
@@ -156,7 +160,7 @@ def prepare_particles(points, radius, ids=None, field_values=None,
             raise ParticleError(f"field values: {len(f):,} for {n_in:,} particles")
         fv = f[src]
     return ParticleSet(points=Q, radius=R, source=src, owner=owner, ids=id_arr, field_values=fv, spacing=spacing,
-                       warnings=warnings)
+                       warnings=warnings, tree=tree)
 
 
 def _check_shape(Q, R, spacing):
