@@ -103,6 +103,10 @@ def outgoing_partial_current(phi_s: np.ndarray, q: np.ndarray, fdr: float) -> np
 def in_channels(x, cols) -> np.ndarray:
     """``x`` (n, len(cols)) or (len(cols),) written into the channels ``cols`` of zeros with 3 channels."""
     x = np.asarray(x)
+    cols = tuple(int(c) for c in cols)
+    if cols == (0, 1, 2):  # all channels: a copy (a fancy-indexed assignment cost ~10 ms at 800k nodes)
+        return np.array(x, dtype=np.float64)
     full = np.zeros(x.shape[:-1] + (3,))
-    full[..., list(cols)] = x
+    for k, c in enumerate(cols):
+        full[..., c] = x[..., k]
     return full
