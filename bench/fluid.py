@@ -15,7 +15,7 @@ memory is measured there).  Per stage, the median over the warm frames:
 * **cells**: input checks, neighbour pairs (``cKDTree``), exact faces and
   cells, the contract graph (surface nodes, smoothed normals);
 * **light pass**: the ball occluder and eq. 3 with shadow rays;
-* **warm solve**: assembly and the Chebyshev solve (with its guard) from the
+* **warm solve**: assembly and the solve (conjugate gradients, with its guard) from the
   previous frame's phi, to a relative residual of 1e-4;
 * **output**: the surface map and the corrected eq. 4/7 at the vertices.
 
@@ -150,6 +150,40 @@ def run_tolerances(n: int) -> dict:
     return out
 
 
+def run_solvers(n: int) -> dict:
+    """The default solve (CG on the cells' graph, ``iterative.fast_steps``) against Chebyshev on the same
+    systems: each of 3 warm frames' finest system and right-hand side, from the frame's own warm start;
+    steps and wall ms of each (same process, alternated)."""
+    from translucency_addon.diffusion import iterative
+
+    rest, R, surface, fs, light = scene(n)
+    rng = np.random.default_rng(1)
+    captured, state = [], None
+    fast = iterative.SOLVER_FUNCTIONS["fast"]
+
+    def spy(system, b, x0, tol, max_iter, check_every=8):
+        captured.append((system, b.copy(), x0.copy(), tol, max_iter, check_every))
+        return fast(system, b, x0, tol, max_iter, check_every)
+
+    iterative.SOLVER_FUNCTIONS["fast"] = spy
+    try:
+        for _ in range(4):
+            state = fs.solve(rest + rng.uniform(-0.1, 0.1, rest.shape), surface=surface, warm_start=state,
+                             **light).state
+    finally:
+        iterative.SOLVER_FUNCTIONS["fast"] = fast
+    rows = {"cg": [], "chebyshev": []}
+    for args in captured[1:]:
+        for name, fn in (("cg", iterative.solve_cg), ("chebyshev", iterative.solve_chebyshev)) * 2:
+            t = time.perf_counter()
+            _, info = fn(*args)
+            rows[name].append((info.iterations, time.perf_counter() - t, info.converged_to))
+    links = iterative.links_per_node(captured[-1][0])
+    return {"n": int(len(rest)), "links": links,
+            **{k: {"steps": float(np.median([r[0] for r in v])), "ms": 1e3 * float(np.median([r[1] for r in v])),
+                   "residual": float(max(r[2] for r in v))} for k, v in rows.items()}}
+
+
 def run_sampling(n: int) -> dict:
     """The paper's sample counting (64 samples per cell, 36 per face) with cKDTree queries, against the exact
     cells: CPU seconds and the error of the volumes and face areas."""
@@ -237,8 +271,15 @@ def targets_text(results, sums) -> str:
     return "\n".join(lines)
 
 
-def extras_text(tol: dict, smp: dict, n: int) -> str:
-    lines = [f"Solve tolerance at {n:,} particles (warm frames, errors against a direct sparse solve of the same "
+def extras_text(tol: dict, smp: dict, n: int, slv: dict) -> str:
+    lines = [f"The warm solve's two iterations on the same {slv['n']:,}-particle systems ({slv['links']:.1f} links per "
+             "node; each of 3 warm frames' system, right-hand side and warm start, solved by both in one process, "
+             "tolerance 1e-4; median):", "", "| iteration | steps | ms (wall) | worst relative residual |", "|---|---|---|---|",
+             f"| conjugate gradients, Jacobi-preconditioned (the default here, `iterative.fast_steps`) | "
+             f"{slv['cg']['steps']:.0f} | {slv['cg']['ms']:,.0f} | {slv['cg']['residual']:.1e} |",
+             f"| Chebyshev, Jacobi-preconditioned (the default before; QuadGraph levels and the GPU keep it) | "
+             f"{slv['chebyshev']['steps']:.0f} | {slv['chebyshev']['ms']:,.0f} | {slv['chebyshev']['residual']:.1e} |",
+             "", f"Solve tolerance at {n:,} particles (warm frames, errors against a direct sparse solve of the same "
              f"frame; the exact radiance itself changes by {tol['flicker']:.1%} on average from one jittered frame to "
              "the next):", "", "| tolerance | warm sweeps | solve ms (wall) | vertex radiance error, max / mean |",
              "|---|---|---|---|"]
@@ -279,7 +320,7 @@ PARTS = (("particles", "input checks"), ("cells_neighbours", "neighbour pairs (c
          ("cells_fans", "fans and arcs per face (numpy path)"), ("cells_cells", "cell sums"),
          ("graph", "contract graph + smoothed normals"), ("occluder", "occluder voxels"),
          ("light", "light pass (eq. 3, shadow rays)"), ("assemble", "assembly + warm start"),
-         ("solve", "Chebyshev solve + guard"), ("map", "surface map weights"), ("output", "output (eq. 4/7 at vertices)"))
+         ("solve", "CG solve + guard"), ("map", "surface map weights"), ("output", "output (eq. 4/7 at vertices)"))
 
 
 def _stages(sec: dict) -> dict:
@@ -340,14 +381,15 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=3, help="warm frames after the cold one")
     ap.add_argument("--out", default=None)
     ap.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
-    ap.add_argument("--extra", choices=("tol", "sampling"), default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--extra", choices=("tol", "sampling", "solvers"), default=None, help=argparse.SUPPRESS)
     ap.add_argument("--paths", type=int, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.paths is not None:
         print(json.dumps(run_paths(a.paths)))
         return 0
     if a.extra is not None:
-        print(json.dumps(run_tolerances(TARGET_N) if a.extra == "tol" else run_sampling(TARGET_N)))
+        run = {"tol": run_tolerances, "sampling": run_sampling, "solvers": run_solvers}[a.extra]
+        print(json.dumps(run(TARGET_N)))
         return 0
     if a.one is not None:
         print(json.dumps(run_one(a.one, a.frames)))
@@ -368,7 +410,7 @@ def main(argv=None):
         out = subprocess.run([sys.executable, __file__, "--paths", str(n)], capture_output=True, text=True, check=True)
         paths.append(json.loads(out.stdout.strip().splitlines()[-1]))
     extra = {}
-    for name in ("tol", "sampling"):
+    for name in ("tol", "sampling", "solvers"):
         out = subprocess.run([sys.executable, __file__, "--extra", name], capture_output=True, text=True, check=True)
         extra[name] = json.loads(out.stdout.strip().splitlines()[-1])
     t, sums = table(results)
@@ -387,7 +429,7 @@ def main(argv=None):
             f"Median over the warm frames (frame 0 is cold); tolerance 1e-4.\n\n{t}\n\n"
             f"**Target** (issue 34): cells + warm solve + output <= {TARGET_MS:.0f} ms per frame at "
             f"{TARGET_N:,} particles on 2 CPU cores: {got:,.0f} ms, {verdict}. {PAPER}.\n\n"
-            f"{targets_text(results, sums)}\n\n{paths_text(paths)}\n\n{profile(results, sums)}\n\n{extras_text(extra['tol'], extra['sampling'], TARGET_N)}\n\n{NOTES}\n")
+            f"{targets_text(results, sums)}\n\n{paths_text(paths)}\n\n{profile(results, sums)}\n\n{extras_text(extra['tol'], extra['sampling'], TARGET_N, extra['solvers'])}\n\n{NOTES}\n")
     return write_file(text, a.out)
 
 
