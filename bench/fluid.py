@@ -55,31 +55,40 @@ NOTES = """**Reading the table.**
   face per thread, the face's disk clipped by the lines of its particle's neighbours (nearest first, so a
   face that a nearer particle empties stops early), then the clipped polygon's area and solid angle inside
   the disk in closed form per edge; the faces' frames (normal, in-plane basis, disk centre) in the same
-  compiled module. It gives the numpy path's faces to 1e-14 and is 4.6-6.0x faster in wall time on these 2
+  compiled module. It gives the numpy path's faces to 1e-14 and is 4-6x faster in wall time on these 2
   cores (the table of the two paths); numpy's path (`cells.py`: each Voronoi edge of a
   particle triangle clipped once and shared by its three faces) stays as the fallback where numba is
   missing, and says so. Measured and not taken: scipy's Qhull Delaunay with the same per-face closed forms
   vectorised (the Voronoi edges are the Delaunay triangles' dual edges, so no clipping at all) -- 0.67 s for
   the Delaunay of 17k particles alone, 1.37 s in all against numpy's 0.95 s; freud's voro++ -- 0.53 s for the
   plain Voronoi cells of 8k particles (no ball, no face polygons) and no wheel for Python 3.11.
-* *What the cells cost now*: the compiled faces (~95 ms at 16k), then the k-d tree's neighbour pairs
-  (~30 ms), the contract graph and the occluder: numpy work that the same module could take over.
+* *What the cells cost now*: the compiled faces (~95-120 ms at 16k), then the k-d tree's neighbour pairs
+  (~30 ms), the contract graph and the occluder. Measured and not taken: a compiled cell-list pair search
+  (grid of 2R, nine row ranges per particle, the neighbour lists in the same pass) took 33 ms for what the
+  k-d tree, the (i, j) sort and the lists take in ~40 ms: no gain worth a second path; skipping the zero
+  sectors and zero triangles of the faces' solid angles (the same sums to the bit) changed nothing
+  measurable -- the clipping, not the arctangents, is the kernel's cost.
 * *No approximate cell geometry is offered*: the paper's sample counting, done with the same k-d tree
   (the table above), costs more CPU than the exact build (compiled path) for the volumes alone and far more
   for the face areas, and is off by 17 % per volume and 20 % of a face on average, differently every frame (flicker).
-* *Warm solve*: about 1.5-2 ms of CPU per sweep at 16k (three CSR products over ~0.3M stored links each, one
-  per colour channel, and the Chebyshev vector update: the shared solver's cost, nothing fluid-specific). The
-  sweep count grows with the ball's diameter in cells (Chebyshev needs about l/h sweeps), so the total grows
-  like N^(4/3) here. The warm start saves 16 of 128 sweeps because every particle is re-jittered by 10 % of
-  the spacing each frame (the temporal-stability case; smooth motion saves > 30 %,
-  `tests/test_fluid_solve.py::test_warm_start_by_id_saves_sweeps_and_keeps_the_answer`). The default
-  tolerance 1e-4 leaves errors far below the frame-to-frame change (the tolerance table); 1e-3 would save
-  about 30 % of the sweeps at an error still 200x below it. The warm solve is now as large as the cells.
-* **Targets missed, by about 4x** on these 2 shared cores (16k: 441 ms against 100 ms). What is left: the
-  solve (a coarser level for the sweeps, which grow with the diameter, or the GPU path, which runs since
-  issue 34's item 4 -- a cell's 15-25 links in link pages, `gpu_shaders/pack.py`, parity on llvmpipe,
-  `bench/gpu_solve.py --passes` -- and is untimed on a GPU), the numpy stages around the compiled faces (neighbour
-  pairs, graph, occluder, assembly). The extension's zips bundle numba and llvmlite for Linux
+* *Warm solve*: conjugate gradients with the Jacobi preconditioner (`iterative.cg_steps`), the shared
+  solver's default wherever a node has at least 8 links (a cell has 13-15; a QuadGraph node 4-5, where
+  Chebyshev stays). Chebyshev takes the steps its eigenvalue interval asks for whatever the start; CG adapts
+  to the start and the right-hand side, so the warm start counts (the table of the two iterations above:
+  about a third of Chebyshev's steps at 16k, each somewhat dearer). Every particle is re-jittered by 10 % of the
+  spacing each frame (the temporal-stability case), which changes every cell's coefficients: the warm
+  start's residual is 15-30 %, and smooth motion starts closer
+  (`tests/test_fluid_solve.py::test_warm_start_by_id_saves_sweeps_and_keeps_the_answer`). The default
+  tolerance 1e-4 leaves errors far below the frame-to-frame change (the tolerance table).
+* *Between frames* the particles' k-d tree of the input checks serves the cells, the graph, the occluder and
+  the next frame's warm start; without particle ids the warm start matches particles by index where the
+  count is unchanged and each moved less than R/2 (a particle system keeps its order), the tree only for
+  the rest.
+* **Targets missed** on these 2 shared cores (the target table above). What is left: the compiled faces (a
+  third of the frame), numpy stages around them (neighbour pairs, graph, occluder, assembly: another third)
+  and the solve; or the GPU path, which runs since issue 34's item 4 -- a cell's 15-25 links in link pages,
+  `gpu_shaders/pack.py`, parity on llvmpipe, `bench/gpu_solve.py --passes` -- and is untimed on a GPU. The
+  extension's zips bundle numba and llvmlite for Linux
   x86-64, Windows x86-64 and macOS arm64 (2.4-2.6x the zip: linux-x64 74 -> 195 MiB); macOS x86-64 has no
   numba wheel and keeps the numpy path (`tools/build_extension.py`, README).
 """
