@@ -421,10 +421,12 @@ def _solve(st: state.ObjectState, solver, frame: FrameInputs, previous, solve_si
         key = (solve_sig, id(solver))
         job = st.progressive
         if job is None or not job.continues(key):
-            start = job.latest if job is not None and job.latest is not None and job.key[1] == id(solver) \
-                else previous
+            mid_solve = job is not None and job.latest is not None and job.key[1] == id(solver)
+            start = job.latest if mid_solve else previous
+            # from a converged frame the first image is the start itself (it comes within the light pass's
+            # time); from an unfinished one (a drag) every slice sweeps, so the drag's redraws refine it
             job = ProgressiveSolve(diffuse_steps(solver, st.bake, frame.lights, frame.environment, _passes(frame),
-                                                 warm_start=start, **kw), key)
+                                                 warm_start=start, **kw), key, show_start=not mid_solve)
         out, done = job.advance(budget)
         st.progressive = None if done else job
         if not done:

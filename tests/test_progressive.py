@@ -119,3 +119,40 @@ def test_a_backend_that_solves_its_own_levels_converges_in_one_slice(baked):
     ref = diffusion.DiffusionSolver(baked, materials.material_from_preset("marble"), options=diffusion.SolveOptions(
         sky_occlusion=False)).solve(SUN, ENV)
     assert np.array_equal(result.phi[-1], ref.phi[-1])
+
+
+@pytest.mark.parametrize("bounce", [False, True])
+def test_the_first_slice_after_a_light_move_shows_the_start_before_any_sweep(baked, bounce):
+    """Issue 33, item 1: the first slice ends at the first image, the solve's start with this frame's light
+    -- the last frame's solution, before the iteration's set-up (at Final the bounce's fp64 true residual,
+    ~0.1 s, measured in docs/bench_progressive.md) -- whatever the budget; the next slices converge to the
+    blocking frame bit for bit.  Without the start's image the first slice would run sweeps (its phi would
+    not be the last frame's)."""
+    solver = diffusion.DiffusionSolver(baked, materials.material_from_preset("marble"))
+    passes = frame_mod.FramePasses(True, False, False, (True, True, True), (bounce,) * 3)
+    start, _, _ = frame_mod.diffuse(solver, baked, SUN, ENV, passes, tol=1e-4)
+    moved = [lights.Light("sun", irradiance=1000.0, direction=(-0.3, 0.4, -1.0))]
+    ref, _, _ = frame_mod.diffuse(solver, baked, moved, ENV, passes, tol=1e-4, warm_start=start)
+    job = ProgressiveSolve(frame_mod.diffuse_steps(solver, baked, moved, ENV, passes, tol=1e-4, warm_start=start),
+                           key=0)
+    first, done = job.advance(10.0)
+    assert not done and job.slices == 1
+    assert np.array_equal(first.phi[-1], start.phi[-1])  # no sweep yet: the last frame's solution
+    assert not np.allclose(solver.vertex_radiance(first), solver.vertex_radiance(start))  # with the new light
+    while not done:
+        out, done = job.advance(0.0)
+    assert np.array_equal(out[0].phi[-1], ref.phi[-1])
+
+
+def test_a_solve_restarted_mid_drag_sweeps_in_its_first_slice(baked):
+    """A caller that restarts from an unfinished solve's solution so far (ops.runtime, a light being dragged)
+    passes ``show_start=False``: the first slice then sweeps, so a drag's redraws refine the image instead of
+    showing the same start again."""
+    solver = diffusion.DiffusionSolver(baked, materials.material_from_preset("marble"))
+    passes = frame_mod.FramePasses(True, False, False, (True, True, True))
+    start, _, _ = frame_mod.diffuse(solver, baked, SUN, ENV, passes, tol=1e-4)
+    moved = [lights.Light("sun", irradiance=1000.0, direction=(-0.3, 0.4, -1.0))]
+    job = ProgressiveSolve(frame_mod.diffuse_steps(solver, baked, moved, ENV, passes, tol=1e-4, warm_start=start),
+                           key=0, show_start=False)
+    first, done = job.advance(0.0)
+    assert not done and not np.array_equal(first.phi[-1], start.phi[-1])

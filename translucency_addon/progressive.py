@@ -10,8 +10,12 @@ uninterrupted solve.  The
 add-on runs a slice per redraw (``ops.live``); renders never use it, so a rendered frame is always the
 converged one.
 
-The first slice also pays for the frame's light pass and set-up (the shadow rays, the split), which is
-not sliced; a slice always makes at least one sweep, so any budget converges.  Showing an image costs
+The first slice pays for the frame's light pass (the shadow rays, the split), which is not sliced, and
+ends at the first image: the solve's start -- the last frame's solution (a warm start) or the coarser
+level's answer carried up, with this frame's light at the surface -- before the iteration's own set-up
+(the bounce's block system at Final: its fp64 true residual, ~0.1 s), so a light move shows within about
+the light pass's time.  Every other slice makes at least one sweep (a level's start never ends it), so any
+budget converges.  Showing an image costs
 too (the iterate gathered from the sweeps' layout and carried to the vertices, the attribute written,
 the redraw: 20-40 ms at Final quality, about one sweep): a slice runs at least
 :data:`SLICE_OVER_DISPLAY` times as long as that cost of the last one, up to :data:`MAX_SLICE`, so about
@@ -33,11 +37,15 @@ class ProgressiveSolve:
     ``key``: what the solve is for (the caller's signature of its inputs): a caller continues the solve
     only while its key is the frame's (:meth:`continues`), and otherwise starts anew, warm-started from
     :attr:`latest` (the solution so far is closer to the new answer than the last converged one).
+    ``show_start``: the first slice ends at the first image (the module docstring); a caller that starts
+    anew from an unfinished solve's :attr:`latest` (a light being dragged) passes False, so that every
+    redraw of the drag also advances the solve instead of showing the same start again.
     """
 
-    def __init__(self, steps, key):
+    def __init__(self, steps, key, show_start: bool = True):
         self._steps = steps
         self.key = key
+        self.show_start = show_start  # the first slice ends at the first image (the solve's start)
         self.latest = None  # the last solution so far handed out (a SolveResult), None before the first
         self.final = None  # diffuse()'s (result, bounce, cavity_exchange) once converged
         self.slices = 0
@@ -60,10 +68,15 @@ class ProgressiveSolve:
         if self._ended is not None:  # showing the last image: handing it out here, and the caller's part
             budget_s = max(budget_s, min(SLICE_OVER_DISPLAY * (self._handout + t0 - self._ended), MAX_SLICE))
         self.slices += 1
+        first = self.show_start and self.slices == 1
         current = None
         try:
             while True:
                 current = next(self._steps)
+                if getattr(current, "is_start", False):  # a level's start: an image only for a first slice
+                    if first:
+                        break
+                    continue
                 if time.perf_counter() - t0 >= budget_s:
                     break
         except StopIteration as stop:

@@ -85,7 +85,7 @@ import scipy.sparse as sp
 
 from . import kernels
 from ..scene.fresnel import fresnel_transmittance
-from .iterative import LevelSolve, chebyshev_steps, drain, relay
+from .iterative import LevelSolve, chebyshev_steps, drain, relay, start_image
 from .spectral import deflation, spectral_bounds
 from .sweeps import SweepOperator
 
@@ -358,7 +358,8 @@ def solve_finest_bounced(solver, q_light, coarser, warm_start, cols, single) -> 
 def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, partial=None, beam=None, volume=None):
     """The finest level of ``DiffusionSolver.solve(bounced=True)``: the block system (1) -- (1') in the
     split's channels -- by Chebyshev, in the channels ``cols``; a generator that returns the
-    :class:`FinestStep` and yields after every sweep a function that returns the solve so far through
+    :class:`FinestStep` and yields after every sweep (and once before the first, where the start is not
+    zero) a function that returns the solve so far through
     ``partial`` (``DiffusionSolver.solve_steps``'s: phi1's iterate, with the source and entering light of
     phi0's; only called when given).
 
@@ -386,6 +387,8 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
     x0 = x1.copy() if prev0 is None else solver.initial_guess(fine, cols, previous=prev0)
     X = np.hstack([x0, x1])
     X[:, ~np.any(B != 0, axis=0)] = 0.0  # no light in a channel: the answer is exactly 0 (solve_systems)
+    if X.any():  # the start is an image already, before the iteration's set-up (its fp64 true residual)
+        yield start_image(lambda: _bounced_partial(system, qd, X, C, cols, fine, partial, direct))
     steps = chebyshev_steps(system, B, X, solver.level_tolerance(fine), opts.max_iterations, opts.check_every)
     x, info = yield from relay(steps, lambda get: lambda: _bounced_partial(system, qd, get(), C, cols, fine, partial,
                                                                            direct))

@@ -117,6 +117,13 @@ def relay(steps, wrap):
         yield wrap(get)
 
 
+def start_image(get):
+    """Mark a yielded ``get`` as the solve's start, not a sweep's iterate (``progressive`` ends a first slice
+    there, and never another)."""
+    get.is_start = True
+    return get
+
+
 def solve_chebyshev(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.ndarray, LevelSolve]:
     """Chebyshev semi-iteration with the Jacobi preconditioner: :func:`chebyshev_steps` run to its end."""
     return drain(chebyshev_steps(system, b, x0, tol, max_iter, check_every))

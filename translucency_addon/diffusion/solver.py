@@ -127,7 +127,7 @@ from ..errors import MaterialError, TranslucencyError
 from ..scene.fresnel import diffuse_reflectance_internal
 from .graph import SolverInput
 from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, STEPS_FUNCTIONS, LevelSolve, drain, energy_imbalance,
-                        outside_maximum_principle, relay, solve_direct)
+                        outside_maximum_principle, relay, solve_direct, start_image)
 from ..scene.lights import (LampBeams, environment_flux, incident_flux, shadow_visibility, weighted_cosine,
                             weighted_direction)
 from ..scene.materials import Material
@@ -676,8 +676,9 @@ class DiffusionSolver:
         return drain(self._systems_steps(q, active, warm_start, cols, volume=volume))
 
     def _systems_steps(self, q, active, warm_start=None, cols=(0, 1, 2), partial=None, volume=None):
-        """:meth:`solve_systems` as a generator: with the fast solver (Chebyshev) it yields
-        ``partial(level, iterate)`` (a function, see :meth:`solve_steps`) after every sweep."""
+        """:meth:`solve_systems` as a generator: with the fast solver it yields ``partial(level, iterate)`` (a
+        function, see :meth:`solve_steps`) after every sweep, and before a level's first sweep where its start
+        is not zero (a warm start, or the coarser level's answer: an image before the solve's set-up)."""
         opts = self.options
         fn = SOLVER_FUNCTIONS[opts.solver]
         cols = tuple(cols)
@@ -693,6 +694,8 @@ class DiffusionSolver:
             # leave a small residue the relative stopping test (|b| = 0) accepts.
             x0[:, ~np.any(b != 0, axis=0)] = 0.0
             if partial is not None and fn in STEPS_FUNCTIONS:  # its steps (a replaced function runs as it is)
+                if x0.any():  # the start (a warm start or the coarser level's answer) is an image already
+                    yield start_image(lambda lv=i, x=x0: partial(lv, x))
                 steps = STEPS_FUNCTIONS[fn](system, b, x0, self.level_tolerance(i), opts.max_iterations,
                                             opts.check_every)
                 x, info = yield from relay(steps, lambda get, lv=i: lambda: partial(lv, get()))
