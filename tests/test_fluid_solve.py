@@ -242,6 +242,11 @@ def test_shadows_point_lights_and_lights_inside():
         L = fs.solve(A, lights=[light]).point_radiance
         top = A[:, 2] > 2.5
         assert L[top].mean() > 10 * L[A[:, 2] < -2.5].mean(), kind
+    # the balls are voxelised for shadow rays only: a frame lit by the world alone casts none and skips them
+    world = fs.solve(A, environment=ENV1)
+    assert world.point_radiance.any() and world.diffusion.bake.occluder._solid is None
+    lit = fs.solve(A, lights=sun)
+    assert lit.diffusion.bake.occluder._solid is not None and lit.diffusion.bake.occluder._solid.any()
 
 
 def test_two_media_by_particle_field():
