@@ -109,13 +109,15 @@ def main(argv=None) -> int:
             "(the solution so far after each slice, its error the relative RMS of the vertex radiance against "
             f"the blocking frame).\n\n{table(results, a.budget_ms)}\n\n**Target** (issue 33): first image after a "
             f"light move <= {TARGET_MS:.0f} ms at any quality: {worst:,.0f} ms at worst, "
-            f"{'met' if worst <= TARGET_MS else '**missed**'}. The first slice pays for what is not sliced: the "
-            "light pass (shadow rays, sky visibility, the split: the light pass column) and the Chebyshev start "
-            "(the true residual of the bounce's block system in fp64: its product and two reorderings of "
-            "400 k x 6 values at Final, ~0.1 s). Later slices run at "
+            f"{'met' if worst <= TARGET_MS else '**missed**'}. The first slice pays for the light pass (shadow "
+            "rays, sky visibility, the split: the light pass column), which is not sliced, and ends at the "
+            "solve's start: the last frame's solution with this frame's light at the surface (its error is "
+            "the first image's: the last frame's share of the change). The iteration's own set-up (at Final the "
+            "true residual of the bounce's block system in fp64: its product and two reorderings of 400 k x 6 "
+            "values, ~0.1 s) comes in the second slice. Later slices run at "
             "least one sweep and at least 4x what showing the last image cost (the iterate gathered from the "
             "sweeps' layout and carried to the vertices, ~20 ms at Final), up to 0.25 s: the viewport redraws "
-            "4-30 times a second while the image refines, and the progressive frame converges in 1.1-1.3x "
+            "4-30 times a second while the image refines, and the progressive frame converges in 1.1-1.4x "
             "the blocking frame's time (timings on these shared cores vary by ~20 % from run to run).\n")
     return write_file(text, a.out)
 

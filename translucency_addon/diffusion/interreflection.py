@@ -85,7 +85,7 @@ import scipy.sparse as sp
 
 from . import kernels
 from ..scene.fresnel import fresnel_transmittance
-from .iterative import LevelSolve, chebyshev_steps, drain, relay, start_image
+from .iterative import LevelSolve, chebyshev_steps, drain, lit_channels, relay, start_image
 from .spectral import deflation, spectral_bounds
 from .sweeps import SweepOperator
 
@@ -239,7 +239,15 @@ class BouncedSystem:
         (:mod:`.beam_source`), which drives phi0 and phi1 alike, or None."""
         s0 = self.source(q, None if direct is None else direct.m)
         qb_const = self.bounce(np.zeros_like(q), q, direct)  # G (0 - 2 m q) + H q: the bounce without phi0
-        return np.hstack([self.base.rhs(s0, volume), self.base.rhs(s0 + self.source(qb_const), volume)])
+        # = hstack of base.rhs(s0, volume) and base.rhs(s0 + source(qb_const), volume), written in place
+        c, ni = q.shape[1], self.base.level.n_inner
+        b = np.zeros((self.base.n, 2 * c))
+        b[ni:, :c] = self.base.b_scale * s0
+        b[ni:, c:] = self.base.b_scale * (s0 + self.source(qb_const))
+        if volume is not None:
+            b[:ni, :c] = volume
+            b[:ni, c:] = volume
+        return b
 
     def set_frame(self, direct=None) -> None:
         """c_v of (1') for this frame: the direct light's multiple-scattering shape along the normal, which
@@ -386,7 +394,7 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
     prev0 = getattr(warm_start, "first_pass", None)
     x0 = x1.copy() if prev0 is None else solver.initial_guess(fine, cols, previous=prev0)
     X = np.hstack([x0, x1])
-    X[:, ~np.any(B != 0, axis=0)] = 0.0  # no light in a channel: the answer is exactly 0 (solve_systems)
+    X[:, ~lit_channels(B)] = 0.0  # no light in a channel: the answer is exactly 0 (solve_systems)
     if X.any():  # the start is an image already, before the iteration's set-up (its fp64 true residual)
         yield start_image(lambda: _bounced_partial(system, qd, X, C, cols, fine, partial, direct))
     steps = chebyshev_steps(system, B, X, solver.level_tolerance(fine), opts.max_iterations, opts.check_every)

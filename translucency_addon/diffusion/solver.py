@@ -127,7 +127,7 @@ from ..errors import MaterialError, TranslucencyError
 from ..scene.fresnel import diffuse_reflectance_internal
 from .graph import SolverInput
 from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, STEPS_FUNCTIONS, LevelSolve, drain, energy_imbalance,
-                        outside_maximum_principle, relay, solve_direct, start_image)
+                        lit_channels, outside_maximum_principle, relay, solve_direct, start_image)
 from ..scene.lights import (LampBeams, environment_flux, incident_flux, shadow_visibility, weighted_cosine,
                             weighted_direction)
 from ..scene.materials import Material
@@ -692,7 +692,7 @@ class DiffusionSolver:
             # No light on this level in a channel: the (non-singular) system's answer is exactly 0.  A warm
             # start from a coarser level that did see light (a light grazing the surface) would otherwise
             # leave a small residue the relative stopping test (|b| = 0) accepts.
-            x0[:, ~np.any(b != 0, axis=0)] = 0.0
+            x0[:, ~lit_channels(b)] = 0.0
             if partial is not None and fn in STEPS_FUNCTIONS:  # its steps (a replaced function runs as it is)
                 if x0.any():  # the start (a warm start or the coarser level's answer) is an image already
                     yield start_image(lambda lv=i, x=x0: partial(lv, x))
