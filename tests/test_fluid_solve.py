@@ -84,7 +84,7 @@ def test_one_solver_for_every_graph():
 
 
 def test_the_default_solve_of_a_fluid_frame_is_cg_and_needs_fewer_steps_than_chebyshev():
-    """Issue 34, item 3: the cells' graph has 14-15 links per cell, where conjugate gradients beat Chebyshev
+    """Issue 34, item 3: the cells' graph has 13-15 links per cell, where conjugate gradients beat Chebyshev
     (``iterative.fast_steps``).  The frame's default solve is CG: its steps are CG's on the same system (not
     Chebyshev's), it matches a direct solve to the tolerance, and it takes fewer than 0.7x Chebyshev's sweeps
     from the same start (0.6x on this ball of ~800 particles; 0.35-0.40x at 16k, docs/bench_fluid.md).

@@ -343,7 +343,7 @@ def fast_steps(system, b, x0, tol, max_iter, check_every=8):
     CG needs about half of Chebyshev's steps (a third from a warm start), but a CG step makes about
     twenty passes over the (C, N) vectors in fp64 against Chebyshev's ten in fp32.  Where a node has
     many links the sparse product outweighs those passes and CG wins; where it has few the passes
-    decide and Chebyshev wins.  Measured on 2 cores, tol 1e-4: a 16k-particle fluid frame (14-15 links
+    decide and Chebyshev wins.  Measured on 2 cores, tol 1e-4: a 16k-particle fluid frame (13-15 links
     per cell) 44 CG steps, 67 ms, against 112 Chebyshev sweeps, 148 ms; the Preview bunny's finest
     QuadGraph level (4-5 links per node), warm, 34-47 CG steps, 54-104 ms, against 72 sweeps, 53-60 ms.
     So: CG on the symmetric finite-volume scheme with at least :data:`CG_MIN_LINKS` links per node,
