@@ -56,7 +56,8 @@ class LevelSystem:
     # What is derived from the system once and reused, owned here: "off_csr" (the off-diagonal part per
     # channel, :meth:`apply`), "sweep_ops" (:meth:`sweep_operator` per dtype), "subsets" (:meth:`subset`),
     # "rcm" and "sweep_pattern" (``sweeps``, the graph's, shared by channel subsets), "deflation"
-    # (``spectral.deflation``), "absorption_w" (:meth:`absorption_weights`).
+    # (``spectral.deflation``), "absorption_w" (:meth:`absorption_weights`), "links_per_node"
+    # (``iterative.links_per_node``: which iteration the default solve runs).
     cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
@@ -145,13 +146,17 @@ class LevelSystem:
             self.cache["absorption_w"] = w
         return w
 
-    def rhs(self, q: np.ndarray, volume: np.ndarray | None = None) -> np.ndarray:
+    def rhs(self, q: np.ndarray, volume: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """b: ``b_scale q`` at the surface nodes, and ``volume`` (n_inner, C) -- a volume source's power in
-        each inner node's cell (``diffusion.beam_source``) -- or zero at the inner nodes."""
-        b = np.zeros((self.n, self.diag.shape[1]))
-        b[self.level.n_inner:] = self.b_scale * q
+        each inner node's cell (``diffusion.beam_source``) -- or zero at the inner nodes; written into
+        ``out`` (n, C) where given (a block of a larger system's right-hand side)."""
+        b = np.empty((self.n, self.diag.shape[1])) if out is None else out
+        ni = self.level.n_inner
+        b[ni:] = self.b_scale * q
         if volume is not None:
-            b[: self.level.n_inner] = volume
+            b[:ni] = volume
+        else:
+            b[:ni] = 0.0
         return b
 
 

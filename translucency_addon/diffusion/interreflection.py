@@ -239,14 +239,10 @@ class BouncedSystem:
         (:mod:`.beam_source`), which drives phi0 and phi1 alike, or None."""
         s0 = self.source(q, None if direct is None else direct.m)
         qb_const = self.bounce(np.zeros_like(q), q, direct)  # G (0 - 2 m q) + H q: the bounce without phi0
-        # = hstack of base.rhs(s0, volume) and base.rhs(s0 + source(qb_const), volume), written in place
-        c, ni = q.shape[1], self.base.level.n_inner
-        b = np.zeros((self.base.n, 2 * c))
-        b[ni:, :c] = self.base.b_scale * s0
-        b[ni:, c:] = self.base.b_scale * (s0 + self.source(qb_const))
-        if volume is not None:
-            b[:ni, :c] = volume
-            b[:ni, c:] = volume
+        c = q.shape[1]
+        b = np.empty((self.base.n, 2 * c))  # the two blocks written in place (no hstack of two copies)
+        self.base.rhs(s0, volume, out=b[:, :c])
+        self.base.rhs(s0 + self.source(qb_const), volume, out=b[:, c:])
         return b
 
     def set_frame(self, direct=None) -> None:

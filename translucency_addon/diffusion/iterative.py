@@ -53,12 +53,12 @@ def lit_channels(b: np.ndarray) -> np.ndarray:
     """The channels of a node-major (N, C) right-hand side with any light: ``|b|^2 > 0`` per channel (one
     fused pass, ~4x faster at 400k x 6 than ``(b != 0).any(axis=0)``; a channel whose every value is below
     1e-154 counts as dark, where its squares underflow -- light no image can show)."""
-    return np.einsum("nc,nc->c", b, b, dtype=np.float64) > 0.0
+    return kernels.squared_norms(b) > 0.0
 
 
-def channel_norms(b: np.ndarray) -> np.ndarray:
-    """``|b|`` per channel of a node-major (N, C) array, in fp64 (no reordering: a norm does not need one)."""
-    return np.sqrt(np.einsum("nc,nc->c", b, b, dtype=np.float64))
+def _cm_norms(v: np.ndarray) -> np.ndarray:
+    """``|v|`` per channel of a channel-major (C, N) array, in fp64 (the sweeps' layout, any precision)."""
+    return np.sqrt(np.einsum("cn,cn->c", v, v, dtype=np.float64))
 
 
 def solve_jacobi(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.ndarray, LevelSolve]:
@@ -181,9 +181,6 @@ def chebyshev_steps(system, b, x0, tol, max_iter, check_every=8):
         x, r = defl.correct(x, op.from_cm(R))
         return x, op.to_cm(r)
 
-    def norms(v):
-        return np.sqrt(np.einsum("cn,cn->c", v, v, dtype=np.float64))
-
     def true_residual(x):  # in fp64, node-major: what the solve reports, whatever the sweep precision
         return op.to_cm(b - system.apply(x))
 
@@ -192,9 +189,9 @@ def chebyshev_steps(system, b, x0, tol, max_iter, check_every=8):
     R = true_residual(x)
     if defl is not None:
         x, R = correct(x, R)
-    bn = channel_norms(b)
+    bn = np.sqrt(kernels.squared_norms(b))  # a norm needs no reordering
     bn = np.where(bn > 0, bn, 1.0)
-    res = norms(R) / bn
+    res = _cm_norms(R) / bn
     hist = [float(res.max())]
     it = 0
     D = np.empty_like(R)
@@ -224,7 +221,7 @@ def chebyshev_steps(system, b, x0, tol, max_iter, check_every=8):
             it += 1
             yield lambda x=x, X=X: x + op.from_cm(X)  # the iterate now (X is updated in place)
             if it % check_every == 0 and it >= skip:
-                res = norms(R) / bn
+                res = _cm_norms(R) / bn
                 hist.append(float(res.max()))
                 if res.max() <= tol:
                     break
@@ -239,7 +236,7 @@ def chebyshev_steps(system, b, x0, tol, max_iter, check_every=8):
         # and go on from it while it misses the tolerance (iterative refinement).
         x += op.from_cm(X)
         R = true_residual(x)
-        res = norms(R) / bn
+        res = _cm_norms(R) / bn
         if defl is None:
             restarts += 1
             hist.append(float(res.max()))
@@ -247,7 +244,7 @@ def chebyshev_steps(system, b, x0, tol, max_iter, check_every=8):
                 break
             continue
         x, R = correct(x, R)
-        res = norms(R) / bn
+        res = _cm_norms(R) / bn
         hist.append(float(res.max()))
         give_up = stalled & (res > 0.5 * start)
         if give_up.any():
@@ -283,19 +280,16 @@ def cg_steps(system, b, x0, tol, max_iter, check_every=8):
     t0 = time.perf_counter()
     op = system.sweep_operator(np.float64)
 
-    def norms(v):
-        return np.sqrt(np.einsum("cn,cn->c", v, v))
-
     def true_residual(X):  # b - A x, channel-major
         R = op.to_cm(b)
         op.sub_a(R, X)
         return R
 
     X = op.to_cm(x0)
-    bn = channel_norms(b)
+    bn = np.sqrt(kernels.squared_norms(b))  # a norm needs no reordering
     bn = np.where(bn > 0, bn, 1.0)
     R = true_residual(X)
-    res = norms(R) / bn
+    res = _cm_norms(R) / bn
     hist = [float(res.max())]
     it = restarts = 0
     while res.max() > tol and it < max_iter:
@@ -319,14 +313,14 @@ def cg_steps(system, b, x0, tol, max_iter, check_every=8):
             P += Z
             rz = rz_new
             it += 1
-            res = np.where(live, norms(R) / bn, res)
+            res = np.where(live, _cm_norms(R) / bn, res)
             yield lambda X=X: op.from_cm(X)  # the iterate now (X is updated in place)
             if it % check_every == 0:
                 hist.append(float(res.max()))
             if not (live & (res > tol)).any():
                 break
         R = true_residual(X)
-        res = norms(R) / bn
+        res = _cm_norms(R) / bn
         hist.append(float(res.max()))
         restarts += 1
         if restarts > 5:
@@ -355,9 +349,13 @@ def fast_steps(system, b, x0, tol, max_iter, check_every=8):
 
 
 def links_per_node(system) -> float:
-    """The mean number of links of a node of the system's graph (its off-diagonal entries per row)."""
-    nbr = np.asarray(system.nbr)
-    return float(np.count_nonzero(nbr >= 0)) / max(len(nbr), 1)
+    """The mean number of links of a node of the system's graph (its off-diagonal entries per row), cached
+    on the system (every frame's solve asks)."""
+    k = system.cache.get("links_per_node")
+    if k is None:
+        nbr = np.asarray(system.nbr)
+        k = system.cache["links_per_node"] = float(np.count_nonzero(nbr >= 0)) / max(len(nbr), 1)
+    return k
 
 
 def solve_fast(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.ndarray, LevelSolve]:
@@ -388,8 +386,7 @@ def solve_direct(system, b, *_args, **_kw) -> tuple[np.ndarray, LevelSolve]:
 
 
 
-SOLVER_FUNCTIONS = {"fast": solve_fast, "chebyshev": solve_chebyshev, "cg": solve_cg, "paper": solve_jacobi,
-                    "jacobi": solve_jacobi, "direct": solve_direct}
+SOLVER_FUNCTIONS = {"fast": solve_fast, "paper": solve_jacobi, "jacobi": solve_jacobi, "direct": solve_direct}
 # the solvers that also run step by step (a progressive frame looks at the iterate after any step)
 STEPS_FUNCTIONS = {solve_fast: fast_steps, solve_chebyshev: chebyshev_steps, solve_cg: cg_steps}
 

@@ -281,17 +281,19 @@ class FluidSolver:
         from scipy.spatial import cKDTree
 
         cells = graph.cell
-        prev, by = None, "id"
+        prev, matched = None, {}
         if ps.ids is not None and state.ids is not None:
             order = np.argsort(state.ids)
             pos = np.clip(np.searchsorted(state.ids[order], ps.ids), 0, len(order) - 1)
             match = state.ids[order][pos] == ps.ids
             prev = np.where(match, order[pos], -1)
+            matched["id"] = int(match.sum())
         elif len(state.points) == ps.n:
             step = ps.points - state.points
             near = np.einsum("ij,ij->i", step, step) < (0.5 * ps.radius) ** 2
-            prev, by = np.where(near, np.arange(ps.n), -1), "index"
-        matched = {by: 0 if prev is None else int((prev >= 0).sum()), "nearest": 0}
+            prev = np.where(near, np.arange(ps.n), -1)
+            matched["index"] = int(near.sum())
+        matched["nearest"] = ps.n - sum(matched.values())
         if prev is None or (prev < 0).any():
             tree = state.tree if state.tree is not None else cKDTree(state.points)
             if prev is None:
@@ -299,7 +301,6 @@ class FluidSolver:
             else:
                 lost = np.nonzero(prev < 0)[0]
                 prev[lost] = tree.query(ps.points[lost], k=1)[1]
-            matched["nearest"] = ps.n - matched[by]
         x0 = np.zeros((graph.n_nodes, 3))
         x0[:graph.n_inner] = state.phi_cell[prev[cells]]
         if len(state.surface_points):
@@ -368,7 +369,8 @@ class FluidSolver:
             "relative_residual": [float(x) for x in (ls.residual if ls else np.zeros(3))],
             "solver_note": ls.note if ls else "",
             "warm_start": bool(warm),
-            "warm_start_match": dict(warm),  # particles matched to the last frame's: {"id" or "index", "nearest"}
+            "warm_start_match": dict(warm),  # particles matched to the last frame's: {"id" or "index" (if
+            # tried), "nearest"}
             "radius": self.radius, "mm_per_unit": self.mm_per_unit,
             "seconds": {k: float(v) for k, v in seconds.items()},
             "warnings": list(warnings),
