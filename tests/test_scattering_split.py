@@ -334,3 +334,40 @@ def test_a_solve_splits_each_lamps_light_by_its_incidence():
     np.testing.assert_allclose(r.q[-1][lit], split.beam_source_factor(alpha, mu[lit]) * q_in, rtol=1e-12)
     diffuse = split.source_factor(alpha) * q_in
     assert np.abs(r.q[-1][lit] - diffuse).max() > 0.02 * np.abs(diffuse).max()
+
+
+def test_the_split_along_the_normal_is_evaluated_at_the_nodes_and_mapped():
+    """Issue 33 item 3: a render mesh's vertices cost the vertex map's sparse product, not the split's
+    table lookups.  Along the normal (the viewport's view) the vertex radiance is the diffusion's output
+    times the node terms carried by the map, plus the carried single scattering -- a version that looks the
+    tables up per vertex from interpolated inputs differs from it on this sun-lit sphere (checked, so the
+    test can tell them apart).  A camera's view, whose cosine varies per vertex, keeps the per-vertex
+    evaluation."""
+    from translucency_addon.diffusion import solver as dmod
+    from translucency_addon.diffusion.radiance import map_to_points, outgoing_radiance
+    from translucency_addon.geometry import primitives
+    from translucency_addon.quadgraph import bake as bake_mod
+    from translucency_addon.scene.lights import Light
+    from translucency_addon.scene.materials import material_from_preset
+
+    V, F = primitives.icosphere(1.0, 4)
+    bk = bake_mod.bake_mesh(V, F, bake_mod.BakeSettings(quality="draft", levels=2, base_triangles=200,
+                                                        mm_per_unit=10.0))
+    s = dmod.DiffusionSolver(bk, material_from_preset("skin1"), options=dmod.SolveOptions(single_scattering=True))
+    r = s.solve([Light("sun", irradiance=1000.0, direction=(0.3, -0.2, -1.0))], None)
+    idx, w = bk.vertex_map
+    q, beam = r.q_incident[-1], r.beams[-1]
+    split = half_space_split(s.eta)
+    inside = r.volume is not None and r.volume[-1] is not None
+    shape_n, single_n = split.output_terms(q, s.surface_albedo[-1], np.ones(len(q)), beam, beam_in_volume=inside)
+    shape_v, single_v = map_to_points(idx, w, shape_n, single_n)
+    (j_v,) = map_to_points(idx, w, s.surface_partial_current(r))
+    L_iso = outgoing_radiance(j_v, np.ones(len(V)), s.eta)
+    np.testing.assert_allclose(s.vertex_radiance(r), L_iso * shape_v + single_v, rtol=1e-12, atol=1e-15)
+
+    q_v, a_v, beam_v = s.split_inputs_at(q, beam, idx, w)
+    shape_p, single_p = split.output_terms(q_v, a_v, np.ones(len(V)), beam_v, beam_in_volume=inside)
+    per_vertex = L_iso * shape_p + single_p
+    assert np.abs(per_vertex - s.vertex_radiance(r)).max() > 1e-4 * np.abs(per_vertex).max()
+    # A camera straight along each normal: the per-vertex path, the same cosine.
+    np.testing.assert_allclose(s.vertex_radiance(r, view_dirs=bk.mesh_normals), per_vertex, rtol=1e-12, atol=1e-15)

@@ -334,8 +334,7 @@ def direct_light(solver, system, q_light, beam, cols, single, beam_in_volume: bo
     cl = list(cols)
     m_all = split.source_factors(solver.surface_albedo[-1], q_light, beam, beam_in_volume=beam_in_volume)
     idx, w = solver.bake.vertex_map
-    q_v, a_v, beam_v = solver.split_inputs_at(q_light, beam, idx, w)
-    shape, single_v = split.output_terms(q_v, a_v, np.ones(len(q_v)), beam_v, beam_in_volume=beam_in_volume)
+    shape, single_v = solver.split_terms_at(q_light, beam, idx, w, beam_in_volume=beam_in_volume)
     Bg, _ = system.factors
     hq = Bg @ (np.where(on, single_v[:, cl], 0.0) / current_to_radiance(solver))
     return DirectLight(m=np.where(on, m_all[:, cl], 1.0), ms_shape=np.where(on, shape[:, cl], 1.0), hq=hq)

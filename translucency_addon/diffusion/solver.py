@@ -602,19 +602,42 @@ class DiffusionSolver:
         ``L`` is the diffusion's isotropic output there (:func:`.radiance.outgoing_radiance`, CPU or the
         GPU's ``radiance.glsl``).  In the split's channels it leaves with the angular shape of multiple
         scattering (eq. 4 of :mod:`.diffusion.split`, same power) and the closed-form single
-        scattering (eq. 2) is added; without a split ``L`` is returned as it is.
+        scattering (eq. 2) is added (:meth:`split_terms_at`); without a split ``L`` is returned as it is.
         """
         if result.q_incident is None or not any(result.single) or result.q_incident[-1] is None:
             return L
-        q_v, a_v, beam = self.split_inputs_at(result.q_incident[-1], None if result.beams is None else
-                                              result.beams[-1], idx, w)
-        n = np.asarray(normals, dtype=np.float64)
-        cos_o = np.ones(len(n)) if view_dirs is None else np.einsum("vj,vj->v", n, view_dirs)
-        split = half_space_split(self.eta)
+        cos_o = None
+        if view_dirs is not None:
+            cos_o = np.einsum("vj,vj->v", np.asarray(normals, dtype=np.float64), view_dirs)
         on = np.array(result.single, dtype=bool)
-        shape, single = split.output_terms(q_v, a_v, cos_o, beam,
-                                           beam_in_volume=result.volume is not None and result.volume[-1] is not None)
+        shape, single = self.split_terms_at(result.q_incident[-1], None if result.beams is None else result.beams[-1],
+                                            idx, w, cos_o,
+                                            beam_in_volume=result.volume is not None and result.volume[-1] is not None)
         return np.asarray(L) * np.where(on, shape, 1.0) + single * on
+
+    def split_terms_at(self, q_incident, beam, idx, w, cos_o=None, beam_in_volume: bool = False) -> tuple:
+        """``(shape, single)`` of the split (:meth:`.split.HalfSpaceSplit.output_terms`: eq. 4's factor c on
+        the diffusion's output, eqs. 2 and 6's single-scattering radiance) at the points of the map
+        ``idx``/``w``, for the finest level's entering light ``q_incident`` (n_s, C) and lamps' part
+        ``beam`` = (q_beam, mu) or None.
+
+        Seen along the normal (``cos_o`` None: the viewport's view, and the bounce's), both are evaluated
+        where the light pass computed q -- at the finest surface nodes -- and carried to the points by
+        the map, one sparse product over both (:func:`.radiance.map_to_points`): the points cost the
+        product, not the split's table lookups, which took 0.65 s per frame at 655 k vertices against
+        ~40 ms at the 37 k nodes.  The map interpolates the terms instead of their inputs (q, albedo,
+        incidence): the same where those are smooth, and within the map's own smoothing elsewhere.  Seen
+        at a cosine ``cos_o`` (n,) per point (a camera's view, which varies from point to point), the terms
+        are evaluated at the points from their interpolated inputs (:meth:`split_inputs_at`).
+        """
+        split = half_space_split(self.eta)
+        if cos_o is None:
+            q = np.asarray(q_incident, dtype=np.float64)
+            shape, single = split.output_terms(q, self.surface_albedo[-1], np.ones(len(q)), beam,
+                                               beam_in_volume=beam_in_volume)
+            return tuple(map_to_points(idx, w, shape, single))
+        q_v, a_v, beam_v = self.split_inputs_at(q_incident, beam, idx, w)
+        return split.output_terms(q_v, a_v, cos_o, beam_v, beam_in_volume=beam_in_volume)
 
     def split_inputs_at(self, q_incident, beam, idx, w) -> tuple:
         """``(q, alpha, beam)`` of the finest surface nodes mapped onto points (``idx``, ``w``: the vertex map's
