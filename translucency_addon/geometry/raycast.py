@@ -200,7 +200,9 @@ class TriangleBVH:
             raise ValueError("TriangleBVH needs at least one triangle")
         m = len(F)
         n_leaves = leaf_count(m)
-        order = _balanced_order(V[F].mean(axis=1), n_leaves * LEAF)
+        from .meshio import corner_coordinates
+
+        order = _balanced_order(np.stack([c.mean(axis=0) for c in corner_coordinates(V, F)], axis=1), n_leaves * LEAF)
         self.n_leaves = n_leaves
         self.depth = int(np.log2(n_leaves))
         self.leaf_tris = order.reshape(n_leaves, LEAF)  # original triangle ids, -1 padding
