@@ -272,11 +272,15 @@ def vertex_mapping(V, normals, level: GraphLevel, k: int = 6):
     sp = level.surface_position
     k = min(k, len(sp))
     tree = cKDTree(sp)
-    dist, idx = tree.query(V, k=k)
+    dist, idx = tree.query(V, k=k, workers=-1)
     if k == 1:
         dist, idx = dist[:, None], idx[:, None]
     h = float(np.median(tree.query(sp, k=2)[0][:, 1])) if len(sp) > 1 else 1.0
-    agree = np.einsum("vj,vkj->vk", normals, level.normal[idx])
+    # n_v . n_s by component, one take each from the nodes' normals: the einsum over level.normal[idx]
+    # gathered (n, k, 3) rows, 0.55 s for 655 k vertices against ~0.1 s.
+    Nt = np.ascontiguousarray(np.asarray(level.normal, dtype=np.float64).T)
+    n = np.asarray(normals, dtype=np.float64)
+    agree = n[:, :1] * np.take(Nt[0], idx) + n[:, 1:2] * np.take(Nt[1], idx) + n[:, 2:3] * np.take(Nt[2], idx)
     w = np.maximum(agree, 0.0) ** 2 / (dist * dist + h * h)
     none = w.sum(axis=1) <= 0
     w[none] = 0.0
