@@ -324,6 +324,9 @@ class MeshReport:
     extent: tuple[float, float, float]  # principal extents, largest first
     warnings: list[str] = field(default_factory=list)
     hole_edges: tuple = ()  # the edge count of each hole's boundary loop, largest first (:func:`hole_loops`)
+    # The mesh welded and cleaned (:func:`clean_mesh`'s ``(V, F)``), as the holes were counted on it: what the
+    # bake resamples, so a 1.3 M-triangle mesh is not cleaned twice (0.7 s each here).
+    welded: tuple | None = field(default=None, repr=False, compare=False)
 
 
 def principal_extents(V: np.ndarray) -> np.ndarray:
@@ -393,7 +396,8 @@ def validate_mesh(
     areas = triangle_areas(V, F)
     degenerate = int((areas <= 1e-12 * diag * diag).sum())
     vol = abs(signed_volume(V, F))
-    loops = hole_loops(V, F)  # on the welded mesh, as the tetrahedralizer sees it
+    Vw, Fw, _ = clean_mesh(V, F)
+    loops = boundary_loops(Fw)  # hole_loops: on the welded mesh, as the tetrahedralizer sees it
     holes, nbe = len(loops), int(sum(loops))
     # For a closed mesh the signed volume is exact; compare it with the
     # volume of the principal box so a closed-but-flat mesh is refused too.
@@ -431,6 +435,7 @@ def validate_mesh(
         extent=tuple(float(x) for x in ext),
         warnings=warnings,
         hole_edges=tuple(loops),
+        welded=(Vw, Fw),
     )
 
 

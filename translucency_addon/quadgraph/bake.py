@@ -175,15 +175,16 @@ def mesh_key(V, F, settings: BakeSettings) -> str:
 INTERMEDIATE_FACTOR = 64  # bake_mesh: a mesh over 2x this times the finest target is decimated once first
 
 
-def resample_surface(V, F, n_triangles: int):
+def resample_surface(V, F, n_triangles: int, cleaned: bool = False):
     """Decimate to about ``n_triangles`` with quadric edge collapse (fast_simplification).
 
     Meshes below the target are returned cleaned, and split 1-to-4 (midpoint
     subdivision, same shape) until they have at least a quarter of the
     target: fTetWild's run time is erratic on very coarse inputs (a 12-
-    triangle cube took 6-9 s, the same cube subdivided 1-2 s).
+    triangle cube took 6-9 s, the same cube subdivided 1-2 s).  ``cleaned``: ``(V, F)`` is already
+    :func:`.meshio.clean_mesh`'s output (the validation's ``MeshReport.welded``), not cleaned again.
     """
-    Vc, Fc, _ = meshio.clean_mesh(V, F)
+    Vc, Fc = (V, F) if cleaned else meshio.clean_mesh(V, F)[:2]
     if len(Fc) <= n_triangles:
         while 4 * len(Fc) < n_triangles:
             Vc, Fc = subdivide_midpoint(Vc, Fc)
@@ -367,10 +368,10 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
     # (INTERMEDIATE_FACTOR times the finest target), and every level from that: a 1.3 M-triangle
     # mesh is collapsed once (3.9 s here) instead of once per level, and each level still comes
     # from a surface 64x denser than itself.  Smaller meshes: every level from the user's mesh.
-    src = (V, Fo)
-    if len(Fo) > 2 * INTERMEDIATE_FACTOR * max(targets):
-        src = resample_surface(V, Fo, INTERMEDIATE_FACTOR * max(targets))
-    surfaces = [resample_surface(*src, t) for t in targets]
+    src = report.welded  # (V, F) welded and cleaned by the validation
+    if len(src[1]) > 2 * INTERMEDIATE_FACTOR * max(targets):
+        src = resample_surface(*src, INTERMEDIATE_FACTOR * max(targets), cleaned=True)
+    surfaces = [resample_surface(*src, t, cleaned=True) for t in targets]
     Vb, Fb = surfaces[-1]
 
     pr.stage("tetrahedralize")
