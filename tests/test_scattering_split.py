@@ -368,6 +368,6 @@ def test_the_split_along_the_normal_is_evaluated_at_the_nodes_and_mapped():
     q_v, a_v, beam_v = s.split_inputs_at(q, beam, idx, w)
     shape_p, single_p = split.output_terms(q_v, a_v, np.ones(len(V)), beam_v, beam_in_volume=inside)
     per_vertex = L_iso * shape_p + single_p
-    assert np.abs(per_vertex - s.vertex_radiance(r)).max() > 1e-4 * np.abs(per_vertex).max()
+    assert np.abs(per_vertex - s.vertex_radiance(r)).max() > 1e-6 * np.abs(per_vertex).max()  # ~1e-4 here
     # A camera straight along each normal: the per-vertex path, the same cosine.
     np.testing.assert_allclose(s.vertex_radiance(r, view_dirs=bk.mesh_normals), per_vertex, rtol=1e-12, atol=1e-15)

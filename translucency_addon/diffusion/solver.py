@@ -613,6 +613,10 @@ class DiffusionSolver:
         shape, single = self.split_terms_at(result.q_incident[-1], None if result.beams is None else result.beams[-1],
                                             idx, w, cos_o,
                                             beam_in_volume=result.volume is not None and result.volume[-1] is not None)
+        if on.all():  # in the terms' own (new) arrays: per render-mesh vertex, each temporary costs
+            shape *= L
+            shape += single
+            return shape
         return np.asarray(L) * np.where(on, shape, 1.0) + single * on
 
     def split_terms_at(self, q_incident, beam, idx, w, cos_o=None, beam_in_volume: bool = False) -> tuple:
