@@ -141,10 +141,28 @@ def test_cache_round_trip_is_exact(tmp_path):
     assert back.settings == bake.settings
 
 
-def test_cache_errors(tmp_path):
+@pytest.mark.parametrize("threads", [False, True])
+def test_cache_errors(tmp_path, monkeypatch, threads):
+    """Every refusal of a bad cache, with the members read by one thread and (``threads``: the path a large
+    cache takes, ``cache.PARALLEL_LOAD_BYTES``) by several, each with its own handle on the file."""
+    if threads:
+        monkeypatch.setattr(cache, "PARALLEL_LOAD_BYTES", 0)
     bake = baked("spot")
     path = cache.save_bake(tmp_path / "spot.npz", bake)
     data = path and open(path, "rb").read()
+    # one flipped byte inside the largest member's data: its CRC fails
+    import zipfile
+
+    with zipfile.ZipFile(path) as zf:
+        info = max(zf.infolist(), key=lambda i: i.compress_size)
+    flipped = bytearray(data)
+    flipped[info.header_offset + 30 + len(info.filename) + info.compress_size // 2] ^= 0xFF
+    (tmp_path / "flipped.npz").write_bytes(bytes(flipped))
+    with pytest.raises(CacheError, match="corrupt or truncated"):
+        cache.load_bake(tmp_path / "flipped.npz")
+    loaded = cache.load_bake(path)
+    np.testing.assert_array_equal(loaded.mesh_vertices, bake.mesh_vertices)
+    np.testing.assert_array_equal(loaded.vertex_map[1], bake.vertex_map[1])
     trunc = tmp_path / "truncated.npz"
     trunc.write_bytes(data[: len(data) // 2])
     with pytest.raises(CacheError, match="corrupt or truncated"):
@@ -171,8 +189,6 @@ def test_cache_errors(tmp_path):
     # a member that is not an array (no cache writes one)
     extra = tmp_path / "extra.npz"
     extra.write_bytes(data)
-    import zipfile
-
     with zipfile.ZipFile(extra, "a") as zf:
         zf.writestr("notes.txt", "hello")
     with pytest.raises(CacheError, match="its member 'notes.txt' is not an array"):
