@@ -8,10 +8,10 @@ Meshes: a bumpy sphere 20 mm across (``primitives.icosphere`` at subdivision 4-8
 farm runs it: ``bake MESH.obj --quality preview --json`` (its stage seconds, the rest of its wall time is
 reading the OBJ and writing the cache) and ``solve CACHE --sun ... --env ... --stats`` (a cold frame: the
 process starts with nothing built); then, in one process that keeps the bake and the solver, a frame and
-a warm frame after the sun turned 0.5 degrees (what the viewport renders after a light move; the engine's
-``frame.render_frame``).  The graph is the same size at every mesh size (Preview's QuadGraph),
-so what grows is what touches the render mesh: validation, decimation, the triangle BVH of the shadow and
-thickness rays, the output mapping.
+five warm frames, the sun turned 0.5 degrees further each time (what the viewport renders after a light
+move; the engine's ``frame.render_frame``), their median.  The graph is the same size at every mesh size
+(Preview's QuadGraph), so what grows is what touches the render mesh: validation, decimation, the triangle
+BVH of the shadow and thickness rays, the output mapping.
 
 ``--compare REV`` runs the same commands from a checkout of another revision (a git worktree made for the
 run), in the same run, so the ratios are measured under the same load.  Growth exponent: the slope of
@@ -62,8 +62,9 @@ def _run(repo: Path, args: list) -> tuple[float, int, str]:
 
 
 # A warm frame as the viewport renders one after a light move: the engine's frame (frame.render_frame, as
-# the CLI and the add-on call it) once, then again with the sun turned 0.5 degrees about z, warm-started from
-# the first; the second's wall time.  Run with ``python -c`` against REPO's engine (this tree's or --compare's).
+# the CLI and the add-on call it) once, then five times, the sun turned 0.5 degrees further about z each
+# time, each warm-started from the last; the median of the five wall times.  Run with ``python -c`` against
+# REPO's engine (this tree's or --compare's).
 WARM_FRAME = """
 import json, sys, time
 sys.path.insert(0, {repo!r})
@@ -89,10 +90,13 @@ def frame(lights, warm=None):
     return render_frame(bake, plan, passes_for(plan, bake), bake_mapping(bake), solver=solver, lights=lights,
                         environment=env, eta=material.eta, tol=1e-3, warm_start=warm, name="sphere")
 
-first = frame(sun(0.0))
-t = time.perf_counter()
-frame(sun(0.5), warm=first.result)
-print(json.dumps(time.perf_counter() - t))
+last = frame(sun(0.0))
+times = []
+for k in range(1, 6):
+    t = time.perf_counter()
+    last = frame(sun(0.5 * k), warm=last.result)
+    times.append(time.perf_counter() - t)
+print(json.dumps(float(np.median(times))))
 """
 
 
@@ -100,7 +104,7 @@ WARM = "warm frame, in process (sun turned 0.5 degrees)"
 
 
 def warm_frame(repo: Path, cache: Path) -> float:
-    """Seconds of a warm frame after a 0.5-degree sun move, in one process (:data:`WARM_FRAME`)."""
+    """Median seconds of a warm frame after a 0.5-degree sun move, in one process (:data:`WARM_FRAME`)."""
     r = subprocess.run([sys.executable, "-c", WARM_FRAME.format(repo=str(repo), cache=str(cache))], cwd=repo,
                        capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(repo)})
     if r.returncode:
