@@ -452,11 +452,14 @@ def _cross(a, b):
 
 
 _COMPILED: dict = {}  # {"fn": the compiled traversal} or {"error": why not}; filled at the first cast
-# Casts of fewer rays take the numpy walk: loading numba and the compiled walk costs a process ~0.5 s (2.5 s
-# the first time on a machine), what the numpy walk spends on ~40k rays.  By the call's size only, so a
-# frame's rays take the same walk whatever the process did before (a farm's frames do not depend on the
-# worker's history, not even in the last bit).
-COMPILED_MIN_RAYS = 4096
+# Casts of fewer rays take the numpy walk: loading numba and the compiled walk costs a process ~0.5-0.9 s once
+# (2.5 s the first time on a machine).  By the call's size only, so a frame's rays take the same walk whatever
+# the process did before (a farm's frames do not depend on the worker's history, not even in the last bit).
+# 1024, not 4096 as before: a Preview frame's lamp chords (one cast per lit surface node, ~4,030 on a 41 k-
+# vertex sphere) took the numpy walk at 80-180 ms a cast against 3-6 ms compiled, twice a frame -- half of a
+# warm Preview frame (0.27 -> 0.13 s; 655 k vertices 0.51 -> 0.23 s).  A process whose largest cast has
+# 1024-4095 rays (a Draft frame) now pays the load once, which every later frame wins back.
+COMPILED_MIN_RAYS = 1024
 # Trees of at least this many triangle slots fit their leaves in compiled code: the same numbers bit for bit
 # (min, max and one subtraction per value), so which path ran never shows; 1.3 M triangles: 0.5 s in numpy.
 COMPILED_MIN_FIT = 1 << 17
