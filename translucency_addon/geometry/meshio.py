@@ -120,6 +120,12 @@ def corner_coordinates(V: np.ndarray, F: np.ndarray) -> tuple:
     return tuple(np.take(Vt[j], Ft) for j in range(3))
 
 
+def triangle_centroids(V: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(m, 3): every triangle's centroid, from :func:`corner_coordinates` (the BVH's build and its
+    closest-point seed tree)."""
+    return np.stack([c.mean(axis=0) for c in corner_coordinates(V, F)], axis=1)
+
+
 def face_cross(V: np.ndarray, F: np.ndarray) -> tuple:
     """``(nx, ny, nz)``, each (m,): ``(b - a) x (c - a)`` of every triangle ``(a, b, c)``: along its normal,
     twice its area long."""
