@@ -26,28 +26,35 @@ def clip(i, j, f, P, n, e1, e2, h, rho, start, nbr, ux, uy, vx, vy) -> int:
     s = 2.0 * rho  # the square around the disk, counter-clockwise in (e1, e2)
     ux[0], uy[0], ux[1], uy[1], ux[2], uy[2], ux[3], uy[3] = -s, -s, s, -s, s, s, -s, s
     m = 4
+    pix, piy, piz = P[i, 0], P[i, 1], P[i, 2]
+    e1x, e1y, e1z = e1[0, f], e1[1, f], e1[2, f]
+    e2x, e2y, e2z = e2[0, f], e2[1, f], e2[2, f]
+    hx, hy, hz = h * n[0, f], h * n[1, f], h * n[2, f]
+    rho2 = rho * rho
     for t in range(start[i], start[i + 1]):
         k = nbr[t]
         if k == j:
             continue
-        dx, dy, dz = P[k, 0] - P[i, 0], P[k, 1] - P[i, 1], P[k, 2] - P[i, 2]
-        a = e1[0, f] * dx + e1[1, f] * dy + e1[2, f] * dz
-        b = e2[0, f] * dx + e2[1, f] * dy + e2[2, f] * dz
-        c = 0.5 * (dx * dx + dy * dy + dz * dz) - h * (n[0, f] * dx + n[1, f] * dy + n[2, f] * dz)
+        dx, dy, dz = P[k, 0] - pix, P[k, 1] - piy, P[k, 2] - piz
+        a = e1x * dx + e1y * dy + e1z * dz
+        b = e2x * dx + e2y * dy + e2z * dz
+        dd = dx * dx + dy * dy + dz * dz
+        c = 0.5 * dd - (hx * dx + hy * dy + hz * dz)
         ell2 = a * a + b * b
-        if ell2 <= 1e-24 * (dx * dx + dy * dy + dz * dz):  # k on the axis: all or nothing
+        if ell2 <= 1e-24 * dd:  # k on the axis: all or nothing
             if c < 0.0:
                 return 0
             continue
-        if c * c >= rho * rho * ell2:  # the line misses the disk (|c| / ell >= rho)
+        if c * c >= rho2 * ell2:  # the line misses the disk (|c| / ell >= rho)
             if c > 0.0:
                 continue  # the whole disk is on i's side
             return 0  # k takes the whole disk
         q = 0  # keep a u + b v <= c (Sutherland-Hodgman: the region is convex)
+        sn = a * ux[0] + b * uy[0] - c
         for p in range(m):
-            px, py = ux[p], uy[p]
-            nx_, ny_ = ux[(p + 1) % m], uy[(p + 1) % m]
-            sp = a * px + b * py - c
+            px, py, sp = ux[p], uy[p], sn
+            nxt = p + 1 if p + 1 < m else 0
+            nx_, ny_ = ux[nxt], uy[nxt]
             sn = a * nx_ + b * ny_ - c
             if sp <= 0.0:
                 vx[q], vy[q] = px, py
@@ -80,18 +87,25 @@ def in_disk(m, ux, uy, h, rho, R):
         qb = 2.0 * (ax * ex + ay * ey)
         qc = ax * ax + ay * ay - r2
         disc = qb * qb - 4.0 * qa * qc
-        lo, hi = 1.0, 1.0  # no crossing: the sector from A to B alone
-        if disc > 0.0:
-            sq = np.sqrt(disc)
-            t1 = min(max((-qb - sq) / (2.0 * qa), 0.0), 1.0)
-            t2 = min(max((-qb + sq) / (2.0 * qa), 0.0), 1.0)
-            if t1 < t2:
-                lo, hi = t1, t2
+        if disc <= 0.0:  # no crossing: the sector from A to B alone (P1 = P2 = A + e, the rest exactly 0)
+            phi = sector(ax, ay, ax + ex, ay + ey)
+            sa += 0.5 * r2 * phi
+            so += phi * cone
+            continue
+        lo, hi = 1.0, 1.0  # a crossing outside the edge: the sector alone, as above
+        sq = np.sqrt(disc)
+        t1 = min(max((-qb - sq) / (2.0 * qa), 0.0), 1.0)
+        t2 = min(max((-qb + sq) / (2.0 * qa), 0.0), 1.0)
+        if t1 < t2:
+            lo, hi = t1, t2
         p1x, p1y = ax + lo * ex, ay + lo * ey
         p2x, p2y = ax + hi * ex, ay + hi * ey
-        phi = sector(ax, ay, p1x, p1y) + sector(p2x, p2y, bx, by)
+        phi = (sector(ax, ay, p1x, p1y) if lo > 0.0 else 0.0) + sector(p2x, p2y, bx, by)  # A inside: no first sector
         cr = p1x * p2y - p1y * p2x
         sa += 0.5 * r2 * phi + 0.5 * cr
+        if lo == hi:  # P1 = P2: no triangle, its arctangent exactly 0
+            so += phi * cone
+            continue
         r1 = np.sqrt(h * h + p1x * p1x + p1y * p1y)
         r2_ = np.sqrt(h * h + p2x * p2x + p2y * p2y)
         den = h * r1 * r2_ + h * h * (r1 + r2_) + h * (h * h + p1x * p2x + p1y * p2y)
