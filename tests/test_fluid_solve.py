@@ -249,6 +249,25 @@ def test_shadows_point_lights_and_lights_inside():
     assert lit.diffusion.bake.occluder._solid is not None and lit.diffusion.bake.occluder._solid.any()
 
 
+def test_the_compiled_and_numpy_voxels_of_the_balls_are_the_same():
+    """The shadow rays' voxels (a voxel is solid where its centre lies within R of a particle) from numba's
+    stencil and from numpy's matrix product, voxel for voxel, on a jittered ball and an exact lattice; a frame
+    voxelises on its cells' path."""
+    from translucency_addon.fluid.occluder import BallOccluder
+
+    for P, R in ((ball_of_particles(5.0, 1.0, seed=3), 1.0), (ball_of_particles(4.0, 1.0, jitter=0.0), 0.8)):
+        a, b = BallOccluder(P, R, compiled=True), BallOccluder(P, R, compiled=False)
+        assert a.solid.sum() > 100 and np.array_equal(a.solid, b.solid)
+        ray = (np.array([[0.0, 0.0, 20.0]]), np.array([[0.0, 0.0, -1.0]]))
+        assert a.occluded(*ray, 40.0)[0] and not a.occluded(ray[0], -ray[1], 40.0)[0]
+    sun = [Light("sun", irradiance=1000.0, direction=(0, 0, -1))]
+    P = ball_of_particles(4.0, 1.0)
+    occ = {m: FluidSolver(material_from_preset("marble"), 1.0, 1.0, FluidOptions(cells=m)).solve(P, lights=sun)
+           .diffusion.bake.occluder for m in ("compiled", "numpy")}
+    assert occ["compiled"].compiled and not occ["numpy"].compiled
+    assert np.array_equal(occ["compiled"].solid, occ["numpy"].solid)
+
+
 def test_two_media_by_particle_field():
     """Per-particle mixing values: the half of a blob given ketchup's coefficients is darker in green and
     blue than the marble half (a homogeneous material gives no such difference)."""

@@ -122,8 +122,15 @@ def _kernel() -> dict:
     except Exception as ex:  # noqa: BLE001 - any compile failure means the numpy path, with its reason
         _KERNEL["error"] = f"numba {numba.__version__} could not compile the kernel ({type(ex).__name__}: {ex})"
         return _KERNEL
-    _KERNEL.update(fn=k.faces, sort=k.sort_rows, frames=k.frames, first_call_s=time.perf_counter() - t0)
+    _KERNEL.update(fn=k.faces, sort=k.sort_rows, frames=k.frames, voxels=k.ball_voxels,
+                   first_call_s=time.perf_counter() - t0)
     return _KERNEL
+
+
+def ball_voxels():
+    """The compiled stencil of :meth:`.occluder.BallOccluder._voxelise` (loaded with the faces' kernels,
+    :mod:`.compiled_kernels`), or None where they cannot run (:func:`available` says why)."""
+    return _kernel().get("voxels")
 
 
 def _warm_up(k) -> None:
@@ -136,3 +143,6 @@ def _warm_up(k) -> None:
     k.sort_rows(start, nbr, np.array([1.0, 1.0]))
     area, omega = np.zeros(1), np.zeros(1)
     k.faces(P, 1.0, i, j, n, e1, e2, 0.5 * d, np.sqrt(1.0 - 0.25 * d * d), start, nbr, area, omega)
+    off = np.zeros((1, 3), dtype=np.int64)
+    k.ball_voxels(P, np.full(3, -2.0), 0.5, 1.0, np.array([49, 7, 1], dtype=np.int64), off,
+                  np.zeros(1, dtype=np.int64), np.zeros(1), np.zeros(7 ** 3, dtype=bool))

@@ -167,3 +167,22 @@ def frames(P, i, j, d, n, e1, e2, mid):
         e2[0, f], e2[1, f], e2[2, f] = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
         mid[0, f], mid[1, f], mid[2, f] = 0.5 * (P[a, 0] + P[b, 0]), 0.5 * (P[a, 1] + P[b, 1]), \
             0.5 * (P[a, 2] + P[b, 2])
+
+
+@numba.njit(cache=True, nogil=True)
+def ball_voxels(points, lo, h, R, strides, off, flat_off, oh2, solid):
+    """The voxels of :meth:`.occluder.BallOccluder._voxelise`, one particle's stencil at a time (the same
+    sums: ``|o h + f|^2 = |o h|^2 + 2 h o.f + |f|^2``, f the particle's offset to its voxel's centre)."""
+    r2 = R * R
+    for p in range(points.shape[0]):
+        bx = np.floor((points[p, 0] - lo[0]) / h)
+        by = np.floor((points[p, 1] - lo[1]) / h)
+        bz = np.floor((points[p, 2] - lo[2]) / h)
+        fx = (bx + 0.5) * h + lo[0] - points[p, 0]
+        fy = (by + 0.5) * h + lo[1] - points[p, 1]
+        fz = (bz + 0.5) * h + lo[2] - points[p, 2]
+        ff = fx * fx + fy * fy + fz * fz
+        base = int(bx) * strides[0] + int(by) * strides[1] + int(bz) * strides[2]
+        for o in range(off.shape[0]):
+            if oh2[o] + (2.0 * h) * (fx * off[o, 0] + fy * off[o, 1] + fz * off[o, 2]) + ff <= r2:
+                solid[base + flat_off[o]] = True

@@ -4,7 +4,8 @@ A particle fluid has no triangle surface of its own, so its self-shadowing is
 tested against what the cells are made of: the union of the particles' balls.
 :class:`BallOccluder` voxelises that union once per frame, at the first shadow ray (voxels half a
 radius wide, a voxel is solid when its centre lies within R of a particle:
-one stencil per particle, no per-voxel search) and marches every shadow ray
+one stencil per particle, no per-voxel search; in compiled code where the cells' faces are, the same sums
+in numpy otherwise) and marches every shadow ray
 through it in steps of a quarter radius, all rays at once.  The rays leave
 each surface node one radius out along its normal
 (:meth:`.solver.FluidDiffusionSolver.shadow_offset`): a surface node sits at
@@ -30,13 +31,14 @@ MAX_VOXELS = 1 << 26  # above this the voxels grow (coarser shadows) rather than
 class BallOccluder:
     """Any-hit ray queries against the union of balls of radius R around ``points`` (object units)."""
 
-    def __init__(self, points: np.ndarray, radius: float, tree=None, triangles=None):
+    def __init__(self, points: np.ndarray, radius: float, tree=None, triangles=None, compiled: bool = False):
         from scipy.spatial import cKDTree
 
         self.points = np.asarray(points, dtype=np.float64)
         self.radius = R = float(radius)
         self.tree = tree if tree is not None else cKDTree(self.points)
         self.triangles = triangles  # TriangleBVH of other objects, or None
+        self.compiled = compiled  # voxelise with .compiled_kernels.ball_voxels (the cells' path: compiled or numpy)
         h = 0.5 * R
         while np.prod(np.ceil((np.ptp(self.points, axis=0) + 2 * R) / h) + 5) > MAX_VOXELS:
             h *= 1.5
@@ -55,7 +57,8 @@ class BallOccluder:
 
     def _voxelise(self) -> np.ndarray:
         """Voxels whose centre lies within R of a particle: one stencil of offsets, |o h + f|^2 <= R^2
-        with f the particle's offset to its own voxel's centre (a matrix product per chunk)."""
+        with f the particle's offset to its own voxel's centre: a matrix product per chunk in numpy, or the
+        same sums per particle in compiled code (``compiled``; ~25 -> ~2 ms a frame at 16k particles, 2 cores)."""
         h, R = self.h, self.radius
         k = int(np.ceil(R / h)) + 1
         g = np.arange(-k, k + 1)
@@ -65,6 +68,16 @@ class BallOccluder:
         flat_off = off @ strides
         oh2 = ((off * h) ** 2).sum(axis=1)
         solid = np.zeros(int(np.prod(self.shape)), dtype=bool)
+        kernel = None
+        if self.compiled:
+            from .compiled_faces import ball_voxels
+
+            kernel = ball_voxels()
+        if kernel is not None:
+            kernel(self.points, np.ascontiguousarray(self.lo), float(h), float(R), strides.astype(np.int64),
+                   np.ascontiguousarray(off, dtype=np.int64), flat_off.astype(np.int64), oh2.astype(np.float64),
+                   solid)
+            return solid
         base = np.floor((self.points - self.lo) / h).astype(np.int64)
         for s in range(0, len(self.points), 16384):
             b = base[s:s + 16384]

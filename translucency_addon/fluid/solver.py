@@ -206,7 +206,7 @@ class FluidSolver:
             warnings.append("no cell has a free surface face: no light can enter, radiance 0")
             return self._zero(n_in, out_pts, surface is not None, seconds, warnings, t0, graph, ps)
         t = time.perf_counter()
-        occ = BallOccluder(ps.points, ps.radius, tree=cells.tree)
+        occ = BallOccluder(ps.points, ps.radius, tree=cells.tree, compiled=cells.path == "compiled")
         seconds["occluder"] = time.perf_counter() - t
         t = time.perf_counter()
         if surface is None:  # a point cloud: its particles, surface cells with their normals
