@@ -191,9 +191,13 @@ def assemble(level: DiffusionGraph, sigma_a: np.ndarray, sigma_s: np.ndarray, et
     fdr = diffuse_reflectance_internal(eta)
     nI = level.n_inner
     d = level.edge_length * s  # mm
-    k_nb = kernels.gather(nbr, kappa)  # (N, 4, 3)
     if scheme == "fv":
-        kf = 2.0 * kappa[:, None, :] * k_nb / np.maximum(kappa[:, None, :] + k_nb, 1e-300)
+        # the face's kappa, the harmonic mean 2 k_i k_j / (k_i + k_j) = 2 / (1/k_i + 1/k_j): one gather of
+        # 1/kappa (inf where a slot has no neighbour, so kf = 0 there) and two passes over (N, K, C)
+        inv = 1.0 / kappa
+        kf = np.take(np.concatenate([inv, np.full((1, inv.shape[1]), np.inf)]), nbr, axis=0)
+        kf += inv[:, None, :]
+        np.divide(2.0, kf, out=kf)
         # Link length d_ij, not the face-normal distance: on the sphere test
         # the normal distance lowers node-to-node scatter slightly but biases
         # the mean, which then stops converging under refinement.
@@ -224,6 +228,7 @@ def assemble(level: DiffusionGraph, sigma_a: np.ndarray, sigma_s: np.ndarray, et
         diag[nI:] += boundary_diag
         b_scale = np.broadcast_to(2.0 * a_s / (1.0 + fdr), (level.n_surface, 3)).copy()
     else:
+        k_nb = kernels.gather(nbr, kappa)  # (N, K, 3)
         inv_d2 = np.where(has, 1.0 / np.where(has, d, 1.0) ** 2, 0.0)
         off = np.zeros((level.n_nodes, nbr.shape[1], 3))
         off[:nI] = k_nb[:nI] * inv_d2[:nI, :, None]  # kappa(n_j) / d_ij^2 (eq. 5)
