@@ -94,8 +94,10 @@ def sweep_pattern(system):
         # row r of the sweep order is node perm[r]: its K link slots, then its diagonal, taken in that
         # order -- the rows come out grouped without a sort (their columns are not sorted; the
         # product does not need them to be)
-        cols = np.concatenate([np.where(nbr >= 0, inv[np.maximum(nbr, 0)], -1), inv[:, None]], axis=1)[perm]
-        src = np.concatenate([np.arange(n * K).reshape(n, K), n * K + np.arange(n)[:, None]], axis=1)[perm]
+        cols = np.take(np.concatenate([np.where(nbr >= 0, np.take(inv, np.maximum(nbr, 0)), -1), inv[:, None]], axis=1),
+                       perm, axis=0)  # np.take: several times faster than fancy indexing on (N, K)
+        src = np.take(np.concatenate([np.arange(n * K).reshape(n, K), n * K + np.arange(n)[:, None]], axis=1), perm,
+                      axis=0)
         m = cols >= 0
         indptr = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(m.sum(axis=1), out=indptr[1:])
@@ -119,7 +121,7 @@ class SweepOperator:
         nnz = len(indices)
         blocks = self.C
         idx_t = np.int32 if max(n * blocks, nnz * blocks) < 2**31 else np.int64
-        vals = [np.concatenate([system.off[:, :, c].ravel(), -system.diag[:, c]])[src].astype(self.dtype)
+        vals = [np.take(np.concatenate([system.off[:, :, c].ravel(), -system.diag[:, c]]), src).astype(self.dtype)
                 for c in range(C)]
         data = np.concatenate(vals * copies)
         ind = np.empty(nnz * blocks, dtype=idx_t)
