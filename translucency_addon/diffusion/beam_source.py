@@ -27,18 +27,27 @@ with z = t nu the depth below the entry point's tangent plane (nu the inside inc
 keeps that light in).  The volume source of the finite-volume system (:mod:`.assembly`, ``sum T (phi_i -
 phi_j) + mu V phi_i = b_i``) is the power S deposits in each inner node's cell.
 
-**Calibrated to transport.**  Diffusion returns light that scattered a few times near the surface too
-readily (the split's docstring: 8 % over transport at alpha 0.68).  On a half-space, eq. (7) fed to the
-diffusion -- a plane source at optical depth tau sends ``e^{-s tau}/(1 + 2 A s/3)`` of its power out,
-``s = sqrt(3 (1 - alpha))`` -- returns, per unit ``q_beam``::
+**Calibrated to transport, depth by depth.**  Diffusion returns light that scattered a few times near the
+surface too readily (the split's docstring: 8 % over transport at alpha 0.68), and at low albedo carries
+too little from deep (its decay ``s = sqrt(3 (1 - alpha))`` per mean free path exceeds transport's nu_0:
+0.98 against 0.85 at alpha 0.68).  On a half-space (units of the mean free path) a plane source at depth
+tau fed to the diffusion sends ``P_d(tau) = e^{-s tau}/(1 + 2 A s/3)`` of its power out; transport sends
+out, of light scattered once at tau that does not leave at once, ``G(tau)``: by linearity, the exitance of
+the fluence it causes,::
 
-    R(alpha, mu) = alpha int_0^inf e^{-u} (1 - e1(nu u)) e^{-s nu u} du / (1 + 2 A s/3)               (8)
+    G(tau_j) = alpha w^T (I - alpha K)^{-1} K e_j / h_j,       W(alpha, tau) = G(tau) / P_d(tau)        (8)
 
-and transport returns ``M(alpha, mu)`` after two or more scatterings (the split's beam tables, from
-:mod:`.half_space`).  The source is scaled by ``v = M/R``, so that a half-space returns exactly single plus
-multiple scattering of transport at every incidence, as the boundary source with eq. 6 does; what the volume
-adds is the object's shape along the beam.  v is 0.85-0.92 at alpha 0.96 and 0.50-0.57 at 0.68
-(eta 1 and 1.3, mu from 0.1 to 1).
+with K, the cells h and the exitance weights w of :class:`.half_space.HalfSpaceTransport` (eq. 1-2 there:
+``K e_j / h_j`` is the uncollided fluence of a unit isotropic source in cell j, ``(I - alpha K)^{-1}`` adds
+every later scattering; G <= 1 - e1).  The deposits are eq. (7)'s collisions weighted by W at their depth,
+``P sigma_t e^{-sigma_t t} alpha W(alpha, sigma_t z)``, in place of ``alpha (1 - e1)``; of them a half-space
+returns ``int P sigma_t e^{-sigma_t t} alpha G dt``: transport's multiple scattering, at every incidence (``tests/test_beam_source.py`` checks it
+against the split's beam tables, and G against a random walk).  A single factor per incidence, the
+return's ratio M/R, got the total right but moved light from deep sources to shallow ones: on the skin
+sphere under a sun the shaded half came out at 0.71, 0.70, 0.50 of the walk (R, G, B), 0.73, 0.76, 0.57
+with W.  W is 0.41-0.49 at the surface (where half the once-scattered light leaves at once), about 1 a few
+mean free paths deep for alpha >= 0.96, and grows with depth at low albedo (2.6 at tau 10 for alpha 0.68,
+where the beam has kept e^{-10} of its light), where diffusion's decay is too fast.
 
 **Discretised** so that no power is lost to the graph's resolution (the part of the beam shallower than
 the first inner node is most of it in dense media: marble's mean free path is 0.45 mm): each chord is cut
@@ -92,29 +101,59 @@ def escape_once(tau, eta: float) -> np.ndarray:
     return np.exp(np.interp(np.asarray(tau, dtype=np.float64), grid, np.log(e1), right=-np.inf))
 
 
+N_ALPHA = 49  # albedos of eq. (8)'s table, uniform in sqrt(1 - alpha) (as the split's)
+
+
 @lru_cache(maxsize=8)
-def _volume_factor_table(eta: float) -> np.ndarray:
-    """v = M/R of eq. (8) on the split's (alpha grid, beam incidence) grid."""
-    from .split import half_space_split
+def _depth_weight_table(eta: float) -> tuple:
+    """(tau grid, W (N_ALPHA, tau)) of eq. (8) on the half-space's depth grid up to _TAU_MAX; one dense solve per
+    albedo on a grid 160 mean free paths deep (~0.1 s per eta, once per process; W within 1e-3 of the
+    400-deep grid's up to tau 60)."""
+    from scipy import linalg
 
-    sp = half_space_split(eta)
-    a = sp.alpha_grid[:, None, None]
-    u, wu = np.polynomial.laguerre.laggauss(64)  # int_0^inf e^{-u} f(u) du
-    nu = sp.beam_nu[None, :, None]
-    s = np.sqrt(3.0 * (1.0 - a))
-    tau = nu * u[None, None, :]
-    R = a[..., 0] * (wu * (1.0 - escape_once(tau, eta)) * np.exp(-s * tau)).sum(axis=2) \
-        / (1.0 + 2.0 * boundary_A(eta) * s[..., 0] / 3.0)
-    M = sp.M_beam_table
-    return np.where(R > 1e-12, M / np.maximum(R, 1e-300), 0.0)
+    from .half_space import HalfSpaceTransport, depth_grid
+    from .split import inside_transmittance
+
+    ht = HalfSpaceTransport(float(eta), lambda m: inside_transmittance(m, float(eta)), depth_grid(depth=160.0))
+    keep = ht.z <= _TAU_MAX
+    w = ht.exitance_weights()
+    n = len(ht.z)
+    A = boundary_A(eta)
+    alpha = 1.0 - np.linspace(0.0, 1.0, N_ALPHA) ** 2  # 1 -> 0
+    W = np.zeros((N_ALPHA, int(keep.sum())))
+    for i, a in enumerate(alpha):
+        if a >= 1.0:  # nothing absorbed: all of it leaves (G = 1 - e1, s = 0); the grid's bottom would lose it
+            W[i] = 1.0 - escape_once(ht.z[keep], eta)
+        elif a > 0.0:
+            y = linalg.solve((np.eye(n) - a * ht.K).T, w)
+            G = a * (y @ ht.K) / ht.h
+            s = np.sqrt(3.0 * (1.0 - a))
+            W[i] = (G * (1.0 + 2.0 * A * s / 3.0) * np.exp(s * ht.z))[keep]
+            if s > 1.0:  # G's rounding (~1e-17) times e^{s tau} would outgrow the beam's e^{-tau} past here:
+                deep = ht.z[keep] > 25.0 / (s - 1.0)  # hold W (deposits there carry < e^{-25} of the beam)
+                if deep.any():
+                    W[i, deep] = W[i, np.argmax(deep) - 1]
+    return ht.z[keep], W
 
 
-def volume_factor(alpha, mu, eta: float) -> np.ndarray:
-    """v(alpha, mu) of eq. (8): the calibration of the volume source, ``alpha`` (n, C), ``mu`` (n,) the
-    outside incidence cosine."""
-    from .split import half_space_split
+def depth_weight(alpha, tau, eta: float) -> np.ndarray:
+    """W(alpha, tau) of eq. (8), bilinear in (sqrt(1 - alpha), tau); ``alpha`` and ``tau`` broadcast together
+    (tau the optical depth below the entry point's tangent plane, clamped to the table's range)."""
+    z, W = _depth_weight_table(float(eta))
+    x = np.sqrt(np.clip(1.0 - np.asarray(alpha, dtype=np.float64), 0.0, 1.0)) * (N_ALPHA - 1)
+    i = np.minimum(x.astype(np.int64), N_ALPHA - 2)
+    ta = x - i
+    tau = np.clip(np.asarray(tau, dtype=np.float64), z[0], z[-1])
+    j = np.clip(np.searchsorted(z, tau) - 1, 0, len(z) - 2)
+    tt = (tau - z[j]) / (z[j + 1] - z[j])
+    i, ta, j, tt = np.broadcast_arrays(i, ta, j, tt)
+    flat = W.reshape(-1)
+    nz = len(z)
 
-    return half_space_split(eta).lookup_beam(_volume_factor_table(float(eta)), alpha, mu)
+    def at(ii):
+        return (1.0 - tt) * flat[ii * nz + j] + tt * flat[ii * nz + j + 1]
+
+    return (1.0 - ta) * at(i) + ta * at(i + 1)
 
 
 def refract_inward(to_light: np.ndarray, normals: np.ndarray, eta: float) -> tuple:
@@ -150,7 +189,7 @@ def chord_lengths(bvh, points, normals, directions, diag: float) -> np.ndarray:
 
 def beam_deposits(level, bvh, mm_per_unit: float, beam, sigma_t_s, alpha_s, eta: float, diag: float,
                   n_segments: int = N_SEGMENTS) -> tuple:
-    """The lamps' calibrated volume source (eq. 7 times eq. 8's v) as point deposits: ``(points (m, 3) in
+    """The lamps' calibrated volume source (eq. 7 with eq. 8's depth weight W) as point deposits: ``(points (m, 3) in
     object units, power (m, 3))``, power in the units of the system's right-hand side (mm^2 W/m^2).
 
     ``level``: the graph level whose surface nodes the beams enter at; ``beam``: ``(q_beam, mu, to_light)``
@@ -171,7 +210,7 @@ def beam_deposits(level, bvh, mm_per_unit: float, beam, sigma_t_s, alpha_s, eta:
     st = np.asarray(sigma_t_s, dtype=np.float64)[lit]
     al = np.asarray(alpha_s, dtype=np.float64)[lit]
     power = q_b[lit] * (np.asarray(level.area, dtype=np.float64)[lit] * s * s)[:, None]
-    power *= al * volume_factor(al, mu[lit], eta)
+    power *= al
     st_min = st.min(axis=1)
     reach = -np.expm1(-st_min * L)  # the most penetrating channel's collision probability along the chord
     k = np.arange(n_segments) / n_segments
@@ -184,9 +223,9 @@ def beam_deposits(level, bvh, mm_per_unit: float, beam, sigma_t_s, alpha_s, eta:
     mid = a + np.where(sw > 1e-6, 1.0 / st_min[:, None] - width / np.expm1(np.minimum(sw, 700.0)), 0.5 * width)
     through = np.exp(-st[:, None, :] * edges[:, :, None])  # (n, K+1, C) uncollided fraction
     collided = through[:, :-1] - through[:, 1:]  # (n, K, C) exact per channel
-    stay = 1.0 - escape_once(st[:, None, :] * (mid * nu[:, None])[:, :, None], eta)
+    weight = depth_weight(al[:, None, :], st[:, None, :] * (mid * nu[:, None])[:, :, None], eta)  # eq. (8)
     x = p[:, None, :] + (mid / s)[:, :, None] * w[:, None, :]
-    return x.reshape(-1, 3), (power[:, None, :] * collided * stay).reshape(-1, 3)
+    return x.reshape(-1, 3), (power[:, None, :] * collided * weight).reshape(-1, 3)
 
 
 def deposit_in_cells(inner_tree, n_inner: int, points, power) -> np.ndarray:
