@@ -41,7 +41,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.bench_io import cli, command, commit, load_results, save_results, sphere_obj, write_section  # noqa: E402
+from bench.bench_io import DATA, cli, command, commit, load_results, save_results, sphere_obj, write_section  # noqa: E402
 from bench.sphere_walk import sphere_lamp_walk  # noqa: E402
 
 HEADING = "## Lamps (issue 31): an index-matched skin sphere under a sun, point, spot and disk light, pole to pole\n"
@@ -68,10 +68,15 @@ def reference(n_walk: int, lamp: dict) -> dict:
     L, E = [], []
     for sa, ss in zip(SIGMA_A, SIGMA_S):
         st = sa + ss
-        r, e = sphere_lamp_walk(RADIUS_MM, st, ss / st, np.radians(THETA_DEG), n=n_walk, seed=11, **lamp)
+        r, e = sphere_lamp_walk(RADIUS_MM, st, ss / st, np.radians(THETA_DEG), n=n_walk, seed=11, **lamp)  # walk_key
         L.append(r)
         E.append(e)
     return {"theta": THETA_DEG.tolist(), "L": np.array(L).T.tolist(), "err": np.array(E).T.tolist()}
+
+
+def walk_key(n_walk: int) -> str:
+    """What :func:`reference` depends on: the sphere, the medium, the angles, the lamps, the paths and the seed."""
+    return repr((RADIUS_MM, SIGMA_A, SIGMA_S, THETA_DEG.tolist(), {k: v[1] for k, v in LAMPS.items()}, n_walk, 11))
 
 
 def regions(theta_v: np.ndarray, L: np.ndarray, ref: dict) -> dict:
@@ -184,8 +189,16 @@ def main(argv=None) -> int:
     if a.from_json:
         return write_section(markdown(load_results(RESULTS), command("accuracy_sun", out=a.out)), HEADING, a.out)
     t0 = time.perf_counter()
-    refs = {lamp: reference(20_000 if a.quick else a.walk_paths, kw) for lamp, (_, kw) in LAMPS.items()}
-    results = {"date": time.strftime("%Y-%m-%d"), "commit": commit(), "walk_s": time.perf_counter() - t0,
+    n_walk = 20_000 if a.quick else a.walk_paths
+    key = walk_key(n_walk)
+    kept = load_results(RESULTS) if (DATA / RESULTS).exists() else {}
+    if kept.get("walk_key") == key:  # the same walk (scene, lamps, paths, seed): its numbers, not ~4 min again
+        refs, walk_s = kept["reference"], kept["walk_s"]
+        print(f"the walk references of {kept['date']} ({key})", file=sys.stderr)
+    else:
+        refs = {lamp: reference(n_walk, kw) for lamp, (_, kw) in LAMPS.items()}
+        walk_s = time.perf_counter() - t0
+    results = {"date": time.strftime("%Y-%m-%d"), "commit": commit(), "walk_s": walk_s, "walk_key": key,
                "reference": refs, "rows": []}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
