@@ -41,20 +41,23 @@ with K, the cells h and the exitance weights w of :class:`.half_space.HalfSpaceT
 ``K e_j / h_j`` is the uncollided fluence of a unit isotropic source in cell j, ``(I - alpha K)^{-1}`` adds
 every later scattering; G <= 1 - e1).  The deposits are eq. (7)'s collisions weighted by W at their depth,
 ``P sigma_t e^{-sigma_t t} alpha W(alpha, sigma_t z)``, in place of ``alpha (1 - e1)``; of them a half-space
-returns ``int P sigma_t e^{-sigma_t t} alpha G dt``: transport's multiple scattering, at every incidence (``tests/test_beam_source.py`` checks it
-against the split's beam tables, and G against a random walk).  A single factor per incidence, the
-return's ratio M/R, got the total right but moved light from deep sources to shallow ones: on the skin
-sphere under a sun the shaded half came out at 0.71, 0.70, 0.50 of the walk (R, G, B), 0.73, 0.76, 0.57
-with W.  W is 0.41-0.49 at the surface (where half the once-scattered light leaves at once), about 1 a few
-mean free paths deep for alpha >= 0.96, and grows with depth at low albedo (2.6 at tau 10 for alpha 0.68,
-where the beam has kept e^{-10} of its light), where diffusion's decay is too fast.
+returns ``int P sigma_t e^{-sigma_t t} alpha G dt``: transport's multiple scattering, at every incidence.
+``tests/test_beam_source.py`` checks that against the split's beam tables (within 0.5 %: the split
+extrapolates from two depth grids, W comes from one) and G against a random walk.  A single factor per
+incidence, the return's ratio M/R (what this module did before), got the total right but took light from
+deep sources with the shallow ones: on the skin sphere under a sun (Final) the shaded half came out at 0.71,
+0.69, 0.50 of the walk in R, G, B, with W at 0.73, 0.75, 0.57 (docs/accuracy.md, Lamps).  At eta 1, W at
+the surface is 0.23 (alpha 0.68) to 0.49 (alpha 0.999), where about half the once-scattered light leaves at
+once; a few mean free paths deep it is about 1 for alpha >= 0.96, and at low albedo it grows with depth
+(2.6 at tau 10 for alpha 0.68, where the beam has kept e^{-10} of its light), where diffusion's decay is
+too fast.
 
 **Discretised** so that no power is lost to the graph's resolution (the part of the beam shallower than
 the first inner node is most of it in dense media: marble's mean free path is 0.45 mm): each chord is cut
 into ``N_SEGMENTS`` pieces of equal collision probability at the smallest sigma_t of the three channels
 (the channel that reaches deepest; at the mean sigma_t red's deep tail fell into one piece and the skin
 sphere's shaded half came out 15 % darker than with 96 pieces); each piece's collisions are integrated
-exactly per channel and deposited, with eq. (7)'s weight, at their mean distance along the chord, in the
+exactly per channel and deposited, with eq. (8)'s weight at their mean depth, at their mean distance along the chord, in the
 cell of the nearest inner node (scipy's k-d tree).  16 pieces are within 3 % of 96 on that sphere.  The medium is taken as homogeneous along each
 chord with the entry node's coefficients, as the split takes it at the surface node.
 
