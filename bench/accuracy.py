@@ -502,7 +502,15 @@ def update_readme(b, path=ROOT / "README.md"):
             "2 shared CPU cores (no GPU):",
             "", headline_table(b, HEADLINE), ""]
     body += [p + "\n" for p in findings_headline(b, HEADLINE)]
-    body += ["![accuracy of the presets on every scene against time](docs/images/accuracy_presets.png)", ""]
+    image = "![accuracy of the presets on every scene against time](docs/images/accuracy_presets.png)"
+    body += [image, ""]
+    # what other benches wrote after the plot (the progressive frames, the lamps) stays
+    start = text.index(head)
+    end = text.find("\n## ", start + len(head))
+    old = text[start:end if end >= 0 else len(text)]
+    after = old[old.index(image) + len(image):].strip("\n") if image in old else ""
+    if after:
+        body += [after, ""]
     path.write_text(replace_section(text, head, "\n".join(body) + "\n"))
     return True
 

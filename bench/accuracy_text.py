@@ -523,7 +523,10 @@ KEPT_SECTIONS = ("## Particle fluids (Voronoi-fluid cells, issue 14)\n", "## Def
                  "## Objects with inner parts (issue 15): cavities, several media, an opaque part\n",
                  "## HDRI world (issue 19): the add-on against Cycles\n",
                  "## Local lights against the path tracer (issue 17)\n",
-                 "## The user's alternative: Cycles, timed (issue 17)\n")
+                 "## The user's alternative: Cycles, timed (issue 17)\n",
+                 "## Media where diffusion fails (issue 30): a dark sphere and an albedo sweep\n",
+                 "## Lamps (issue 31): an index-matched skin sphere under a sun, point, spot and disk light, pole to "
+                 "pole\n")
 
 
 def section_span(text: str, head: str):

@@ -98,10 +98,11 @@ def test_inverse_square_near_and_far(ev):
 
 def test_report_sections_survive_a_rewrite():
     """bench/accuracy.py rewrites docs/accuracy.md and keeps only KEPT_SECTIONS of the other benches."""
-    from bench import accuracy_lights, cycles_alternative
+    from bench import accuracy_dark, accuracy_lights, accuracy_sun, cycles_alternative
     from bench.accuracy_text import KEPT_SECTIONS, kept_sections, replace_section
 
-    assert accuracy_lights.HEADING in KEPT_SECTIONS and cycles_alternative.HEADING in KEPT_SECTIONS
+    for bench in (accuracy_lights, cycles_alternative, accuracy_dark, accuracy_sun):  # each writes its own section
+        assert bench.HEADING in KEPT_SECTIONS, bench.__name__
     text = replace_section("# Accuracy\n\nbody\n", accuracy_lights.HEADING, "\nlights table\n")
     text = replace_section(text, cycles_alternative.HEADING, "\ncycles table\n")
     import tempfile
@@ -112,6 +113,24 @@ def test_report_sections_survive_a_rewrite():
         p.write_text(text)
         kept = kept_sections(p)
     assert "lights table" in kept and "cycles table" in kept
+
+
+def test_the_readme_s_accuracy_section_keeps_what_other_benches_wrote_after_the_plot(tmp_path, monkeypatch):
+    """bench/accuracy.py rewrites the README's headline table and its findings; the paragraphs after the plot
+    (the progressive frames, the lamps: other benches' numbers) stay, and so do the other sections."""
+    from bench import accuracy
+
+    monkeypatch.setattr("bench.accuracy_report.headline_table", lambda b, head: "| new table |")
+    monkeypatch.setattr("bench.accuracy_text.findings_headline", lambda b, head: ["new findings"])
+    image = "![accuracy of the presets on every scene against time](docs/images/accuracy_presets.png)"
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# X\n\n## Accuracy versus time\n\n| old table |\n\nold findings\n\n{image}\n\n"
+                      "Under lamps: a paragraph of another bench.\n\n## Benchmarks\n\nrows\n")
+    assert accuracy.update_readme(None, readme)
+    text = readme.read_text()
+    assert "| new table |" in text and "new findings" in text and "old" not in text
+    assert "Under lamps: a paragraph of another bench." in text and text.index("Under lamps") > text.index(image)
+    assert text.endswith("## Benchmarks\n\nrows\n")
 
 
 def test_principled_base_color_inverts_the_albedo_fit():
