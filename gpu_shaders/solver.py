@@ -412,10 +412,11 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
             phi_s = self.read_phi(result, level)[self.bake.levels[level].n_inner:]
         return phi_s
 
-    def vertex_radiance(self, result, view_dirs=None) -> np.ndarray:
-        """L_o at the user's vertices: on the GPU when the result is resident, else the CPU formula."""
+    def vertex_radiance(self, result, view_dirs=None, transported: bool = True) -> np.ndarray:
+        """L_o at the user's vertices: on the GPU when the result is resident, else the CPU formula;
+        ``transported`` as ``DiffusionSolver.split_radiance_at``."""
         if not self.is_resident(result) or self._vmap is None:
-            return super().vertex_radiance(result, view_dirs)
+            return super().vertex_radiance(result, view_dirs, transported)
         g = self._gpu_levels[-1]
         cos_o = None
         if view_dirs is not None:
@@ -425,7 +426,8 @@ class GPUDiffusionSolver(diffusion.DiffusionSolver):
         L = self._vmap.radiance(g.r, self.eta, out_scale, cos_o).astype(np.float64)
         L *= self.output_clamp(result)[None, :]  # the CPU output's power-preserving clamp, on the read-back phi_s
         idx, w = self.bake.vertex_map
-        return self.split_radiance_at(result, L, idx, w, self.bake.mesh_normals, view_dirs)  # closed form, CPU
+        return self.split_radiance_at(result, L, idx, w, self.bake.mesh_normals, view_dirs,  # closed form, CPU
+                                      transported)
 
     def power_balance(self, result, level: int = -1, clamp: bool = True) -> dict:
         if result.phi[level] is None:

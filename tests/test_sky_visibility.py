@@ -248,8 +248,9 @@ def test_one_block_solve_carries_the_first_scatter_split(torus_bake):
     res, L = s.solve_interreflected(sun, UNIFORM, single=split)
     assert res.first_pass is not None and res.single == split  # the block path ran, with the split
     first = s.solve(sun, UNIFORM, single=split)
-    two = s.solve(sun, UNIFORM, warm_start=first, bounce=s.vertex_radiance(first), single=split)
-    L2 = s.vertex_radiance(two)
+    # the bounce's light, and what solve_interreflected returns, leave with eq. 4's shape (not eq. 9's)
+    two = s.solve(sun, UNIFORM, warm_start=first, bounce=s.vertex_radiance(first, transported=False), single=split)
+    L2 = s.vertex_radiance(two, transported=False)
     assert np.abs(L - L2).max() < 1e-6 * L2.max(), np.abs(L - L2).max() / L2.max()
     _, L_plain = s.solve_interreflected(sun, UNIFORM)
     assert np.abs(L_plain - L2).max() > 0.01 * L2.max()  # the split changes the answer: it is tested

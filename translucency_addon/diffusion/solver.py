@@ -124,7 +124,7 @@ import numpy as np
 from . import kernels
 from .assembly import assemble, node_coefficients
 from ..errors import MaterialError, TranslucencyError
-from ..scene.fresnel import diffuse_reflectance_internal
+from ..scene.fresnel import diffuse_reflectance_internal, fresnel_transmittance
 from .graph import SolverInput
 from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, STEPS_FUNCTIONS, LevelSolve, drain, energy_imbalance,
                         lit_channels, outside_maximum_principle, relay, solve_direct, start_image)
@@ -596,13 +596,18 @@ class DiffusionSolver:
             out.append(np.asarray(qi) * np.where(on, m, 1.0))
         return out, list(q), single
 
-    def split_radiance_at(self, result: SolveResult, L, idx, w, normals, view_dirs=None) -> np.ndarray:
+    def split_radiance_at(self, result: SolveResult, L, idx, w, normals, view_dirs=None,
+                          transported: bool = True) -> np.ndarray:
         """The output of the first-scatter split at points mapped onto the finest surface nodes.
 
         ``L`` is the diffusion's isotropic output there (:func:`.radiance.outgoing_radiance`, CPU or the
         GPU's ``radiance.glsl``).  In the split's channels it leaves with the angular shape of multiple
         scattering (eq. 4 of :mod:`.diffusion.split`, same power) and the closed-form single
         scattering (eq. 2) is added (:meth:`split_terms_at`); without a split ``L`` is returned as it is.
+        With ``transported`` the part of the output beyond the half-space's return of the point's own light
+        -- light the diffusion carried there from elsewhere -- leaves with the diffusion's own angular
+        distribution instead (eq. 9 of :mod:`.diffusion.split`); the sky bounce's light (:meth:`interreflected_steps`)
+        keeps eq. 4's shape, as its one-solve block system does.
         """
         if result.q_incident is None or not any(result.single) or result.q_incident[-1] is None:
             return L
@@ -610,16 +615,25 @@ class DiffusionSolver:
         if view_dirs is not None:
             cos_o = np.einsum("vj,vj->v", np.asarray(normals, dtype=np.float64), view_dirs)
         on = np.array(result.single, dtype=bool)
-        shape, single = self.split_terms_at(result.q_incident[-1], None if result.beams is None else result.beams[-1],
-                                            idx, w, cos_o,
-                                            beam_in_volume=result.volume is not None and result.volume[-1] is not None)
+        terms = self.split_terms_at(result.q_incident[-1], None if result.beams is None else result.beams[-1],
+                                    idx, w, cos_o, beam_in_volume=result.volume is not None and result.volume[-1] is not None,
+                                    local=transported)
+        shape, single = terms[:2]
+        if transported:
+            c = np.ones(len(shape)) if cos_o is None else cos_o
+            ft = fresnel_transmittance(np.clip(c, 0.0, 1.0), self.eta)
+            ft = np.where(c > 0, ft, 0.0)[:, None]  # the output power (1 - F_dr) J+ behind L = F_t J+/(pi eta^2)
+            power = np.where(ft > 0, (1.0 - self.fdr) * np.pi * self.eta**2 * np.asarray(L) / np.where(ft > 0, ft, 1.0),
+                             0.0)
+            shape = half_space_split(self.eta).with_transported(shape, terms[2], power, c)
         if on.all():  # in the terms' own (new) arrays: per render-mesh vertex, each temporary costs
             shape *= L
             shape += single
             return shape
         return np.asarray(L) * np.where(on, shape, 1.0) + single * on
 
-    def split_terms_at(self, q_incident, beam, idx, w, cos_o=None, beam_in_volume: bool = False) -> tuple:
+    def split_terms_at(self, q_incident, beam, idx, w, cos_o=None, beam_in_volume: bool = False,
+                       local: bool = False) -> tuple:
         """``(shape, single)`` of the split (:meth:`.split.HalfSpaceSplit.output_terms`: eq. 4's factor c on
         the diffusion's output, eqs. 2 and 6's single-scattering radiance) at the points of the map
         ``idx``/``w``, for the finest level's entering light ``q_incident`` (n_s, C) and lamps' part
@@ -632,16 +646,19 @@ class DiffusionSolver:
         ~40 ms at the 37 k nodes.  The map interpolates the terms instead of their inputs (q, albedo,
         incidence): the same where those are smooth, and within the map's own smoothing elsewhere.  Seen
         at a cosine ``cos_o`` (n,) per point (a camera's view, which varies from point to point), the terms
-        are evaluated at the points from their interpolated inputs (:meth:`split_inputs_at`).
+        are evaluated at the points from their interpolated inputs (:meth:`split_inputs_at`).  With ``local``
+        a third array, the half-space's return of the points' own light (:meth:`.split.HalfSpaceSplit.local_return`).
         """
         split = half_space_split(self.eta)
         if cos_o is None:
             q = np.asarray(q_incident, dtype=np.float64)
-            shape, single = split.output_terms(q, self.surface_albedo[-1], np.ones(len(q)), beam,
-                                               beam_in_volume=beam_in_volume)
-            return tuple(map_to_points(idx, w, shape, single))
+            a = self.surface_albedo[-1]
+            shape, single = split.output_terms(q, a, np.ones(len(q)), beam, beam_in_volume=beam_in_volume)
+            more = (split.local_return(q, a, beam),) if local else ()
+            return tuple(map_to_points(idx, w, shape, single, *more))
         q_v, a_v, beam_v = self.split_inputs_at(q_incident, beam, idx, w)
-        return split.output_terms(q_v, a_v, cos_o, beam_v, beam_in_volume=beam_in_volume)
+        terms = split.output_terms(q_v, a_v, cos_o, beam_v, beam_in_volume=beam_in_volume)
+        return terms + ((split.local_return(q_v, a_v, beam_v),) if local else ())
 
     def split_inputs_at(self, q_incident, beam, idx, w) -> tuple:
         """``(q, alpha, beam)`` of the finest surface nodes mapped onto points (``idx``, ``w``: the vertex map's
@@ -680,14 +697,14 @@ class DiffusionSolver:
 
             if not one_solve_applies(self):
                 res = yield from self.solve_steps(lights, environment, warm_start=warm_start, bounced=True, **kw)
-                return res, self.vertex_radiance(res)
+                return res, self.vertex_radiance(res, transported=False)
         res = self.solve(lights, environment, warm_start=warm_start, bounce=bounce, **kw)
-        L = self.vertex_radiance(res)
+        L = self.vertex_radiance(res, transported=False)  # the bounce's light: eq. 4's shape, as the block system
         if self.sky is None:
             return res, L
         for _ in range(int(bounces) - (bounce is not None)):
             res = self.solve(lights, environment, warm_start=res, bounce=L, **kw)
-            L = self.vertex_radiance(res)
+            L = self.vertex_radiance(res, transported=False)
         return res, L
 
     def solve_systems(self, q, active, warm_start=None, cols=(0, 1, 2), volume=None):
@@ -836,16 +853,17 @@ class DiffusionSolver:
         jplus = kernels.outgoing_partial_current(self.surface_phi(result, level), result.q[level], self.fdr)
         return jplus * self.output_clamp(result, level)
 
-    def vertex_radiance(self, result: SolveResult, view_dirs=None) -> np.ndarray:
+    def vertex_radiance(self, result: SolveResult, view_dirs=None, transported: bool = True) -> np.ndarray:
         """Outgoing radiance (W/(m^2 sr)) at the baked mesh's vertices.
 
         ``view_dirs``: (n_vertices, 3) unit vectors from the surface towards
-        the viewer; default: along the vertex normal.
+        the viewer; default: along the vertex normal.  ``transported``: as :meth:`split_radiance_at`.
         """
         idx, w = self.bake.vertex_map
-        return self.radiance_at(result, idx, w, self.bake.mesh_normals, view_dirs)
+        return self.radiance_at(result, idx, w, self.bake.mesh_normals, view_dirs, transported)
 
-    def radiance_at(self, result: SolveResult, idx, w, normals, view_dirs=None) -> np.ndarray:
+    def radiance_at(self, result: SolveResult, idx, w, normals, view_dirs=None,
+                    transported: bool = True) -> np.ndarray:
         """Outgoing radiance at arbitrary points mapped onto the finest surface nodes.
 
         ``idx``/``w`` (n, k): surface-node indices and weights (e.g. from
@@ -855,7 +873,8 @@ class DiffusionSolver:
         (j_v,) = map_to_points(idx, w, self.surface_partial_current(result))
         n = np.asarray(normals, dtype=np.float64)
         cos_o = np.ones(len(n)) if view_dirs is None else np.einsum("vj,vj->v", n, view_dirs)
-        return self.split_radiance_at(result, outgoing_radiance(j_v, cos_o, self.eta), idx, w, normals, view_dirs)
+        return self.split_radiance_at(result, outgoing_radiance(j_v, cos_o, self.eta), idx, w, normals, view_dirs,
+                                      transported)
 
     def phi_bound(self, result: SolveResult, level: int = -1) -> np.ndarray:
         """The discrete maximum principle's bound on the level's phi per channel, (3,)

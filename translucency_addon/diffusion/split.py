@@ -97,6 +97,25 @@ moves.  Against the random walk, radiance per direction (10 bins, RMS): 3.9 % is
 with eq. 4 at alpha = 0.999, eta = 1; at eta = 1.3, where Fresnel shapes both alike, within the walk's
 noise either way.  This is the shape under diffuse light; a lamp's is eq. (6)'s.
 
+**Light carried from elsewhere** leaves in neither: both are the half-space's, for light that entered at the
+point itself.  Where the diffusion sends out more than the half-space returns of the point's own light
+(``local``: ``M q_d + M_beam q_b``) -- around a lamp's terminator, on the shaded side, in shadowed hollows --
+the rest arrived from inside, and leaves with the diffusion's own angular distribution at a boundary it
+lights from inside (the P1 radiance ``phi/(4 pi) (1 + 3 F.w/phi)`` with the boundary condition's
+``F_n = phi/(2A)``)::
+
+    c_T(m) = (1 + 3m/(2A)) / Z,   2 pi int T_in c_T m dm = pi (1 - F_dr)                                   (9)
+
+at equal power, blended with eq. 4/6's shape by the two parts' power (:meth:`HalfSpaceSplit.with_transported`).
+At eta 1 it is ``(2 + 3m)/4``: 1.25 along the normal, where transport's Milne problem (light from a source
+deep below, :mod:`.half_space`) gives 1.26 at alpha 0.999 (Chandrasekhar's 1.259); at grazing exit it is 4 %
+high (``tests/test_scattering_split.py``).  On the skin sphere under a sun (docs/accuracy.md, Lamps) the
+terminator band was 0.78-0.86 of the random walk with eq. 4's shape for all of the output; the Milne
+problem's own shape, which sharpens as the albedo falls (2.3 along the normal at 0.68: light from deep
+below), overshot green and blue near the terminator, where light arrives sideways.  Under a sky little of the
+output is carried light: the accuracy bench's sky scenes moved by 0.06 points or less.  The sky bounce's
+light (:mod:`.interreflection`) keeps eq. 4's shape, as its one-solve block system is linear in phi.
+
 **Where diffusion is invalid** (reduced albedo below the planner's 0.5, or too thin) the single-scattering
 pass replaces it, and the orders after the first would be missing (17 % of the light of a 10 mm sphere at
 albedo 0.2, eta 1.3, against a random walk; 39 % at 0.45).  The half-space gives their ratio to the
@@ -502,6 +521,46 @@ class HalfSpaceSplit:
     def single_escapes(self, alpha, q, beam=None) -> np.ndarray:
         """The once-scattered light that leaves per unit q (n, C), diffuse and beam parts as in :meth:`source_factors`."""
         return self._mixed(self.single_escape(alpha), lambda mu: self.beam_single_escape(alpha, mu), q, beam)
+
+    def local_return(self, q, alpha, beam=None) -> np.ndarray:
+        """The power (per unit area, as q) a half-space sends back after two or more scatterings of the light q
+        that enters at the point itself: ``M(alpha) q_d + M_beam(alpha, mu) q_b`` (transport, eqs. 4 and 6);
+        ``alpha``, ``q`` (n, C), ``beam`` = (q_beam, mu) or None."""
+        q_d, q_b, mu = self._parts(q, beam)
+        a = np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0)
+        out = self.multiple_escape(a) * q_d
+        if q_b is not None:
+            out += self.lookup_beam(self.M_beam_table, a, mu) * q_b
+        return out
+
+    def transported_shape(self, cos_o) -> np.ndarray:
+        """c of eq. (9): the diffusion's own angular distribution at the boundary, for the light it carries to a
+        point from elsewhere, at outside cosines ``cos_o`` (n,); normalised like eq. (4)'s c (equal power)."""
+        m = refracted_cosine(np.clip(np.asarray(cos_o, dtype=np.float64), 0.0, 1.0), self.eta)
+        return (1.0 + 1.5 * m / self.A) / self._transported_norm()
+
+    def _transported_norm(self) -> float:
+        """2 int T_in (1 + 3m/(2A)) m dm / (1 - F_dr), Gauss-Legendre from the critical cosine (T_in = 0 below
+        it: a kink a rule over [0, 1] would straddle) to 1."""
+        z = getattr(self, "_z_transported", None)
+        if z is None:
+            m_c = np.sqrt(max(0.0, 1.0 - 1.0 / (self.eta * self.eta)))
+            x, w = np.polynomial.legendre.leggauss(64)
+            m = m_c + (1.0 - m_c) * 0.5 * (x + 1.0)
+            integral = float(np.sum((1.0 - m_c) * 0.5 * w * inside_transmittance(m, self.eta)
+                                    * (1.0 + 1.5 * m / self.A) * m))
+            z = self._z_transported = 2.0 * integral / (1.0 - self.fdr)
+        return z
+
+    def with_transported(self, shape, local, out_power, cos_o) -> np.ndarray:
+        """Eq. (9): the output's shape where the diffusion sends out ``out_power`` (n, C; ``(1 - F_dr) J+``) of
+        which ``local`` (:meth:`local_return`) is the half-space's return of the point's own light, with the
+        split's ``shape`` (eqs. 4, 6); the rest, carried from elsewhere, leaves with :meth:`transported_shape`."""
+        P = np.asarray(out_power, dtype=np.float64)
+        rest = np.maximum(P - local, 0.0)
+        tot = np.maximum(P, local)
+        c = self.transported_shape(cos_o)[:, None]
+        return np.where(tot > 0, (shape * (tot - rest) + c * rest) / np.where(tot > 0, tot, 1.0), shape)
 
     def output_terms(self, q, alpha, cos_o, beam=None, beam_in_volume: bool = False):
         """``(shape, single)`` at points seen at outside cosine ``cos_o``: the factor c on the diffusion's
