@@ -372,6 +372,13 @@ def test_the_split_along_the_normal_is_evaluated_at_the_nodes_and_mapped():
     blended = split.with_transported(shape_v, local_v, power, np.ones(len(V)))
     np.testing.assert_allclose(s.vertex_radiance(r), L_iso * blended + single_v, rtol=1e-12, atol=1e-15)
 
+    assert np.abs(s.vertex_radiance(r) - s.vertex_radiance(r, transported=False)).max() > 1e-3 * L_iso.max()
+    # a world alone moves no lamp light through the volume: eq. 9 leaves its output as it is
+    from translucency_addon.scene.lights import Environment
+
+    rw = s.solve([], Environment((1.0, 1.0, 1.0)))
+    np.testing.assert_array_equal(s.vertex_radiance(rw), s.vertex_radiance(rw, transported=False))
+
     q_v, a_v, beam_v = s.split_inputs_at(q, beam, idx, w)
     shape_p, single_p = split.output_terms(q_v, a_v, np.ones(len(V)), beam_v, beam_in_volume=inside)
     per_vertex = L_iso * shape_p + single_p

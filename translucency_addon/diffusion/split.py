@@ -112,8 +112,10 @@ deep below, :mod:`.half_space`) gives 1.26 at alpha 0.999 (Chandrasekhar's 1.259
 high (``tests/test_scattering_split.py``).  On the skin sphere under a sun (docs/accuracy.md, Lamps) the
 terminator band was 0.78-0.86 of the random walk with eq. 4's shape for all of the output; the Milne
 problem's own shape, which sharpens as the albedo falls (2.3 along the normal at 0.68: light from deep
-below), overshot green and blue near the terminator, where light arrives sideways.  Under a sky little of the
-output is carried light: the accuracy bench's sky scenes moved by 0.06 points or less.  The sky bounce's
+below), overshot green and blue near the terminator, where light arrives sideways.  Eq. 9 runs where the
+lamps' light enters through the volume (:mod:`.beam_source`), the light it moves: under a world alone the
+output beyond the local return is mostly diffusion's own excess over transport on a curved surface, and
+reshaping it made the dark-sphere sweep 3-5 points brighter (docs/accuracy.md, issue 30).  The sky bounce's
 light (:mod:`.interreflection`) keeps eq. 4's shape, as its one-solve block system is linear in phi.
 
 **Where diffusion is invalid** (reduced albedo below the planner's 0.5, or too thin) the single-scattering
