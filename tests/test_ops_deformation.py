@@ -148,9 +148,11 @@ def rel_rms(a, b):
 def test_armature_bend_solves_on_the_deformed_graph(blender, addon, cache_dir, memo_bakes):
     """Frame 1 (rest) and frame 10 (the tip bone at 60 degrees): no re-bake, the radiance follows
     the pose, equals the engine's DeformationFrames on Blender's posed mesh, and is close to a fresh bake
-    of the posed mesh: 9 %.  (8 % until the sun's light entered through the volume, diffusion/beam_source.py:
+    of the posed mesh: 10 %.  (8 % until the sun's light entered through the volume, diffusion/beam_source.py:
     its deposits follow each graph's inner nodes, so two graphs of one shape -- the moved bake and a fresh,
-    run-to-run varying fTetWild bake -- now differ by up to 0.085: above 0.08 in two of five runs.)"""
+    run-to-run varying fTetWild bake -- differ by 0.070-0.085 over five processes then; with the depth weight
+    and split.py's eq. 9, 0.075, 0.076, 0.081, 0.088 in four processes and 0.092 in one fresh-clone CI run.
+    Eq. 9 itself adds 0.0013 to the same pair of bakes (0.0747 against 0.0734); the spread is the fresh bake's.)"""
     from translucency.ops import live, state, status
     from translucency.translucency_addon.quadgraph import bake as bake_mod
     from translucency.translucency_addon.diffusion.solver import DiffusionSolver
@@ -182,7 +184,7 @@ def test_armature_bend_solves_on_the_deformed_graph(blender, addon, cache_dir, m
     solver = DiffusionSolver(fresh.with_scale(inputs.mm), inputs.material, options=inputs.solve_options())
     L_fresh = solver.vertex_radiance(solver.solve(list(inputs.lights), inputs.environment, shadows=True,
                                                   single=inputs.single_channels))
-    assert rel_rms(posed, L_fresh) < 0.09
+    assert rel_rms(posed, L_fresh) < 0.10
     assert rel_rms(rest, L_fresh) > 2.0 * rel_rms(posed, L_fresh)  # the rest result shown on the pose is not
 
 
