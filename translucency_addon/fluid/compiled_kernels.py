@@ -21,62 +21,96 @@ def sector(ax, ay, bx, by):
 
 
 @numba.njit(cache=True, nogil=True)
-def clip(i, j, f, P, n, e1, e2, h, rho, start, nbr, ux, uy, vx, vy) -> int:
-    """The region of face f as a counter-clockwise polygon in (ux, uy); its vertex count (0: empty)."""
+def clip(j, f, n, e1, e2, h, rho, lo, hi, nbr, dx, dy, dz, dd, ux, uy, vx, vy) -> int:
+    """The region of face f = (i, j) as a counter-clockwise polygon in (ux, uy); its vertex count (0: empty).
+
+    ``nbr[lo:hi]`` is i's neighbour list, ``dx, dy, dz`` each neighbour's offset from p_i and ``dd`` its
+    square (:func:`offsets`).  A line is first tested with its normal component only: with
+    ``t = n . (p_k - p_i)``, ``c = |p_k - p_i|^2 / 2 - h t`` and ``a^2 + b^2 = |p_k - p_i|^2 - t^2``, so
+    the lines that miss the disk (most of them) never need their in-plane coordinates (a, b).  "The disk"
+    shrinks as the region does: the region is convex, so it lies within its farthest vertex's distance of
+    the centre, and a line farther than that (or than rho) cannot change the region's part in the disk,
+    which is all :func:`in_disk` reads.  And a point x of that part lies within ``sqrt(h^2 + reach^2)`` of
+    p_i, so only a k with ``|p_k - p_i| < 2 |x - p_i|`` can be nearer to it: the list is sorted by
+    distance, and the loop ends at the first k beyond twice that.  Measured at 16k jittered particles:
+    the line tests alone were half of the kernel's time.
+    """
     s = 2.0 * rho  # the square around the disk, counter-clockwise in (e1, e2)
     ux[0], uy[0], ux[1], uy[1], ux[2], uy[2], ux[3], uy[3] = -s, -s, s, -s, s, s, -s, s
     m = 4
-    pix, piy, piz = P[i, 0], P[i, 1], P[i, 2]
-    e1x, e1y, e1z = e1[0, f], e1[1, f], e1[2, f]
-    e2x, e2y, e2z = e2[0, f], e2[1, f], e2[2, f]
-    hx, hy, hz = h * n[0, f], h * n[1, f], h * n[2, f]
-    rho2 = rho * rho
-    for t in range(start[i], start[i + 1]):
-        k = nbr[t]
-        if k == j:
+    nx, ny, nz = n[0, f], n[1, f], n[2, f]
+    reach2 = rho * rho  # the region's part in the disk lies within this of the centre: min(rho, |vertex|)^2
+    for t in range(lo, hi):
+        if nbr[t] == j:
             continue
-        dx, dy, dz = P[k, 0] - pix, P[k, 1] - piy, P[k, 2] - piz
-        a = e1x * dx + e1y * dy + e1z * dz
-        b = e2x * dx + e2y * dy + e2z * dz
-        dd = dx * dx + dy * dy + dz * dz
-        c = 0.5 * dd - (hx * dx + hy * dy + hz * dz)
-        ell2 = a * a + b * b
-        if ell2 <= 1e-24 * dd:  # k on the axis: all or nothing
+        px, py, pz, d2 = dx[t], dy[t], dz[t], dd[t]
+        if d2 >= 4.0 * (h * h + reach2):  # this k and every later one (the list is sorted) is too far to cut
+            break
+        tn = nx * px + ny * py + nz * pz
+        c = 0.5 * d2 - h * tn
+        ell2 = d2 - tn * tn
+        if ell2 <= 1e-24 * d2:  # k on the axis: all or nothing
             if c < 0.0:
                 return 0
             continue
-        if c * c >= rho2 * ell2:  # the line misses the disk (|c| / ell >= rho)
+        if c * c >= reach2 * ell2:  # the line misses what is left of the disk (|c| / ell >= the reach)
             if c > 0.0:
-                continue  # the whole disk is on i's side
-            return 0  # k takes the whole disk
+                continue  # all of it is on i's side
+            return 0  # k takes all of it
+        a = e1[0, f] * px + e1[1, f] * py + e1[2, f] * pz
+        b = e2[0, f] * px + e2[1, f] * py + e2[2, f] * pz
         q = 0  # keep a u + b v <= c (Sutherland-Hodgman: the region is convex)
         sn = a * ux[0] + b * uy[0] - c
         for p in range(m):
-            px, py, sp = ux[p], uy[p], sn
+            qx, qy, sp = ux[p], uy[p], sn
             nxt = p + 1 if p + 1 < m else 0
             nx_, ny_ = ux[nxt], uy[nxt]
             sn = a * nx_ + b * ny_ - c
             if sp <= 0.0:
-                vx[q], vy[q] = px, py
+                vx[q], vy[q] = qx, qy
                 q += 1
             if (sp < 0.0 < sn) or (sn < 0.0 < sp):
                 w = sp / (sp - sn)
-                vx[q], vy[q] = px + w * (nx_ - px), py + w * (ny_ - py)
+                vx[q], vy[q] = qx + w * (nx_ - qx), qy + w * (ny_ - qy)
                 q += 1
         if q < 3:
             return 0
+        far2 = 0.0
         for p in range(q):
             ux[p], uy[p] = vx[p], vy[p]
+            far2 = max(far2, vx[p] * vx[p] + vy[p] * vy[p])
         m = q
+        reach2 = min(reach2, far2)
     return m
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def offsets(P, start, nbr, dx, dy, dz, dd):
+    """Each neighbour's offset from its list's particle, ``p_k - p_i``, and its square: computed once per
+    list entry instead of once per face that reads the list (about 13 faces per particle)."""
+    for i in numba.prange(start.shape[0] - 1):
+        for t in range(start[i], start[i + 1]):
+            k = nbr[t]
+            x, y, z = P[k, 0] - P[i, 0], P[k, 1] - P[i, 1], P[k, 2] - P[i, 2]
+            dx[t], dy[t], dz[t], dd[t] = x, y, z, x * x + y * y + z * z
 
 
 @numba.njit(cache=True, nogil=True)
 def in_disk(m, ux, uy, h, rho, R):
-    """Area and solid angle (from the particle at height h) of the polygon's part inside the disk."""
+    """Area and solid angle (from the particle at height h) of the polygon's part inside the disk.
+
+    The straight triangles' solid angles are summed as one argument: each is ``2 atan2(y_k, x_k)``, so
+    their sum is twice the argument of the product of the ``x_k + i y_k``, which one ``atan2`` gives at the
+    end.  That is exact because the half-angles' sum is the polygon-in-disk's solid angle less its
+    sectors', halved: in [0, pi) for a face, which cannot subtend a hemisphere from its particle.  The
+    product is rescaled at every step (by ``|x| + |y|``) so it neither overflows nor underflows.  A sector
+    of zero angle (an edge that ends inside the disk) is skipped.  An interior face, whose polygon lies
+    inside its disk, then costs one ``atan2`` instead of two per edge: the kernel's most expensive call.
+    """
     r2 = rho * rho
     cone = 1.0 - h / R
     sa, so = 0.0, 0.0
+    zr, zi = 1.0, 0.0  # the product of the straight triangles' (den + i h cross), rescaled
     for p in range(m):
         ax, ay = ux[p], uy[p]
         bx, by = ux[(p + 1) % m], uy[(p + 1) % m]
@@ -100,17 +134,25 @@ def in_disk(m, ux, uy, h, rho, R):
             lo, hi = t1, t2
         p1x, p1y = ax + lo * ex, ay + lo * ey
         p2x, p2y = ax + hi * ex, ay + hi * ey
-        phi = (sector(ax, ay, p1x, p1y) if lo > 0.0 else 0.0) + sector(p2x, p2y, bx, by)  # A inside: no first sector
+        phi = 0.0  # A inside (lo = 0): no first sector; B inside (hi = 1): no last one
+        if lo > 0.0:
+            phi += sector(ax, ay, p1x, p1y)
+        if hi < 1.0:
+            phi += sector(p2x, p2y, bx, by)
         cr = p1x * p2y - p1y * p2x
         sa += 0.5 * r2 * phi + 0.5 * cr
+        so += phi * cone
         if lo == hi:  # P1 = P2: no triangle, its arctangent exactly 0
-            so += phi * cone
             continue
         r1 = np.sqrt(h * h + p1x * p1x + p1y * p1y)
         r2_ = np.sqrt(h * h + p2x * p2x + p2y * p2y)
         den = h * r1 * r2_ + h * h * (r1 + r2_) + h * (h * h + p1x * p2x + p1y * p2y)
-        so += phi * cone + 2.0 * np.arctan2(h * cr, den)
-    return sa, so
+        yi = h * cr
+        zr, zi = zr * den - zi * yi, zr * yi + zi * den
+        s = abs(zr) + abs(zi)
+        if s > 0.0:
+            zr, zi = zr / s, zi / s
+    return sa, so + 2.0 * np.arctan2(zi, zr)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -120,12 +162,16 @@ def faces(P, R, fi, fj, n, e1, e2, h, rho, start, nbr, area, omega):
     cap = 8  # a clipped square gains at most one vertex per line: 4 + the lines of a face, and one spare
     for i in range(start.shape[0] - 1):
         cap = max(cap, start[i + 1] - start[i] + 6)
+    T = nbr.shape[0]
+    dx, dy, dz, dd = np.empty(T), np.empty(T), np.empty(T), np.empty(T)
+    offsets(P, start, nbr, dx, dy, dz, dd)
     for blk in numba.prange((E + BLOCK - 1) // BLOCK):
         ux, uy, vx, vy = np.empty(cap), np.empty(cap), np.empty(cap), np.empty(cap)
         for f in range(blk * BLOCK, min(E, (blk + 1) * BLOCK)):
             if not rho[f] > 0.0:
                 continue
-            m = clip(fi[f], fj[f], f, P, n, e1, e2, h[f], rho[f], start, nbr, ux, uy, vx, vy)
+            i = fi[f]
+            m = clip(fj[f], f, n, e1, e2, h[f], rho[f], start[i], start[i + 1], nbr, dx, dy, dz, dd, ux, uy, vx, vy)
             if m:
                 area[f], omega[f] = in_disk(m, ux, uy, h[f], rho[f], R)
 
