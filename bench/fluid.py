@@ -62,12 +62,15 @@ NOTES = """**Reading the table.**
   vectorised (the Voronoi edges are the Delaunay triangles' dual edges, so no clipping at all) -- 0.67 s for
   the Delaunay of 17k particles alone, 1.37 s in all against numpy's 0.95 s; freud's voro++ -- 0.53 s for the
   plain Voronoi cells of 8k particles (no ball, no face polygons) and no wheel for Python 3.11.
-* *What the cells cost now*: the compiled faces (~95-120 ms at 16k), then the k-d tree's neighbour pairs
-  (~30 ms), the contract graph and the occluder. Measured and not taken: a compiled cell-list pair search
-  (grid of 2R, nine row ranges per particle, the neighbour lists in the same pass) took 33 ms for what the
-  k-d tree, the (i, j) sort and the lists take in ~40 ms: no gain worth a second path; skipping the zero
-  sectors and zero triangles of the faces' solid angles (the same sums to the bit) changed nothing
-  measurable -- the clipping, not the arctangents, is the kernel's cost.
+* *What the cells cost now*: the compiled faces (~70-100 ms at 16k), then the neighbour lists, the
+  contract graph and the occluder. The compiled path's neighbour lists come from a grid of cells of 2R
+  (`compiled_kernels.neighbour_lists`: per occupied cell its 27 cells' row ranges, one binary search each,
+  then a count and a fill pass over its particles), rows ascending, so the faces i < j come out sorted by
+  (i, j): at 16k particles 18 ms (min of 7, one process) where the k-d tree's pairs alone took 17-21 ms and
+  their (i, j) sort and the per-particle lists another ~20 ms (an earlier grid search with a binary
+  search per particle and cell measured 29-37 ms and was not taken). The kernel's line tests stop at the
+  first neighbour too far to cut what is left of the face, and its solid angles take one arctangent per
+  face (`compiled_kernels.clip`, `in_disk`: 77 -> 68 ms at 16k, same process, min of 11).
 * *No approximate cell geometry is offered*: the paper's sample counting, done with the same k-d tree
   (the table above), costs more CPU than the exact build (compiled path) for the volumes alone and far more
   for the face areas, and is off by 17 % per volume and 20 % of a face on average, differently every frame (flicker).
@@ -321,8 +324,8 @@ def summarise(one: dict) -> dict:
     return out
 
 
-PARTS = (("particles", "input checks"), ("cells_neighbours", "neighbour pairs (cKDTree), spatial order"),
-         ("cells_neighbour lists", "neighbour lists (compiled path)"),
+PARTS = (("particles", "input checks"),
+         ("cells_neighbours", "spatial order, neighbour lists (compiled grid; numpy: cKDTree pairs), face frames"),
          ("cells_compiled faces", "faces, compiled (numba, one face per thread)"),
          ("cells_triangles", "triangles: cut lines, empty faces (numpy path)"),
          ("cells_clipping", "clip each Voronoi edge once (numpy path)"),

@@ -375,6 +375,35 @@ def test_the_compiled_and_numpy_paths_give_the_same_cells():
         assert np.abs(a.surface_vector - b.surface_vector).max() < 1e-11 * scale, name
 
 
+def test_the_compiled_neighbour_lists_are_the_k_d_trees_pairs():
+    """The grid search of the compiled path (cells of 2R, 27 around each) finds exactly the pairs closer than
+    2R that ``cKDTree.query_pairs`` finds, in both rows, ascending, with the distances: on a jittered lattice
+    with pairs at exactly 2R (left out), a cloud spread over a box 40x its radius (mostly empty cells, rows and
+    slabs), and one particle."""
+    from scipy.spatial import cKDTree
+
+    from translucency_addon.fluid.cells import _spatial_order
+
+    rng = np.random.default_rng(3)
+    sets = [("lattice, pairs at exactly 2R", lattice(6, 1.0), 1.0),
+            ("sparse cloud", rng.uniform(0.0, 40.0, (600, 3)), 1.0),
+            ("jittered lattice", lattice(7, 1.0) + rng.uniform(-0.1, 0.1, (343, 3)), 0.99),
+            ("one particle", np.zeros((1, 3)), 1.0)]
+    for name, P, R in sets:
+        order, grid = _spatial_order(P, R)
+        Q = P[order]
+        start, nbr, dist = compiled_faces.neighbour_lists(Q, R, grid)
+        pairs = cKDTree(Q).query_pairs(2.0 * R, output_type="ndarray")
+        d = np.linalg.norm(Q[pairs[:, 1]] - Q[pairs[:, 0]], axis=1) if len(pairs) else np.zeros(0)
+        pairs = pairs[d < 2.0 * R]
+        want = sorted(map(tuple, np.vstack([pairs, pairs[:, ::-1]]).tolist())) if len(pairs) else []
+        rows = np.repeat(np.arange(len(Q)), np.diff(start))
+        assert sorted(zip(rows.tolist(), nbr.tolist())) == want, name
+        assert all(np.all(np.diff(nbr[start[i]:start[i + 1]]) > 0) for i in range(len(Q))), name
+        assert np.allclose(dist, np.linalg.norm(Q[nbr] - Q[rows], axis=1), rtol=1e-15, atol=0), name
+        assert np.all(dist < 2.0 * R), name
+
+
 def test_without_numba_the_cells_take_the_numpy_path_and_say_why(monkeypatch):
     """The fallback is the numpy path (the same cells), and the cells and a fluid frame's stats say why and
     what to change; asking for the compiled path without numba is refused with the reason."""

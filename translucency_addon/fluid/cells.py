@@ -38,7 +38,10 @@ i, j and k.  That line meets the balls only if the triangle's circumradius is
 below R, and a particle that cuts it there lies within 2R of all three.  So:
 
 1. neighbour pairs (faces) from ``cKDTree.query_pairs(2R)``, relabelled in a
-   spatial order (slabs of 2R) and sorted by (i, j);
+   spatial order (slabs of 2R) and sorted by (i, j) (the compiled path takes
+   every particle's list from the grid of that order instead,
+   :func:`.compiled_faces.neighbour_lists`, and clips each face in one place:
+   :mod:`.compiled_faces`; the steps below are the numpy path's);
 2. the triangles i < j < k of pairs (from the sorted rows, one ``searchsorted``
    for the pair jk), and per triangle, in each of its three faces, whether its
    line cuts the disk (circumradius < R) or leaves the whole disk to the third
@@ -151,11 +154,15 @@ class _Faces:
     e2: np.ndarray
 
 
-def _faces(P, R, pi, pj, compiled: bool = False) -> _Faces:
+def _faces(P, R, pi, pj, compiled: bool = False, presorted: bool = False) -> _Faces:
+    """The faces of pairs (pi < pj), sorted by (i, j) unless ``presorted`` says they come so."""
     N = len(P)
     key = pi * N + pj
-    order = np.argsort(key)
-    i, j, key = pi[order], pj[order], key[order]
+    if presorted:
+        i, j = pi, pj
+    else:
+        order = np.argsort(key)
+        i, j, key = pi[order], pj[order], key[order]
     if compiled:  # the same frames in one compiled pass
         from .compiled_faces import face_frames
 
@@ -227,18 +234,30 @@ def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK, 
     P = np.ascontiguousarray(points, dtype=np.float64)
     N = len(P)
     R = float(radius)
-    tree, pi, pj = neighbour_pairs(P, R, tree)
     # Work in a spatial order (slabs of 2R): a face's triangles then lie in nearby rows (chunks, cache).
-    order = _spatial_order(P, R)
-    rank = np.empty(N, dtype=np.int64)
-    rank[order] = np.arange(N)
-    si, sj = rank[pi], rank[pj]
+    order, grid = _spatial_order(P, R)
     Q = P[order]
-    fc = _faces(Q, R, np.minimum(si, sj), np.maximum(si, sj), compiled=path == "compiled")
-    t1 = time.perf_counter()
-    if path == "compiled":
-        area, omega, seconds = _compiled_face_geometry(Q, R, fc)
+    if path == "compiled":  # each particle's list from the grid, in compiled code; the faces are its pairs i < j
+        from .compiled_faces import neighbour_lists
+
+        if tree is None:
+            from scipy.spatial import cKDTree
+
+            tree = cKDTree(P)  # not needed for the faces; the graph and the occluder query it
+        lists = neighbour_lists(Q, R, grid)
+        start, nbr, _ = lists
+        rows = np.repeat(np.arange(N, dtype=np.int64), np.diff(start))
+        up = nbr > rows
+        fc = _faces(Q, R, rows[up], nbr[up], compiled=True, presorted=True)
+        t1 = time.perf_counter()
+        area, omega, seconds = _compiled_face_geometry(Q, R, fc, lists)
     else:
+        tree, pi, pj = neighbour_pairs(P, R, tree)
+        rank = np.empty(N, dtype=np.int64)
+        rank[order] = np.arange(N)
+        si, sj = rank[pi], rank[pj]
+        fc = _faces(Q, R, np.minimum(si, sj), np.maximum(si, sj))
+        t1 = time.perf_counter()
         area, omega, seconds = _face_geometry(Q, R, fc, chunk)
     t2 = time.perf_counter()
     fi, fj, fd, fn = fc.i, fc.j, fc.d, fc.n
@@ -259,31 +278,30 @@ def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK, 
                         order=order, path=path, path_note=why)
 
 
-def _compiled_face_geometry(P, R, fc: _Faces):
+def _compiled_face_geometry(P, R, fc: _Faces, lists):
     """Area and solid angle of every face by :mod:`.compiled_faces`: each face clipped by the lines of its
-    first particle's neighbours (every particle within 2R of it, from the faces themselves)."""
+    first particle's neighbours (``lists`` = ``(start, nbr, dist)``: every particle within 2R of each,
+    :func:`.compiled_faces.neighbour_lists`)."""
     from . import compiled_faces
 
     t = time.perf_counter()
-    N = len(P)
-    src = np.concatenate([fc.i, fc.j])
-    dst = np.concatenate([fc.j, fc.i])
-    by = np.argsort(src, kind="stable")
-    start = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=N))])
-    t1 = time.perf_counter()
-    area, omega = compiled_faces.face_geometry(P, R, fc.i, fc.j, fc.n, fc.e1, fc.e2, fc.h, fc.r, start, dst[by],
-                                               np.concatenate([fc.d, fc.d])[by])
+    start, nbr, dist = lists
+    area, omega = compiled_faces.face_geometry(P, R, fc.i, fc.j, fc.n, fc.e1, fc.e2, fc.h, fc.r, start, nbr, dist)
     t2 = time.perf_counter()
-    return np.maximum(area, 0.0), np.maximum(omega, 0.0), {"neighbour lists": t1 - t, "compiled faces": t2 - t1}
+    return np.maximum(area, 0.0), np.maximum(omega, 0.0), {"compiled faces": t2 - t}
 
 
 def _spatial_order(P, R):
-    """Particles sorted by slabs, rows and cells of size 2R (a stable sort keeps the input order within)."""
+    """``(order, (g, keys))``: the particles sorted by slabs, rows and cells of size 2R (a stable sort keeps
+    the input order within), and in that order their cells' integer coordinates ``g`` (N, 3) and flat keys
+    (ascending)."""
     if len(P) == 0:
-        return np.zeros(0, dtype=np.int64)
+        return np.zeros(0, dtype=np.int64), (np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64))
     g = np.floor((P - P.min(axis=0)) / (2.0 * R)).astype(np.int64)
     dims = g.max(axis=0) + 1
-    return np.argsort((g[:, 2] * dims[1] + g[:, 1]) * dims[0] + g[:, 0], kind="stable")
+    key = (g[:, 2] * dims[1] + g[:, 1]) * dims[0] + g[:, 0]
+    order = np.argsort(key, kind="stable")
+    return order, (g[order], key[order])
 
 
 def _unsort(a, order):

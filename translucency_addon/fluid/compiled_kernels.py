@@ -232,3 +232,73 @@ def ball_voxels(points, lo, h, R, strides, off, flat_off, oh2, solid):
         for o in range(off.shape[0]):
             if oh2[o] + (2.0 * h) * (fx * off[o, 0] + fy * off[o, 1] + fz * off[o, 2]) + ff <= r2:
                 solid[base + flat_off[o]] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_ranges(u, g0, dims, ukeys, ustart, lo, hi) -> int:
+    """The row ranges of the occupied cells among the 27 around cell u (whose first particle's cell
+    coordinates are ``g0``), in ascending key, into ``lo``/``hi``; returns how many."""
+    m = 0
+    for oz in range(-1, 2):
+        z = g0[2] + oz
+        if z < 0 or z >= dims[2]:
+            continue
+        for oy in range(-1, 2):
+            y = g0[1] + oy
+            if y < 0 or y >= dims[1]:
+                continue
+            for ox in range(-1, 2):
+                x = g0[0] + ox
+                if x < 0 or x >= dims[0]:
+                    continue
+                key = (z * dims[1] + y) * dims[0] + x
+                v = np.searchsorted(ukeys, key)
+                if v < ukeys.shape[0] and ukeys[v] == key:
+                    lo[m], hi[m] = ustart[v], ustart[v + 1]
+                    m += 1
+    return m
+
+
+@numba.njit(cache=True, nogil=True)
+def _scan(i, P, two_r, m, lo, hi, nbr, dist, at) -> int:
+    """The particles within 2R of particle i (not i) in the row ranges ``lo[:m]``/``hi[:m]``, in ascending
+    index: written to ``nbr[at:]``/``dist[at:]`` where ``at >= 0``; returns how many there are."""
+    c = 0
+    px, py, pz = P[i, 0], P[i, 1], P[i, 2]
+    for r in range(m):
+        for k in range(lo[r], hi[r]):
+            dx, dy, dz = P[k, 0] - px, P[k, 1] - py, P[k, 2] - pz
+            d = np.sqrt(dx * dx + dy * dy + dz * dz)
+            if d < two_r and k != i:
+                if at >= 0:
+                    nbr[at + c], dist[at + c] = k, d
+                c += 1
+    return c
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def neighbour_lists(P, R, g, dims, ukeys, ustart, start):
+    """Every particle's neighbours closer than 2R, as CSR rows (``start``, filled here) in ascending index,
+    with their distances: per occupied cell of size 2R, its 27 cells' row ranges (one binary search each),
+    then two passes over its particles (count, then fill)."""
+    N = P.shape[0]
+    U = ukeys.shape[0]
+    two_r = 2.0 * R
+    count = np.zeros(N, dtype=np.int64)
+    empty_i, empty_f = np.zeros(0, dtype=np.int64), np.zeros(0)
+    for u in numba.prange(U):
+        lo, hi = np.empty(27, dtype=np.int64), np.empty(27, dtype=np.int64)
+        m = _cell_ranges(u, g[ustart[u]], dims, ukeys, ustart, lo, hi)
+        for i in range(ustart[u], ustart[u + 1]):
+            count[i] = _scan(i, P, two_r, m, lo, hi, empty_i, empty_f, -1)
+    start[0] = 0
+    for i in range(N):
+        start[i + 1] = start[i] + count[i]
+    nbr = np.empty(start[N], dtype=np.int64)
+    dist = np.empty(start[N])
+    for u in numba.prange(U):
+        lo, hi = np.empty(27, dtype=np.int64), np.empty(27, dtype=np.int64)
+        m = _cell_ranges(u, g[ustart[u]], dims, ukeys, ustart, lo, hi)
+        for i in range(ustart[u], ustart[u + 1]):
+            _scan(i, P, two_r, m, lo, hi, nbr, dist, start[i])
+    return nbr, dist
