@@ -1,6 +1,7 @@
 """Particle-fluid benchmark (issue 14): Voronoi-fluid cells, light pass, warm solve and output per frame.
 
     .venv/bin/python bench/fluid.py [--sizes 4096 16384 65536 262144] [--frames 3] [--out docs/bench_fluid.md]
+                                    [--baseline OTHER_CHECKOUT]
 
 A ball of particles (a cubic lattice of spacing 1 unit = 0.5 mm, jittered
 afresh by 10 % of the spacing every frame around its rest positions: the
@@ -18,6 +19,10 @@ memory is measured there).  Per stage, the median over the warm frames:
 * **warm solve**: assembly and the solve (conjugate gradients, with its guard) from the
   previous frame's phi, to a relative residual of 1e-4;
 * **output**: the surface map and the corrected eq. 4/7 at the vertices.
+
+``--baseline``: the cells (``build_cells`` as a frame calls it) of another checkout against this tree's,
+alternating processes, in the same run: a speed-up of the cells is a ratio measured at one time on
+these shared cores, not two tables from different hours.
 
 Growth exponents ``log(t2/t1) / log(N2/N1)`` between consecutive sizes say how
 close to linear each stage stays.  The machine has 2 CPU cores shared with
@@ -263,6 +268,54 @@ def run_paths(n: int) -> dict:
     return out
 
 
+def run_cells(root: str, n: int, frames: int = 6) -> dict:
+    """``build_cells`` of the tree at ``root`` (this one or ``--baseline``) on the frames' particles as a frame
+    prepares them (``prepare_particles``, its k-d tree handed on): wall ms of each jittered frame after the first."""
+    sys.path.insert(0, root)
+    from translucency_addon.fluid.cells import build_cells
+    from translucency_addon.fluid.particles import prepare_particles, suggest_radius
+
+    if not Path(build_cells.__code__.co_filename).resolve().is_relative_to(Path(root).resolve()):
+        raise RuntimeError(f"timing {root} but imported {build_cells.__code__.co_filename}")
+    rest, _r = ball(n)
+    R = suggest_radius(rest)
+    rng = np.random.default_rng(1)
+    ms = []
+    for _ in range(frames):
+        ps = prepare_particles(rest + rng.uniform(-0.1, 0.1, rest.shape), R)
+        t = time.perf_counter()
+        build_cells(ps.points, R, tree=ps.tree)
+        ms.append(1e3 * (time.perf_counter() - t))
+    return {"n": int(len(rest)), "ms": ms[1:]}
+
+
+def baseline_text(baseline: str, rows: list) -> str:
+    rev = subprocess.run(["git", "-C", baseline, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    lines = [f"The cells (`build_cells`, default path) against `--baseline` ({rev.stdout.strip() or baseline}) in this "
+             "run: each tree in its own process, alternating, twice; per process the minimum over 5 jittered frames "
+             "after a first; wall ms (the two runs' minima):", "",
+             "| particles | baseline ms | this tree ms | baseline / this tree (best of each) |", "|---|---|---|---|"]
+    for r in rows:
+        b, o = r["baseline"], r["ours"]
+        lines.append(f"| {r['n']:,} | {' / '.join(f'{v:,.0f}' for v in b)} | {' / '.join(f'{v:,.0f}' for v in o)} | "
+                     f"{min(b) / min(o):.2f}x |")
+    return "\n".join(lines)
+
+
+def compare_cells(baseline: str, sizes) -> list:
+    rows = []
+    for n in sizes:
+        got = {"baseline": [], "ours": []}
+        for _ in range(2):
+            for name, root in (("baseline", baseline), ("ours", str(ROOT))):
+                out = subprocess.run([sys.executable, __file__, "--cells", root, str(n)], capture_output=True,
+                                     text=True, check=True)
+                rec = json.loads(out.stdout.strip().splitlines()[-1])
+                got[name].append(min(rec["ms"]))
+        rows.append({"n": rec["n"], **got})
+    return rows
+
+
 def paths_text(paths: list) -> str:
     lines = ["The cells' two paths in this run (`build_cells(method=...)`, one jittered frame, wall / CPU ms; the "
              f"same faces to 1e-14, `tests/test_fluid_cells.py`; numba {paths[0]['numba']}):", "",
@@ -395,7 +448,12 @@ def main(argv=None):
     ap.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--extra", choices=("tol", "sampling", "solvers"), default=None, help=argparse.SUPPRESS)
     ap.add_argument("--paths", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--baseline", default=None, help="another checkout: its cells timed against this tree's")
+    ap.add_argument("--cells", nargs=2, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    if a.cells is not None:
+        print(json.dumps(run_cells(a.cells[0], int(a.cells[1]))))
+        return 0
     if a.paths is not None:
         print(json.dumps(run_paths(a.paths)))
         return 0
@@ -425,6 +483,7 @@ def main(argv=None):
     for name in ("tol", "sampling", "solvers"):
         out = subprocess.run([sys.executable, __file__, "--extra", name], capture_output=True, text=True, check=True)
         extra[name] = json.loads(out.stdout.strip().splitlines()[-1])
+    versus = "" if a.baseline is None else "\n\n" + baseline_text(a.baseline, compare_cells(a.baseline, a.sizes))
     t, sums = table(results)
     k = min(range(len(results)), key=lambda i: abs(results[i]["n"] - TARGET_N))
     got = sums[k]["target"]
@@ -441,7 +500,7 @@ def main(argv=None):
             f"Median over the warm frames (frame 0 is cold); tolerance 1e-4.\n\n{t}\n\n"
             f"**Target** (issue 34): cells + warm solve + output <= {TARGET_MS:.0f} ms per frame at "
             f"{TARGET_N:,} particles on 2 CPU cores: {got:,.0f} ms, {verdict}. {PAPER}.\n\n"
-            f"{targets_text(results, sums)}\n\n{paths_text(paths)}\n\n{profile(results, sums)}\n\n{extras_text(extra['tol'], extra['sampling'], TARGET_N, extra['solvers'])}\n\n{NOTES}\n")
+            f"{targets_text(results, sums)}\n\n{paths_text(paths)}{versus}\n\n{profile(results, sums)}\n\n{extras_text(extra['tol'], extra['sampling'], TARGET_N, extra['solvers'])}\n\n{NOTES}\n")
     return write_file(text, a.out)
 
 
