@@ -78,6 +78,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..scene.fresnel import boundary_A
+from .split import albedo_index
 
 N_SEGMENTS = 16  # pieces of equal collision probability per chord
 _TAU_MAX = 60.0
@@ -143,9 +144,7 @@ def depth_weight(alpha, tau, eta: float) -> np.ndarray:
     """W(alpha, tau) of eq. (8), bilinear in (sqrt(1 - alpha), tau); ``alpha`` and ``tau`` broadcast together
     (tau the optical depth below the entry point's tangent plane, clamped to the table's range)."""
     z, W = _depth_weight_table(float(eta))
-    x = np.sqrt(np.clip(1.0 - np.asarray(alpha, dtype=np.float64), 0.0, 1.0)) * (N_ALPHA - 1)
-    i = np.minimum(x.astype(np.int64), N_ALPHA - 2)
-    ta = x - i
+    i, ta = albedo_index(alpha, N_ALPHA)
     tau = np.clip(np.asarray(tau, dtype=np.float64), z[0], z[-1])
     j = np.clip(np.searchsorted(z, tau) - 1, 0, len(z) - 2)
     tt = (tau - z[j]) / (z[j + 1] - z[j])

@@ -189,6 +189,17 @@ def inside_transmittance(m, eta: float) -> np.ndarray:
     return np.where(ok, fresnel_transmittance(mu_out, eta), 0.0)
 
 
+def albedo_index(alpha, n: int, descending: bool = False) -> tuple:
+    """Index and weight of ``alpha`` on a grid of ``n`` albedos uniform in ``u = sqrt(1 - alpha)``: the grid of
+    every albedo table here and in :mod:`.beam_source` (their values have a square-root kink at alpha = 1).
+    Ascending in u (alpha from 1 down to 0) unless ``descending`` (alpha from 0 up to 1); ``alpha`` is clipped
+    to [0, 1].  Returns ``(i, t)``: the value lies between entries i and i + 1, at weight t on i + 1."""
+    u = np.sqrt(1.0 - np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0))
+    f = ((1.0 - u) if descending else u) * (n - 1)
+    i = np.minimum(f.astype(np.int64), n - 2)
+    return i, f - i
+
+
 def refracted_cosine(mu_out, eta: float) -> np.ndarray:
     """Inside cosine of a ray that crosses the boundary at outside cosine ``mu_out``."""
     mu = np.clip(np.asarray(mu_out, dtype=np.float64), 0.0, 1.0)
@@ -375,13 +386,11 @@ class HalfSpaceSplit:
     def _shape_index(self, alpha, cos_o) -> tuple:
         """The tables of eq. (4)'s shape over (sqrt(1 - alpha), m): index and weight in alpha, (n, 3) each,
         and in the inside cosine m of the exit, (n, 1) each; ``alpha`` (n, 3), ``cos_o`` (n,) outside."""
-        a = np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0)
         m = refracted_cosine(np.clip(np.asarray(cos_o, dtype=np.float64), 0.0, 1.0), self.eta)
-        fu = np.sqrt(1.0 - a) * (N_TRANSPORT_ALPHA - 1)
-        i = np.minimum(fu.astype(np.int64), N_TRANSPORT_ALPHA - 2)
+        i, tu = albedo_index(alpha, N_TRANSPORT_ALPHA)
         fm = np.clip(m, 0.0, 1.0) * (N_SHAPE_M - 1)
         j = np.minimum(fm.astype(np.int64), N_SHAPE_M - 2)[:, None]
-        return i, fu - i, j, fm[:, None] - j
+        return i, tu, j, fm[:, None] - j
 
     def multiple_shape(self, alpha, cos_o) -> np.ndarray:
         """c of eq. (4): the factor on the isotropic output ``F_t J+/(pi eta^2)`` that gives the diffusion's
@@ -439,10 +448,7 @@ class HalfSpaceSplit:
 
     def _alpha_index(self, alpha) -> tuple:
         """Index and weight of ``alpha`` (n, C) on the fine alpha grid (uniform in sqrt(1 - alpha), descending)."""
-        n_a = len(self.alpha_grid)
-        fu = (1.0 - np.sqrt(1.0 - np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0))) * (n_a - 1)
-        i = np.minimum(fu.astype(np.int64), n_a - 2)
-        return i, fu - i
+        return albedo_index(alpha, len(self.alpha_grid), descending=True)
 
     @staticmethod
     def _beam_bilinear(table, i, tu, k, tk) -> np.ndarray:
