@@ -346,7 +346,7 @@ def extras_text(tol: dict, smp: dict, n: int, slv: dict) -> str:
              f"{slv['chebyshev']['steps']:.0f} | {slv['chebyshev']['ms']:,.0f} | {slv['chebyshev']['residual']:.1e} |",
              "", f"Solve tolerance at {n:,} particles (warm frames, errors against a direct sparse solve of the same "
              f"frame; the exact radiance itself changes by {tol['flicker']:.1%} on average from one jittered frame to "
-             "the next):", "", "| tolerance | warm sweeps | solve ms (wall) | vertex radiance error, max / mean |",
+             "the next):", "", "| tolerance | warm sweeps | solve ms (wall) | vertex radiance error: largest, of the peak radiance / mean, of each vertex's own |",
              "|---|---|---|---|"]
     for r in tol["rows"]:
         lines.append(f"| {r['tol']:g} | {r['sweeps']} | {1e3 * r['solve']:,.0f} | {r['max']:.1e} / {r['mean']:.1e} |")
