@@ -124,7 +124,7 @@ import numpy as np
 from . import kernels
 from .assembly import assemble, node_coefficients
 from ..errors import MaterialError, TranslucencyError
-from ..scene.fresnel import diffuse_reflectance_internal, fresnel_transmittance
+from ..scene.fresnel import diffuse_reflectance_internal
 from .graph import SolverInput
 from .iterative import (BALANCE_TOL, SOLVER_FUNCTIONS, STEPS_FUNCTIONS, LevelSolve, drain, energy_imbalance,
                         lit_channels, outside_maximum_principle, relay, solve_direct, start_image)
@@ -626,10 +626,8 @@ class DiffusionSolver:
         shape, single = terms[:2]
         if transported:
             c = np.ones(len(shape)) if cos_o is None else cos_o
-            ft = fresnel_transmittance(np.clip(c, 0.0, 1.0), self.eta)
-            ft = np.where(c > 0, ft, 0.0)[:, None]  # the output power (1 - F_dr) J+ behind L = F_t J+/(pi eta^2)
-            power = np.where(ft > 0, (1.0 - self.fdr) * np.pi * self.eta**2 * np.asarray(L) / np.where(ft > 0, ft, 1.0),
-                             0.0)
+            unit = outgoing_radiance(np.ones((len(c), 1)), c, self.eta)  # L per unit J+: the output power
+            power = np.where(unit > 0, (1.0 - self.fdr) * np.asarray(L) / np.where(unit > 0, unit, 1.0), 0.0)
             shape = half_space_split(self.eta).with_transported(shape, terms[2], power, c)
         if on.all():  # in the terms' own (new) arrays: per render-mesh vertex, each temporary costs
             shape *= L
