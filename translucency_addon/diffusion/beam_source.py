@@ -78,7 +78,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..scene.fresnel import boundary_A
-from .split import albedo_index
+from .split import albedo_index, inside_transmittance, refracted_cosine
 
 N_SEGMENTS = 16  # pieces of equal collision probability per chord
 _TAU_MAX = 60.0
@@ -88,8 +88,6 @@ _TAU_MAX = 60.0
 def _escape_table(eta: float):
     """(tau grid, e1(tau)) of eq. (7), 1/2 int T_in(m) e^{-tau/m} dm by 128-point Gauss-Legendre on m from
     the critical cosine (T_in = 0 below it: a kink the rule must not straddle) to 1."""
-    from .split import inside_transmittance
-
     m_c = np.sqrt(max(0.0, 1.0 - 1.0 / (eta * eta)))
     x, w = np.polynomial.legendre.leggauss(128)
     m, w = m_c + 0.5 * (1.0 - m_c) * (x + 1.0), 0.5 * (1.0 - m_c) * w
@@ -116,7 +114,6 @@ def _depth_weight_table(eta: float) -> tuple:
     from scipy import linalg
 
     from .half_space import HalfSpaceTransport, depth_grid
-    from .split import inside_transmittance
 
     ht = HalfSpaceTransport(float(eta), lambda m: inside_transmittance(m, float(eta)), depth_grid(depth=160.0))
     keep = ht.z <= _TAU_MAX
@@ -161,8 +158,6 @@ def depth_weight(alpha, tau, eta: float) -> np.ndarray:
 def refract_inward(to_light: np.ndarray, normals: np.ndarray, eta: float) -> tuple:
     """(inside direction of the beam, inside cosine nu): light arriving from ``to_light`` (unit, towards
     the lamp) through a surface of outward ``normals``, refracted by Snell's law."""
-    from .split import refracted_cosine
-
     mu = np.clip(np.einsum("ij,ij->i", to_light, normals), 0.0, 1.0)
     nu = refracted_cosine(mu, eta)
     w = -to_light / eta + ((mu / eta) - nu)[:, None] * normals
