@@ -132,3 +132,44 @@ def leaf_fit(V, F, leaf_tris, v0, e1, e2, valid, leaf_lo, leaf_hi):
                     lo2, hi2 = min(lo2, lo), max(hi2, hi)
         leaf_lo[lf, 0], leaf_lo[lf, 1], leaf_lo[lf, 2] = lo0, lo1, lo2
         leaf_hi[lf, 0], leaf_hi[lf, 1], leaf_hi[lf, 2] = hi0, hi1, hi2
+
+
+@numba.njit(cache=True, nogil=True)
+def tree_fit(lo, hi, n_leaves, nonempty, split_axis, second_is_plus):
+    """The rest of :meth:`.raycast.TriangleBVH._fit` once the leaves' boxes are in ``lo[n_leaves - 1:]`` and
+    ``hi[n_leaves - 1:]``: the inner boxes bottom-up (node p's children are 2p + 1 and 2p + 2), then, in
+    place, the relative padding (zero boxes where a node is empty) and the traversal hints of every inner
+    node (the axis along which its children's centres differ most, the first of equal ones, and whether the
+    second child lies on its + side).  The numpy fit's operations in its order, so the same numbers bit for
+    bit; in numpy the seven passes over the ~2 n_leaves boxes allocate as many temporaries and took 0.25 s
+    of the 0.45 s fit of a 1.3 M-triangle mesh (a cold frame's shadow tree; every deformed frame's refit)."""
+    start = n_leaves - 1
+    while start > 0:  # one tree level at a time, as the numpy fit
+        count = (start + 1) // 2
+        p0 = start - count
+        for p in range(p0, start):
+            c = 2 * p + 1
+            for j in range(3):
+                lo[p, j] = min(lo[c, j], lo[c + 1, j])
+                hi[p, j] = max(hi[c, j], hi[c + 1, j])
+        start -= count
+    pad = 1e-9 * (max(hi[0, 0] - lo[0, 0], hi[0, 1] - lo[0, 1], hi[0, 2] - lo[0, 2]) + 1e-300)
+    for i in range(lo.shape[0]):
+        full = lo[i, 0] <= hi[i, 0] and lo[i, 1] <= hi[i, 1] and lo[i, 2] <= hi[i, 2]
+        nonempty[i] = full
+        for j in range(3):
+            if full:
+                lo[i, j] = lo[i, j] - pad
+                hi[i, j] = hi[i, j] + pad
+            else:
+                lo[i, j] = 0.0
+                hi[i, j] = 0.0
+    for p in range(n_leaves - 1):
+        a, b = 2 * p + 1, 2 * p + 2
+        best, axis, plus = -1.0, 0, True
+        for j in range(3):
+            dj = 0.5 * (lo[b, j] + hi[b, j]) - 0.5 * (lo[a, j] + hi[a, j])
+            if abs(dj) > best:
+                best, axis, plus = abs(dj), j, dj >= 0
+        split_axis[p] = axis
+        second_is_plus[p] = plus

@@ -238,32 +238,46 @@ class TriangleBVH:
     def _fit(self, V):
         """Leaf triangles, boxes and traversal hints of the tree for vertex positions ``V``."""
         n_leaves = self.n_leaves
-        fit = compiled_leaf_fit() if self.leaf_tris.size >= COMPILED_MIN_FIT else None
-        if fit is not None:  # the same numbers bit for bit, one leaf per thread (compiled_raycast.leaf_fit)
-            self.v0, self.e1, self.e2 = (np.empty((n_leaves, LEAF, 3)) for _ in range(3))
-            self.valid = np.empty((n_leaves, LEAF), dtype=np.bool_)
-            tmin, tmax = np.empty((n_leaves, 3)), np.empty((n_leaves, 3))
-            fit(_c(V), _c(self.F, np.int64), _c(self.leaf_tris, np.int64), self.v0, self.e1, self.e2, self.valid,
-                tmin, tmax)
-        else:
-            slots = self.leaf_tris.ravel()
-            valid = slots >= 0
-            tri = self.F[np.maximum(slots, 0)]
-            a, b, c = (np.where(valid[:, None], V[tri[:, k]], 0.0) for k in range(3))
-            self.v0 = a.reshape(n_leaves, LEAF, 3)
-            self.e1 = (b - a).reshape(n_leaves, LEAF, 3)
-            self.e2 = (c - a).reshape(n_leaves, LEAF, 3)
-            self.valid = valid.reshape(n_leaves, LEAF)
-            # Elementwise minima over the 3 vertices and the LEAF slots (a reduction along such short
-            # axes costs numpy several times more).
-            lo3 = np.where(valid[:, None], np.minimum(np.minimum(a, b), c), np.inf).reshape(n_leaves, LEAF, 3)
-            hi3 = np.where(valid[:, None], np.maximum(np.maximum(a, b), c), -np.inf).reshape(n_leaves, LEAF, 3)
-            tmin, tmax = lo3[:, 0], hi3[:, 0]
-            for k in range(1, LEAF):
-                tmin, tmax = np.minimum(tmin, lo3[:, k]), np.maximum(tmax, hi3[:, k])
         n_nodes = 2 * n_leaves - 1
         lo = np.empty((n_nodes, 3))
         hi = np.empty((n_nodes, 3))
+        fit = compiled_leaf_fit() if self.leaf_tris.size >= COMPILED_MIN_FIT else None
+        if fit is not None:  # the same numbers bit for bit (compiled_raycast.leaf_fit and tree_fit)
+            leaf_fit, tree_fit = fit
+            self.v0, self.e1, self.e2 = (np.empty((n_leaves, LEAF, 3)) for _ in range(3))
+            self.valid = np.empty((n_leaves, LEAF), dtype=np.bool_)
+            leaf_fit(_c(V), _c(self.F, np.int64), _c(self.leaf_tris, np.int64), self.v0, self.e1, self.e2, self.valid,
+                     lo[n_leaves - 1:], hi[n_leaves - 1:])
+            self.nonempty = np.empty(n_nodes, dtype=np.bool_)
+            self.split_axis = np.empty(n_leaves - 1, dtype=np.int64)
+            self.second_is_plus = np.empty(n_leaves - 1, dtype=np.bool_)
+            tree_fit(lo, hi, n_leaves, self.nonempty, self.split_axis, self.second_is_plus)
+            self.lo, self.hi = lo, hi
+        else:
+            self._numpy_fit(V, lo, hi)
+        self.first_leaf = n_leaves - 1
+        self.V = V
+        self._centroid_tree = None
+
+    def _numpy_fit(self, V, lo, hi):
+        """:meth:`_fit` in numpy (where numba is missing, and for small trees): ``lo`` and ``hi`` (2 n_leaves - 1,
+        3) are filled."""
+        n_leaves = self.n_leaves
+        slots = self.leaf_tris.ravel()
+        valid = slots >= 0
+        tri = self.F[np.maximum(slots, 0)]
+        a, b, c = (np.where(valid[:, None], V[tri[:, k]], 0.0) for k in range(3))
+        self.v0 = a.reshape(n_leaves, LEAF, 3)
+        self.e1 = (b - a).reshape(n_leaves, LEAF, 3)
+        self.e2 = (c - a).reshape(n_leaves, LEAF, 3)
+        self.valid = valid.reshape(n_leaves, LEAF)
+        # Elementwise minima over the 3 vertices and the LEAF slots (a reduction along such short
+        # axes costs numpy several times more).
+        lo3 = np.where(valid[:, None], np.minimum(np.minimum(a, b), c), np.inf).reshape(n_leaves, LEAF, 3)
+        hi3 = np.where(valid[:, None], np.maximum(np.maximum(a, b), c), -np.inf).reshape(n_leaves, LEAF, 3)
+        tmin, tmax = lo3[:, 0], hi3[:, 0]
+        for k in range(1, LEAF):
+            tmin, tmax = np.minimum(tmin, lo3[:, k]), np.maximum(tmax, hi3[:, k])
         lo[n_leaves - 1 :] = tmin
         hi[n_leaves - 1 :] = tmax
         start = n_leaves - 1
@@ -288,9 +302,6 @@ class TriangleBVH:
         diff = cen[2:2 * n_leaves - 1:2] - cen[1:2 * n_leaves - 2:2]  # second child - first, per internal node
         self.split_axis = np.argmax(np.abs(diff), axis=1)
         self.second_is_plus = np.take_along_axis(diff, self.split_axis[:, None], axis=1)[:, 0] >= 0
-        self.first_leaf = n_leaves - 1
-        self.V = V
-        self._centroid_tree = None
 
     # ------------------------------------------------------------------ rays
     def intersect(self, origins, directions, tmin: float = 0.0, tmax=np.inf, any_hit: bool = False):
@@ -542,14 +553,16 @@ def _walk(kernel, bvh, o, d, inv, tmin, any_hit, best_t, best_tri, best_u, best_
 
 
 def compiled_leaf_fit():
-    """The compiled leaf fit (:func:`.compiled_raycast.leaf_fit`), or None (then the numpy fit: the same
-    numbers).  Built with the ray walk, and dropped with it where that cannot be built."""
+    """The compiled fit, ``(leaf_fit, tree_fit)`` of :mod:`.compiled_raycast`, or None (then the numpy fit: the
+    same numbers).  Built with the ray walk, and dropped with it where that cannot be built."""
     if compiled_intersect() is None:
         return None
     if "fit" not in _COMPILED:
         from . import compiled_raycast
 
-        _COMPILED["fit"] = _built(compiled_raycast.leaf_fit, _fit_warm_up)[0]
+        leaf = _built(compiled_raycast.leaf_fit, _fit_warm_up)[0]
+        tree = _built(compiled_raycast.tree_fit, _tree_fit_warm_up)[0] if leaf is not None else None
+        _COMPILED["fit"] = None if tree is None else (leaf, tree)
     return _COMPILED["fit"]
 
 
@@ -560,11 +573,23 @@ def _fit_warm_up(fn) -> None:
     leaf = _c(np.array([[0, 1, -1, -1]]), np.int64)
     v0, e1, e2 = (np.empty((1, LEAF, 3)) for _ in range(3))
     valid = np.empty((1, LEAF), dtype=np.bool_)
-    lo, hi = np.empty((1, 3)), np.empty((1, 3))
-    fn(V, F, leaf, v0, e1, e2, valid, lo, hi)
-    if not (valid.tolist() == [[True, True, False, False]] and lo.tolist() == [[0.0, 0.0, 0.0]]
-            and hi.tolist() == [[1.0, 1.0, 1.0]]):
+    lo, hi = np.empty((2, 3)), np.empty((2, 3))
+    fn(V, F, leaf, v0, e1, e2, valid, lo[1:], hi[1:])  # a view of the tree's rows, as _fit passes
+    if not (valid.tolist() == [[True, True, False, False]] and lo[1:].tolist() == [[0.0, 0.0, 0.0]]
+            and hi[1:].tolist() == [[1.0, 1.0, 1.0]]):
         raise RuntimeError("the compiled leaf fit gave a wrong box for a test leaf")
+
+
+def _tree_fit_warm_up(fn) -> None:
+    """A root over two leaves, the second one +2 along x and empty in a grandchild's place, as _fit passes."""
+    lo = np.array([[9.0, 9.0, 9.0], [0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    hi = np.array([[9.0, 9.0, 9.0], [1.0, 1.0, 1.0], [3.0, 1.0, 1.0]])
+    nonempty, axis, plus = np.empty(3, dtype=np.bool_), np.empty(1, dtype=np.int64), np.empty(1, dtype=np.bool_)
+    fn(lo, hi, 2, nonempty, axis, plus)
+    pad = 3e-9
+    if not (np.allclose(lo[0], -pad, rtol=1e-9, atol=0) and np.allclose(hi[0], [3 + pad, 1 + pad, 1 + pad])
+            and nonempty.all() and axis[0] == 0 and plus[0]):
+        raise RuntimeError("the compiled tree fit gave a wrong root or hint for a test tree")
 
 
 def _warm_up(fn) -> None:
