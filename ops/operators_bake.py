@@ -89,9 +89,10 @@ class BakeJob:
     """
 
     def __init__(self, obj_name: str, V, F, settings, final_path: str, notes: list[str], ss: SSJobInputs | None = None,
-                 base_bake=None, composite=None, eta: float | None = None):
+                 base_bake=None, composite=None, material=None):
         self.obj_name = obj_name
-        self.eta = eta  # the material's index of refraction: its transport tables go into the cache
+        self.material = material  # the object's material: what the cache keeps of it (None: nothing)
+        self.eta = None if material is None else float(material.eta)  # its transport tables go into the cache
         self.ss = ss
         self.base_bake = base_bake
         self.composite = composite
@@ -148,6 +149,13 @@ class BakeJob:
                 bake = self.base_bake
             if self.cancel_requested:
                 raise BakeCancelled("bake cancelled")
+            if self.base_bake is None and self.composite is None and self._keeps_bounds():
+                self.stage = "spectral bounds"  # the material's, kept in the cache: a cold frame runs no Lanczos
+                from ..translucency_addon.diffusion.baked_bounds import with_kept_bounds
+
+                bake = with_kept_bounds(bake, self.material)
+                if self.cancel_requested:
+                    raise BakeCancelled("bake cancelled")
             if self.ss is not None:
                 bake = self._bake_single_scattering(bake)
             self.stage = "writing cache"
@@ -162,6 +170,11 @@ class BakeJob:
         finally:
             self.seconds = time.perf_counter() - self.t0
             self.done = True
+
+    def _keeps_bounds(self) -> bool:
+        """Whether the cache keeps the material's spectral bounds: a homogeneous material (a field's values at
+        the nodes are the frame's to sample; an object with inner parts solves a material per part)."""
+        return self.material is not None and not self.material.heterogeneous
 
     def _bake_single_scattering(self, bake):
         from ..translucency_addon.errors import BakeCancelled, TranslucencyError
@@ -339,18 +352,19 @@ def prepare_job(context, obj, base_triangles: int = 0) -> BakeJob:
     _check_writable(directory)
     final = os.path.join(directory, cache_files.cache_file_name(obj.name, key))
     notes = [w for w in (scale_warning, note) if w]
-    job = BakeJob(obj.name, V, F, settings, final, notes, ss=ss, composite=composite, eta=_material_eta(s))
+    job = BakeJob(obj.name, V, F, settings, final, notes, ss=ss, composite=composite, material=_bake_material(s))
     job.needs_ss = needs_ss
     return job
 
 
-def _material_eta(settings) -> float | None:
-    """The material's index of refraction for the cache's transport tables; None (no tables: the first
-    frame solves them) when the material does not build -- the bake itself does not need it."""
+def _bake_material(settings):
+    """The object's material, for what the cache keeps of it (the transport tables of its index of refraction,
+    its systems' spectral bounds); None (nothing kept: the first frame computes them) when the material does
+    not build -- the bake itself does not need it."""
     from ..translucency_addon.errors import TranslucencyError
 
     try:
-        return float(scene_inputs.build_material(settings).eta)
+        return scene_inputs.build_material(settings)
     except TranslucencyError:
         return None
 
@@ -393,7 +407,7 @@ def prepare_ss_job(context, obj) -> BakeJob:
     final = os.path.join(directory, cache_files.cache_file_name(obj.name, ss.key))
     notes = [w for w in (scale_warning, note) if w]
     return BakeJob(obj.name, V, F, base.settings, final, notes, ss=ss, base_bake=base, composite=composite,
-                   eta=_material_eta(obj.translucency))
+                   material=_bake_material(obj.translucency))
 
 
 def _error_text(obj_name: str, ex: BaseException) -> str:

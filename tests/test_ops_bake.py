@@ -183,6 +183,12 @@ def test_bake_evaluated_mesh_with_modifier(blender, addon, cache_dir, real_bakes
     # The first solve ran: the attribute lives on the original mesh, one value per vertex.
     rgb = radiance(obj)
     assert rgb.shape == (n_orig, 3) and np.all(np.isfinite(rgb)) and rgb.max() > 0
+    # The cache keeps the material's spectral bounds (diffusion/baked_bounds.py), and the frame's solver,
+    # at the scene's scale, took them instead of running Lanczos.
+    from translucency.ops import state
+
+    assert loaded.spectral_bounds is not None and "spectral bounds" in loaded.stats["timings"]
+    assert state.get_state(obj).solver.bounds_from_bake == len(loaded.levels)
 
 
 def test_unsaved_blend_uses_a_temporary_folder_and_says_so(blender, addon, memo_bakes):

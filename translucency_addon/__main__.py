@@ -74,7 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="finer levels by nested refinement (fast) or independent tetrahedralisation (paper)")
     b.add_argument("--no-optimize", action="store_true", help="skip fTetWild's optimisation (fast, slivers)")
     b.add_argument("--single-scattering", action="store_true", help="also bake RBF optical-depth samples")
-    arg.material_args(b, "single scattering: ")
+    arg.material_args(b, "the frames' material, default marble (single scattering bakes with it; the cache keeps "
+                         "what a cold frame of it would compute): ")
     b.add_argument("--ss-quality", default="preview", choices=["draft", "preview", "final"],
                    help="single scattering: voxel resolution (32/48/64 on the longest side)")
     b.add_argument("--ss-dirs", type=int, default=128,
@@ -226,6 +227,7 @@ def cmd_fluid(a) -> int:
 def cmd_bake(a) -> int:
     from .quadgraph.bake import BakeSettings, bake_mesh, format_stats
     from .cache import save_bake
+    from .diffusion.baked_bounds import with_kept_bounds
     from .geometry.meshio import load_obj
 
     check_files([("MESH", a.mesh)] + arg.inner_paths(a.inner), [("-o", a.output)])
@@ -235,9 +237,10 @@ def cmd_bake(a) -> int:
     if a.single_scattering or a.inner or a.voxel_number_map:
         material_from_args(a)
     try:  # the material's half-space transport tables go with the bake: a cold frame of this eta skips them
-        etas = (material_from_args(a).eta,)
+        kept = material_from_args(a)
+        etas = (kept.eta,)
     except TranslucencyError:  # a plain bake does not need the material; no tables (the first frame solves them)
-        etas = ()
+        kept, etas = None, ()
     V, F = load_obj(a.mesh)
     t0 = time.perf_counter()
 
@@ -278,6 +281,8 @@ def cmd_bake(a) -> int:
                                         progress=lambda f, st: progress(f, "ss: " + st))
         print(file=sys.stderr)
         bake = attach(bake, ss)
+    if kept is not None and not kept.heterogeneous:  # its spectral bounds too: a cold frame runs no Lanczos
+        bake = with_kept_bounds(bake, kept)
     save_bake(a.output, bake, etas=etas)
     if a.json:
         out = dict(bake.stats)

@@ -94,6 +94,8 @@ def bake_to_arrays(bake: Bake) -> dict:
         d.update(bake.voxel_number_map.to_arrays(prefix="vnm/"))
     if bake.composite is not None:
         d.update(bake.composite.to_arrays(prefix="composite/"))
+    if getattr(bake, "spectral_bounds", None):
+        d.update({f"spectral/{k}": v for k, v in bake.spectral_bounds.items()})
     d["meta"] = _json_array(meta)
     return d
 
@@ -330,6 +332,7 @@ def load_bake(path, expected_key: str | None = None) -> Bake:
             single_scattering=ss, sky=sky, voxel_number_map=vnm, composite=comp,
             mesh_bvh_order=arrays.get("mesh/bvh_order"),  # absent in caches written before it was kept
             surface_thickness=_kept_thickness(arrays),  # likewise: the planner measures it then
+            spectral_bounds=_kept_bounds(arrays, path),  # likewise: the first frame runs Lanczos then
         )
     except (KeyError, TypeError, ValueError, IndexError) as exc:
         raise CacheError(f"bake cache {os.fspath(path)!r} is incomplete or inconsistent: {exc}") from exc
@@ -346,6 +349,21 @@ def _kept_thickness(arrays: dict):
 
     digest = bytes(np.asarray(arrays.get("planner/thickness_digest", np.zeros(0, np.uint8)), dtype=np.uint8))
     return KeptThickness(np.asarray(arrays["planner/thickness"], dtype=np.float64), digest.decode("ascii", "replace"))
+
+
+def _kept_bounds(arrays: dict, path) -> dict | None:
+    """The baked material's spectral bounds (``diffusion.baked_bounds``), or None (a bake without a material,
+    or written before they were kept); a malformed record is a corrupt cache."""
+    record = {k[len("spectral/"):]: v for k, v in arrays.items() if k.startswith("spectral/")}
+    if not record:
+        return None
+    from .diffusion.baked_bounds import check_record
+
+    why = check_record(record)
+    if why:
+        raise CacheError(f"bake cache {os.fspath(path)!r}: its kept spectral bounds are corrupt ({why}); "
+                         "re-bake the object")
+    return record
 
 
 def _adopt_split_tables(arrays: dict, path) -> None:

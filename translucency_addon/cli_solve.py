@@ -135,6 +135,8 @@ def cmd_solve(a) -> int:
         "plan": describe_plan(plan),
         "scheme": result.scheme if result is not None else None,
         "sweeps": [ls.iterations for ls in result.level_solves] if result is not None else [],
+        # levels whose Chebyshev bounds came from the cache (diffusion/baked_bounds.py), not from Lanczos
+        "spectral_bounds_from_bake": getattr(solver, "bounds_from_bake", 0),
         "final_relative_residual": result.residual.tolist() if result is not None else [0.0],
         "seconds": {"load": t_load, "setup": t1 - t0 - t_load, **(result.seconds if result is not None else {}),
                     "diffusion": t_diff - t1,

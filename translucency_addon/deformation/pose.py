@@ -417,6 +417,7 @@ class DeformationRig:
             raise GraphFolded(report.describe(), report)
         bake = replace(self.bake, levels=levels, mesh_vertices=V, mesh_normals=normals, shadow_vertices=Vs,
                        sky=sky, single_scattering=None, surface_bvh=bvh, surface_thickness=None,
+                       spectral_bounds=None,  # the rest pose's systems: a pose carries the last frame's instead
                        stats={**self.bake.stats, "deformation": {"worst_stretch": report.worst_stretch}})
         return DeformedPose(bake=bake, report=report, seconds=seconds)
 

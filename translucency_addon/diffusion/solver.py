@@ -123,6 +123,7 @@ import numpy as np
 
 from . import kernels
 from .assembly import assemble, node_coefficients
+from .baked_bounds import adopt_bounds
 from ..errors import MaterialError, TranslucencyError
 from ..scene.fresnel import diffuse_reflectance_internal
 from .graph import SolverInput
@@ -272,6 +273,8 @@ class DiffusionSolver:
             self.surface_albedo.append(albedo(sa[lv.n_inner:], ss[lv.n_inner:]))
             self.surface_sigma_t.append(sa[lv.n_inner:] + ss[lv.n_inner:])
             self.systems.append(assemble(lv, sa, ss, material.eta, self.bake.mm_per_unit, self.options.scheme()))
+        # the bake's kept bounds where these are its systems (baked_bounds: a cold frame runs no Lanczos)
+        self.bounds_from_bake = adopt_bounds(self.systems, getattr(self.bake, "spectral_bounds", None))
 
     def rebind(self, bake: SolverInput) -> None:
         """This solver on another pose of its bake (Wang et al. sec. 6.4): the same graph -- levels, links,

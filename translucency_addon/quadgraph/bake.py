@@ -147,6 +147,9 @@ class Bake:
     surface_thickness: object | None = None
     voxel_number_map: object | None = None  # voxel_number_map.VoxelNumberMap, when baked (inner parts)
     composite: object | None = None  # composite_bake.CompositeInfo: inner parts, node labels, cavity exchange
+    # the Chebyshev bounds of the baked material's systems, keyed by each system's digest
+    # (diffusion.baked_bounds.bounds_record), kept in the cache: a cold frame of that material runs no Lanczos
+    spectral_bounds: dict | None = None
 
     @property
     def finest(self) -> GraphLevel:
