@@ -118,10 +118,13 @@ def findings(results: dict) -> str:
                    f"({100 * d13['walk_rest'] / d13['walk']:.0f} % of this sphere's light; now eq. (5) of "
                    "`diffusion/split.py`).")
     if d13:
-        out.append(f"* **What is left at IOR 1.3** is the single-scattering term's {_pct(d13['single'])}: its "
-                   "chords run straight through the boundary, so the light enters over the whole hemisphere "
-                   "instead of the critical cone (issue 30, item 3, not built). At IOR 1 the same term is "
-                   f"{_pct(d10['single']) if d10 else '?'}.")
+        out.append(f"* **The single-scattering term at IOR 1.3** is {_pct(d13['single'])} of the walk's once-scattered "
+                   "light (at IOR 1 " + (_pct(d10['single']) if d10 else "?") + "): the world's light now enters "
+                   "through the critical cone of the point where each chord leaves, eta^2 T times brighter "
+                   "(`single_scattering/entry.py`, issue 30 item 3); with straight chords over the whole "
+                   "hemisphere and one mean Fresnel factor the same term was +8.2 % (2026-12-04 run, engine "
+                   "502ff43), and the dark sphere +6.4 %.  Light reflected inside before or after it scatters is "
+                   "the orders-after-the-first's half-space share, not traced.")
     if ss_side and df_side:
         worst_ss = max(ss_side, key=lambda r: abs(r["mean"]))
         worst_df = max(df_side, key=lambda r: r["rms"])

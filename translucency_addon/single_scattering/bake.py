@@ -25,6 +25,7 @@ import numpy as np
 from ..scene import sh as shmod
 from ..errors import MaterialError
 from . import optical_depth as od
+from .entry import entry_weights
 from .data import SampleGrid, SingleScatteringData
 from .sampling import SUPPORT_SIGMAS, fit_partition_of_unity, gaussian_matrix, poisson_disk
 from .volume import resolution_for, trilinear, voxelise
@@ -142,7 +143,15 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
     P.end()
 
     P.begin("sh")
-    sh = od.sample_sh(volume, dirs, centers, order, progress=P)
+    eta = float(getattr(material, "eta", 1.0))
+    sh_env = None
+    if eta != 1.0:  # the world's light enters through the critical cone (entry.py eq. 2)
+        from ..geometry.raycast import mesh_bvh
+
+        g = entry_weights(V, F, centers, dirs, eta, bvh if bvh is not None else mesh_bvh(V, F))
+        sh, sh_env = od.sample_sh(volume, dirs, centers, order, progress=P, entry=g)
+    else:
+        sh = od.sample_sh(volume, dirs, centers, order, progress=P)
     sig_s = trilinear(volume.sigma_s, volume.origin, volume.h, centers)
     P.end()
 
@@ -150,7 +159,8 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
     grid = SampleGrid.build(centers, support, float(s.cell_factor) * float(np.median(support)))
     P.end()
 
-    for name, arr in (("sh", sh), ("sigma_s", sig_s), ("weight", weight)):
+    for name, arr in (("sh", sh), ("sh_env", sh if sh_env is None else sh_env), ("sigma_s", sig_s),
+                      ("weight", weight)):
         if not np.all(np.isfinite(arr)):
             raise MaterialError(f"the bake produced non-finite {name}: check the material coefficients")
     stats = {
@@ -175,7 +185,7 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
         "grid_dims": [int(x) for x in grid.dims],
     }
     data = SingleScatteringData(centers=centers, sigma=sigma, weight=weight, support=support, poisson_radius=delta,
-                                sigma_s=sig_s, sh=sh, order=order, n_dirs=int(s.n_dirs), mm_per_unit=float(volume.mm_per_unit),
+                                sigma_s=sig_s, sh=sh, sh_env=sh_env, entry_eta=eta, order=order, n_dirs=int(s.n_dirs), mm_per_unit=float(volume.mm_per_unit),
                                 grid=grid, voxel_origin=np.asarray(volume.origin), voxel_size=float(volume.h),
                                 voxel_shape=np.asarray(volume.shape, dtype=np.int64), stats=stats)
     if keep_volume:

@@ -22,10 +22,11 @@ import numpy as np
 
 from ..errors import CacheError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: sh_env (entry.py, the critical cone); version 1 is read, and its key is stale
+READABLE_VERSIONS = (1, 2)
 
 
-def read_prefixed(d, prefix: str, what: str, version: int):
+def read_prefixed(d, prefix: str, what: str, version):
     """``(get, meta)`` for a versioned block of cache arrays under ``prefix`` (``version`` and ``meta_json``
     entries): ``get(name)`` returns the array or raises :class:`CacheError` naming what is missing; a
     wrong version or corrupt metadata raises too.  Shared by the data sets stored beside a bake."""
@@ -37,8 +38,10 @@ def read_prefixed(d, prefix: str, what: str, version: int):
         return np.asarray(d[key])
 
     found = int(get("version").reshape(-1)[0])
-    if found != version:
-        raise CacheError(f"{what} has format version {found}; this build reads {version}")
+    versions = tuple(version) if isinstance(version, (tuple, list)) else (int(version),)
+    if found not in versions:
+        raise CacheError(f"{what} has format version {found}; this build reads "
+                         f"{', '.join(str(v) for v in versions)}")
     try:
         meta = json.loads(bytes(get("meta_json").astype(np.uint8)).decode("utf-8"))
     except (ValueError, UnicodeDecodeError) as e:
@@ -121,6 +124,10 @@ class SingleScatteringData:
     voxel_size: float = 0.0
     voxel_shape: np.ndarray = field(default_factory=lambda: np.zeros(3, dtype=np.int64))
     stats: dict = field(default_factory=dict)
+    # SH of g_i psi_i, the world's light through the critical cone (entry.py eq. 2), baked for ``entry_eta``;
+    # None where that is 1 (no interface) or in data of format 1 (the straight model: runtime.light_term)
+    sh_env: np.ndarray | None = None  # (N, K, 3) float32
+    entry_eta: float = 1.0
     # Arrays the ray-pair loops derive from the samples once (``ray_pairs._cache``: cell-ordered centres, the
     # Gaussians' constants), keyed by the arrays they came from; never saved, not part of equality.
     ray_cache: dict = field(default_factory=dict, compare=False, repr=False)
@@ -151,6 +158,7 @@ class SingleScatteringData:
     # ----------------------------------------------------------------- cache
     def to_arrays(self, prefix: str = "ss/") -> dict:
         meta = {"order": int(self.order), "n_dirs": int(self.n_dirs), "mm_per_unit": float(self.mm_per_unit),
+                "entry_eta": float(self.entry_eta),
                 "voxel_size": float(self.voxel_size), "cell_size": float(self.grid.cell_size), "stats": self.stats}
         arrays = {
             "version": np.array([FORMAT_VERSION], dtype=np.int64),
@@ -169,11 +177,13 @@ class SingleScatteringData:
             "cell_start": np.asarray(self.grid.cell_start, dtype=np.int64),
             "cell_items": np.asarray(self.grid.cell_items, dtype=np.int32),
         }
+        if self.sh_env is not None:
+            arrays["sh_env"] = np.asarray(self.sh_env, dtype=np.float32)
         return {prefix + k: v for k, v in arrays.items()}
 
     @classmethod
     def from_arrays(cls, d, prefix: str = "ss/") -> "SingleScatteringData":
-        get, meta = read_prefixed(d, prefix, "single-scattering data", FORMAT_VERSION)
+        get, meta = read_prefixed(d, prefix, "single-scattering data", READABLE_VERSIONS)
         centers = get("centers").astype(np.float64)
         n = len(centers)
         order = int(meta["order"])
@@ -193,7 +203,14 @@ class SingleScatteringData:
             raise CacheError("single-scattering cell lists are inconsistent with the grid")
         if len(items) and (items.min() < 0 or items.max() >= n):
             raise CacheError("single-scattering cell lists index missing samples")
-        for k in ("centers", "sigma", "weight", "support", "sigma_s", "sh"):
+        if prefix + "sh_env" in d:
+            arr["sh_env"] = get("sh_env")
+            if arr["sh_env"].shape != shapes["sh"]:
+                raise CacheError(f"single-scattering array {prefix}sh_env has shape {arr['sh_env'].shape}, "
+                                 f"expected {shapes['sh']}")
+        for k in ("centers", "sigma", "weight", "support", "sigma_s", "sh", "sh_env"):
+            if k not in arr and k != "centers":
+                continue
             a = centers if k == "centers" else arr[k]
             if not np.all(np.isfinite(a)):
                 raise CacheError(f"single-scattering array {prefix + k} contains NaN or Inf")
@@ -204,7 +221,9 @@ class SingleScatteringData:
                    sigma_s=arr["sigma_s"].astype(np.float64), sh=arr["sh"].astype(np.float32), order=order,
                    n_dirs=int(meta["n_dirs"]), mm_per_unit=float(meta["mm_per_unit"]), grid=grid,
                    voxel_origin=arr["voxel_origin"].astype(np.float64), voxel_size=float(meta["voxel_size"]),
-                   voxel_shape=arr["voxel_shape"].astype(np.int64), stats=dict(meta.get("stats", {})))
+                   voxel_shape=arr["voxel_shape"].astype(np.int64), stats=dict(meta.get("stats", {})),
+                   sh_env=arr["sh_env"].astype(np.float32) if "sh_env" in arr else None,
+                   entry_eta=float(meta.get("entry_eta", 1.0)))
 
     # ------------------------------------------------------------------ GPU
     def kernel_arrays(self) -> dict:

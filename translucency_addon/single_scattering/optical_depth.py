@@ -208,12 +208,14 @@ def first_moment(volume, directions: np.ndarray, *, progress=None) -> np.ndarray
 
 
 def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *, batch: int = 32,
-              progress=None) -> np.ndarray:
+              progress=None, entry: np.ndarray | None = None):
     """SH coefficients of psi_i(w) = exp(-tau(b_i, w)) at ``points`` (N, 3), ((N, K, 3) float32).
 
     tau is recomputed per direction on the lattice and interpolated at the
     points (in tau, not in exp(-tau): the exponential of an interpolated depth
     stays right where tau grows by several units per voxel, as in dense media).
+    ``entry`` (n_directions, N): the world light's weights g_i(w) of :mod:`.entry` (eq. 2); then the
+    coefficients of ``g psi`` too, from the same depths: ``(psi's, g psi's)``.
     """
     dirs = np.asarray(directions, dtype=np.float64)
     n = len(dirs)
@@ -224,6 +226,7 @@ def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *,
     u = (np.asarray(points, dtype=np.float64) - volume.origin) / volume.h - 0.5
     N = len(u)
     coef = np.zeros((K, N * 3), dtype=np.float64)
+    coef_entry = None if entry is None else np.zeros((K, N * 3), dtype=np.float64)
     for start in range(0, n, batch):
         idx = np.arange(start, min(n, start + batch))
         psi = np.empty((len(idx), N * 3), dtype=np.float64)
@@ -233,9 +236,15 @@ def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *,
                 tau = tau * rgb
             psi[j] = np.exp(-tau).reshape(-1)
         coef += Y[idx].T @ psi
+        if coef_entry is not None:
+            coef_entry += Y[idx].T @ (psi * np.repeat(entry[idx], 3, axis=1))
         if progress is not None:
             progress(float(idx[-1] + 1) / n)
-    return np.ascontiguousarray(coef.reshape(K, N, 3).transpose(1, 0, 2)).astype(np.float32)
+
+    def packed(c):
+        return np.ascontiguousarray(c.reshape(K, N, 3).transpose(1, 0, 2)).astype(np.float32)
+
+    return packed(coef) if coef_entry is None else (packed(coef), packed(coef_entry))
 
 
 def divergence_density(T: np.ndarray, h: float) -> np.ndarray:

@@ -17,7 +17,9 @@ marches stop once the optical depth exceeds 30 (exp(-30) ~ 1e-13), which
 keeps dense media (marble at the scale of a bunny) affordable.  The
 medium is the trilinear voxel field of :class:`~.volume.VoxelVolume` (the same
 model the bake reads); Fresnel and eta conventions are those of
-:mod:`.runtime` (``F_in`` at entry; the exit factor is applied by the caller).
+:mod:`.runtime` (``F_in`` at entry; the exit factor is applied by the caller), and, given the
+mesh (``reference_vertices`` passes it), the world's light enters through the critical cone as in the
+bake (:mod:`.entry` eq. 2: each march point's weights, in place of ``F_in``).
 
 ``reference_vertices`` starts each view ray outside the surface and ends it beyond the far side by
 :func:`.runtime.medium_margin`, so that it crosses the whole voxel field (its trilinear boundary ramp
@@ -94,7 +96,7 @@ def march_optical_depth(volume, points, dirs, tmax=None, step=None, tau_cut: flo
 
 def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: float, *, step=None,
                        shadow_step=None, env_dirs: int = 256, tau_cut: float = 30.0,
-                       chunk: int = 400000) -> np.ndarray:
+                       chunk: int = 400000, mesh=None, bvh=None) -> np.ndarray:
     """Brute-force in-medium single-scattering radiance at each ray origin, (n_rays, 3).
 
     The view ray is marched from the surface point (midpoint rule, ``step``);
@@ -102,7 +104,8 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
     of the depth from the surface point outwards to the grid border, and the
     ray stops once that depth exceeds ``tau_cut``.  Then a shadow ray is
     marched from every step to each light (and to ``env_dirs`` directions),
-    all shadow rays at once (in chunks of ``chunk`` rays).
+    all shadow rays at once (in chunks of ``chunk`` rays).  ``mesh``: ``(V, F)`` (and its ``bvh``) for the
+    world's entry weights (:func:`.entry.entry_weights`); without it the straight model, ``F_in``.
     """
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
@@ -164,7 +167,12 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
             src.append(np.repeat(x, env_dirs, axis=0))
             sdir.append(np.tile(W, (P, 1)))
             smax.append(np.full(P * env_dirs, np.inf))
-            weight.append(np.tile(Lenv * (4.0 * np.pi / env_dirs), (P, 1)))
+            w_env = np.tile(Lenv * (4.0 * np.pi / env_dirs), (P, 1))
+            if mesh is not None:  # g / F_in per march point and direction (Wv carries F_in)
+                from .entry import entry_weights
+
+                w_env = w_env * (entry_weights(mesh[0], mesh[1], x, W, eta, bvh).T.reshape(-1) / f_in)[:, None]
+            weight.append(w_env)
         ts = march_optical_depth(volume, np.concatenate(src), np.concatenate(sdir), tmax=np.concatenate(smax),
                                  step=shadow_step, tau_cut=tau_cut)
         contrib = np.concatenate(weight) * np.exp(-ts)
@@ -211,6 +219,7 @@ def reference_vertices(volume, V, F, normals, lights, environment, eta: float, *
     else:
         t_exit = np.full(int(vis.sum()), np.inf)
     o, t_exit = extend_rays(P[vis], -wo[vis], t_exit, medium_margin(volume.h))  # the whole voxel field's ramp
-    L = reference_radiance(volume, o, -wo[vis], t_exit, lights, environment, eta, **kw)
+    kw.setdefault("mesh", (V, F))
+    L = reference_radiance(volume, o, -wo[vis], t_exit, lights, environment, eta, bvh=bvh, **kw)
     out[idx[vis]] = L * exit_factor(cos_o[vis], eta)[:, None]
     return out

@@ -29,10 +29,12 @@ with k = 1 / (4 pi) (isotropic phase function).  Three passes:
    surface's BVH, found through the same image-plane bins for one camera).
 
 Fresnel and refraction conventions (the paper neglects the refraction of
-rays, and so do we: light and view rays are straight lines through the
-boundary):
+rays; lamps' light and view rays are straight lines through the boundary here too):
 
-* **Entry**: light entering the object is scaled by ``F_in = 1 - F_dr,ext(eta)``,
+* **The world's entry** (:mod:`.entry`): where the bake holds ``sh_env``, light from the world comes
+  back along each chord only inside the critical cone of the point where the chord leaves, eta^2 T
+  times brighter (entry.py eq. 1-2); no ``F_in`` then.
+* **Lamps' entry** (and the world's in data without ``sh_env``): light entering the object is scaled by ``F_in = 1 - F_dr,ext(eta)``,
   the cosine-weighted hemispherical mean of the Fresnel transmittance.  The
   bake does not store where the light reaching b_i entered, so we use the
   mean: for a sphere it is exactly the fraction of a collimated beam that
@@ -86,28 +88,38 @@ def eval_psi(sh: np.ndarray, dirs: np.ndarray) -> np.ndarray:
 
 
 def light_term(data, lights, environment, eta: float, mm_per_unit: float | None = None) -> np.ndarray:
-    """Per-sample light factor (N, 3): sigma_s/(4 pi) * F_in * (sum_l E_l psi_i(to l) + env dot).
+    """Per-sample light factor (N, 3): sigma_s/(4 pi) * (F_in sum_l E_l psi_i(to l) + world).
 
-    Units: W/m^2 per mm; times the ray integral of the Gaussians (mm) it is radiance.
+    The world's light enters through the critical cone (:mod:`.entry` eq. 2): its SH against ``sh_env``,
+    where the data holds them for this ``eta``; else (eta 1, or data of format 1, whose key is stale) the
+    straight chords, ``F_in`` times its SH against psi's own.  Units: W/m^2 per mm; times the ray integral
+    of the Gaussians (mm) it is radiance.
     """
     mm = data.mm_per_unit if mm_per_unit is None else float(mm_per_unit)
     b = data.centers
+    f_in = entry_transmittance(eta)
     acc = np.zeros((len(b), 3))
     for light in emitter_samples(lights):
         E, to_light, _ = light_irradiance(light, b, mm)
         if not np.any(E > 0):
             continue
         acc += E * eval_psi(data.sh, to_light)
+    acc *= f_in
     if environment is not None and not environment.is_black:
+        sh_env = getattr(data, "sh_env", None)
+        if sh_env is not None and abs(float(getattr(data, "entry_eta", 1.0)) - float(eta)) < 1e-9:
+            sh, scale = sh_env, 1.0
+        else:
+            sh, scale = data.sh, f_in
         env = np.zeros((len(b), 3))
         L = np.asarray(environment.radiance, dtype=np.float64)
-        env += L[None, :] * np.sqrt(4.0 * np.pi) * data.sh[:, 0, :]
+        env += L[None, :] * np.sqrt(4.0 * np.pi) * sh[:, 0, :]
         if environment.sh is not None:  # (k, 3) radiance coefficients, k = 1, 4, 9, 16 or 25
             esh = np.asarray(environment.sh, dtype=np.float64)
-            k = min(len(esh), data.sh.shape[1])  # psi is stored up to its order only
-            env += np.einsum("nkc,kc->nc", data.sh[:, :k, :], esh[:k])
-        acc += np.maximum(env, 0.0)
-    return data.sigma_s / (4.0 * np.pi) * entry_transmittance(eta) * acc
+            k = min(len(esh), sh.shape[1])  # psi is stored up to its order only
+            env += np.einsum("nkc,kc->nc", sh[:, :k, :], esh[:k])
+        acc += scale * np.maximum(env, 0.0)
+    return data.sigma_s / (4.0 * np.pi) * acc
 
 
 def view_term(data, camera_position=None, view_dir=None) -> np.ndarray:
