@@ -71,3 +71,26 @@ def test_data_of_format_1_still_loads_and_renders_with_straight_chords():
     np.testing.assert_allclose(light_term(old, [], env, ETA), want, rtol=1e-6)
     np.testing.assert_allclose(light_term(data, [], env, ETA),
                                data.sigma_s / (4 * np.pi) * np.sqrt(4 * np.pi) * data.sh_env[:, 0, :], rtol=1e-6)
+
+
+def test_the_world_is_looked_up_where_each_chords_light_comes_from():
+    """w' of eq. 1: Snell's law at the point where the chord leaves (sin out = eta sin in, in the plane of
+    the chord and the normal, on the outside); unchanged along the normal, past the critical angle and
+    where the chord does not leave."""
+    from translucency_addon.single_scattering.entry import WorldEntry
+
+    V, F = primitives.icosphere(5.0, 5)
+    entry = WorldEntry(V, F, np.array([[0.0, 0.0, 4.99], [0.0, 0.0, 6.0]]), ETA)
+    for theta in (0.0, 0.3, 0.6, 1.0):  # 1.0 rad: past the critical angle (0.88 rad at eta 1.3)
+        d = np.array([np.sin(theta), 0.0, np.cos(theta)])
+        g, w = entry(d)
+        n = np.array([0.0, 0.0, 1.0])  # the facet the chord leaves through, a few 1e-3 rad off the pole's
+        sin_out = ETA * np.sin(theta)
+        if sin_out < 1.0:
+            np.testing.assert_allclose(w[0], [sin_out, 0.0, np.sqrt(1 - sin_out**2)], atol=0.02)
+            assert g[0] > 0
+        else:
+            np.testing.assert_array_equal(w[0], d)
+            assert g[0] == 0.0
+        np.testing.assert_array_equal(w[1], d)  # outside the object: the straight model
+        assert np.isclose(np.linalg.norm(w[0]), 1.0) and w[0] @ n >= 0

@@ -25,7 +25,7 @@ import numpy as np
 from ..scene import sh as shmod
 from ..errors import MaterialError
 from . import optical_depth as od
-from .entry import entry_weights
+from .entry import WorldEntry
 from .data import SampleGrid, SingleScatteringData
 from .sampling import SUPPORT_SIGMAS, fit_partition_of_unity, gaussian_matrix, poisson_disk
 from .volume import resolution_for, trilinear, voxelise
@@ -148,8 +148,8 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
     if eta != 1.0:  # the world's light enters through the critical cone (entry.py eq. 2)
         from ..geometry.raycast import mesh_bvh
 
-        g = entry_weights(V, F, centers, dirs, eta, bvh if bvh is not None else mesh_bvh(V, F))
-        sh, sh_env = od.sample_sh(volume, dirs, centers, order, progress=P, entry=g)
+        entry = WorldEntry(V, F, centers, eta, bvh if bvh is not None else mesh_bvh(V, F))
+        sh, sh_env = od.sample_sh(volume, dirs, centers, order, progress=P, entry=entry)
     else:
         sh = od.sample_sh(volume, dirs, centers, order, progress=P)
     sig_s = trilinear(volume.sigma_s, volume.origin, volume.h, centers)

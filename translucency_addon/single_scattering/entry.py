@@ -20,15 +20,15 @@ So the bake weighs each sample's psi for the world's light by::
 
     g_i(w) = eta^2 T(mu) [mu > mu_c]                                                               (2)
 
-and keeps those SH coefficients (``SingleScatteringData.sh_env``) beside psi's own.  The frame's
+and keeps those SH coefficients (``SingleScatteringData.sh_env``) beside psi's own, projected on the
+SH basis at w' (:func:`world_entry`), not at w: a world given by its SH coefficients is then looked up
+where each chord's light comes from outside, ``sum_k c_k L_k``; a uniform world sees only the constant.  The frame's
 world term then uses them in place of ``F_in`` times psi's.  Lamps keep psi and ``F_in``: a lamp's irradiance is carried
 along straight chords, where its refracted path would start elsewhere on the surface.  The view rays and
 their psi toward the viewer are unchanged.
 
 What eq. 2 leaves out:
 
-* the world's direction bent by refraction: w' is looked up as w, which matters only for a world that is
-  not uniform, through its low SH orders;
 * light reflected inside before it scatters: the rest of the total internal reflection, and the cavities'
   and inner parts' own interfaces.  The chords are cast against the mesh the bake was given.
 
@@ -54,26 +54,56 @@ def inside_transmittance(mu, eta: float) -> np.ndarray:
     return np.where(s2 < 1.0, fresnel_transmittance(cos_out, eta), 0.0)
 
 
-def entry_weights(V, F, points, directions, eta: float, bvh=None) -> np.ndarray:
-    """``g_i(w_k)`` of eq. 2, ``(n_directions, n_points)``: one chord cast from each point along each
-    direction through the mesh ``(V, F)`` (its BVH if given), weighted by where it leaves."""
-    from ..geometry.raycast import mesh_bvh
+class WorldEntry:
+    """Eq. 1-2 for chords from fixed ``points`` through the mesh ``(V, F)`` (its BVH if given): called with a
+    direction w and the indices of the points that need it, returns ``(g, w_out)`` for those points: the
+    weight, and the world's direction the chord's light comes from (w refracted out where it leaves; w
+    itself where it does not, or past the critical angle, where g is 0).  One chord cast per point."""
 
-    eta = check_eta(eta)
-    P = np.asarray(points, dtype=np.float64)
-    D = np.asarray(directions, dtype=np.float64)
-    out = np.full((len(D), len(P)), entry_transmittance(eta))
-    if eta == 1.0 or not len(P):
-        return out
-    V = np.asarray(V, dtype=np.float64)
-    F = np.asarray(F, dtype=np.int64)
-    bvh = bvh if bvh is not None else mesh_bvh(V, F)
-    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    n *= np.sign(signed_volume(V, F)) / np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]  # outward
-    scale = eta * eta
-    for k, d in enumerate(D):  # one cast per direction (batching several: no faster, the walk dominates)
-        _, tri, _, _ = bvh.intersect(P, np.broadcast_to(d, P.shape))
-        mu = np.where(tri >= 0, n[np.maximum(tri, 0)] @ d, -1.0)
+    def __init__(self, V, F, points, eta: float, bvh=None):
+        from ..geometry.raycast import mesh_bvh
+
+        self.eta = check_eta(eta)
+        self.points = np.asarray(points, dtype=np.float64)
+        self.f_in = entry_transmittance(self.eta)
+        if self.eta == 1.0:
+            return
+        V = np.asarray(V, dtype=np.float64)
+        F = np.asarray(F, dtype=np.int64)
+        self.bvh = bvh if bvh is not None else mesh_bvh(V, F)
+        n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+        self.normals = n * (np.sign(signed_volume(V, F)) / np.maximum(np.linalg.norm(n, axis=1), 1e-300))[:, None]
+
+    def __call__(self, direction, index=None) -> tuple[np.ndarray, np.ndarray]:
+        d = np.asarray(direction, dtype=np.float64).reshape(3)
+        P = self.points if index is None else self.points[index]
+        g = np.full(len(P), self.f_in)
+        w_out = np.broadcast_to(d, P.shape).copy()
+        if self.eta == 1.0 or not len(P):
+            return g, w_out
+        eta = self.eta
+        _, tri, _, _ = self.bvh.intersect(P, np.broadcast_to(d, P.shape))
+        nk = self.normals[np.maximum(tri, 0)]
+        mu = np.where(tri >= 0, nk @ d, -1.0)
         leaves = mu > 0.0
-        out[k, leaves] = scale * inside_transmittance(mu[leaves], eta)
-    return out
+        g[leaves] = eta * eta * inside_transmittance(mu[leaves], eta)
+        out = leaves & (eta * eta * (1.0 - mu * mu) < 1.0)  # inside the cone: Snell's law, out of the medium
+        tangent = eta * (d - mu[out, None] * nk[out])
+        w_out[out] = tangent + np.sqrt(np.clip(1.0 - np.einsum("ij,ij->i", tangent, tangent), 0.0, 1.0))[:, None] * nk[out]
+        return g, w_out
+
+
+def world_entry(V, F, points, directions, eta: float, bvh=None) -> tuple[np.ndarray, np.ndarray]:
+    """:class:`WorldEntry` for every point and direction: ``g`` (n_directions, n_points) and ``w_out``
+    (n_directions, n_points, 3)."""
+    entry = WorldEntry(V, F, points, eta, bvh)
+    parts = [entry(d) for d in np.asarray(directions, dtype=np.float64)]
+    P = len(entry.points)
+    if not parts:
+        return np.zeros((0, P)), np.zeros((0, P, 3))
+    return np.stack([p[0] for p in parts]), np.stack([p[1] for p in parts])
+
+
+def entry_weights(V, F, points, directions, eta: float, bvh=None) -> np.ndarray:
+    """``g_i(w_k)`` of eq. 2 alone, ``(n_directions, n_points)`` (:func:`world_entry`'s first part)."""
+    return world_entry(V, F, points, directions, eta, bvh)[0]

@@ -207,6 +207,9 @@ def first_moment(volume, directions: np.ndarray, *, progress=None) -> np.ndarray
     return T
 
 
+PSI_NEGLIGIBLE = 1e-7  # sample_sh: a chord this black adds < 1e-6 of the world's light to any coefficient
+
+
 def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *, batch: int = 32,
               progress=None, entry: np.ndarray | None = None):
     """SH coefficients of psi_i(w) = exp(-tau(b_i, w)) at ``points`` (N, 3), ((N, K, 3) float32).
@@ -214,8 +217,10 @@ def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *,
     tau is recomputed per direction on the lattice and interpolated at the
     points (in tau, not in exp(-tau): the exponential of an interpolated depth
     stays right where tau grows by several units per voxel, as in dense media).
-    ``entry`` (n_directions, N): the world light's weights g_i(w) of :mod:`.entry` (eq. 2); then the
-    coefficients of ``g psi`` too, from the same depths: ``(psi's, g psi's)``.
+    ``entry``: a :class:`.entry.WorldEntry` of the points (eq. 2: the world light's weight g and the outside
+    direction w_out its light comes from, per point and direction); then the coefficients of ``g psi`` on the
+    SH basis at ``w_out`` too, from the same depths: ``(psi's, g psi's)``.  Its chords are cast only where
+    psi reaches :data:`PSI_NEGLIGIBLE` in some channel (in dense media most chords into the object are black).
     """
     dirs = np.asarray(directions, dtype=np.float64)
     n = len(dirs)
@@ -226,7 +231,7 @@ def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *,
     u = (np.asarray(points, dtype=np.float64) - volume.origin) / volume.h - 0.5
     N = len(u)
     coef = np.zeros((K, N * 3), dtype=np.float64)
-    coef_entry = None if entry is None else np.zeros((K, N * 3), dtype=np.float64)
+    coef_entry = None if entry is None else np.zeros((N, K, 3), dtype=np.float64)  # point-major: row updates
     for start in range(0, n, batch):
         idx = np.arange(start, min(n, start + batch))
         psi = np.empty((len(idx), N * 3), dtype=np.float64)
@@ -237,14 +242,21 @@ def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *,
             psi[j] = np.exp(-tau).reshape(-1)
         coef += Y[idx].T @ psi
         if coef_entry is not None:
-            coef_entry += Y[idx].T @ (psi * np.repeat(entry[idx], 3, axis=1))
+            for j, di in enumerate(idx):  # the basis at each point's outside direction, times g psi
+                p3 = psi[j].reshape(N, 3)
+                need = np.flatnonzero(p3.max(axis=1) > PSI_NEGLIGIBLE)
+                if not need.size:
+                    continue
+                g, w_out = entry(dirs[di], need)
+                Yo = shmod.sh_basis(w_out, order) * (4.0 * np.pi / n)  # (m, K)
+                coef_entry[need] += Yo[:, :, None] * (g[:, None] * p3[need])[:, None, :]  # rows of (K, 3)
         if progress is not None:
             progress(float(idx[-1] + 1) / n)
 
     def packed(c):
         return np.ascontiguousarray(c.reshape(K, N, 3).transpose(1, 0, 2)).astype(np.float32)
 
-    return packed(coef) if coef_entry is None else (packed(coef), packed(coef_entry))
+    return packed(coef) if coef_entry is None else (packed(coef), coef_entry.astype(np.float32))
 
 
 def divergence_density(T: np.ndarray, h: float) -> np.ndarray:

@@ -51,6 +51,15 @@ def _grid_exit(volume, p, w):
     return np.maximum(t.min(axis=1), 0.0)
 
 
+def env_radiance(environment, directions) -> np.ndarray:
+    """The world's radiance (n, 3) toward ``directions``: its constant plus its SH, clamped at zero."""
+    L = np.broadcast_to(np.asarray(environment.radiance, dtype=np.float64), (len(directions), 3)).copy()
+    if environment.sh is not None:
+        esh = np.asarray(environment.sh, dtype=np.float64)
+        L += shmod.sh_basis(np.asarray(directions, dtype=np.float64), int(round(np.sqrt(len(esh)))) - 1) @ esh
+    return np.maximum(L, 0.0)
+
+
 def default_step(volume) -> float:
     """Marching step (object units): half a voxel, or a quarter mean free path if that is shorter."""
     st = volume.sigma_t[volume.medium]
@@ -118,11 +127,7 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
     has_env = environment is not None and not environment.is_black
     if has_env:
         W = shmod.fibonacci_directions(env_dirs)
-        Lenv = np.broadcast_to(np.asarray(environment.radiance, dtype=np.float64), (env_dirs, 3)).copy()
-        if environment.sh is not None:
-            esh = np.asarray(environment.sh, dtype=np.float64)
-            Lenv += shmod.sh_basis(W, int(round(np.sqrt(len(esh)))) - 1) @ esh
-        Lenv = np.maximum(Lenv, 0.0)
+        Lenv = env_radiance(environment, W)
     # 1. march the view rays: positions, sigma_s and the optical depth to the viewer at every step
     tau = march_optical_depth(volume, o, -d, step=shadow_step, tau_cut=tau_cut)  # surface point -> outside
     rec_r, rec_x, rec_w = [], [], []
@@ -167,11 +172,14 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
             src.append(np.repeat(x, env_dirs, axis=0))
             sdir.append(np.tile(W, (P, 1)))
             smax.append(np.full(P * env_dirs, np.inf))
-            w_env = np.tile(Lenv * (4.0 * np.pi / env_dirs), (P, 1))
-            if mesh is not None:  # g / F_in per march point and direction (Wv carries F_in)
-                from .entry import entry_weights
+            if mesh is None:
+                w_env = np.tile(Lenv * (4.0 * np.pi / env_dirs), (P, 1))
+            else:  # g / F_in per march point and direction (Wv carries F_in), the world looked up at w'
+                from .entry import world_entry
 
-                w_env = w_env * (entry_weights(mesh[0], mesh[1], x, W, eta, bvh).T.reshape(-1) / f_in)[:, None]
+                g, w_out = world_entry(mesh[0], mesh[1], x, W, eta, bvh)
+                L_out = env_radiance(environment, w_out.transpose(1, 0, 2).reshape(-1, 3))
+                w_env = L_out * (4.0 * np.pi / env_dirs) * (g.T.reshape(-1) / f_in)[:, None]
             weight.append(w_env)
         ts = march_optical_depth(volume, np.concatenate(src), np.concatenate(sdir), tmax=np.concatenate(smax),
                                  step=shadow_step, tau_cut=tau_cut)
