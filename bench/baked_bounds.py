@@ -28,6 +28,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from bench.bench_io import write_section  # noqa: E402
 from bench.mesh_scaling import SOLVE_ARGS  # noqa: E402  (the same frame: marble, a sun, a dim world)
 
 HEADING = "## A farm's frame with the bake's spectral bounds (issue 33: the first Final frame)\n"
@@ -118,14 +119,7 @@ def main(argv=None) -> int:
         rows = [measure(q, a.runs, Path(tmp)) for q in a.qualities]
     command = ("python -m bench.baked_bounds" + (f" --qualities {' '.join(a.qualities)}" if a.qualities != [
         "preview", "final"] else "") + (f" --runs {a.runs}" if a.runs != 3 else "") + (f" --out {a.out}" if a.out else ""))
-    text = markdown(rows, command, time.strftime("%Y-%m-%d"), commit)
-    print(text)
-    if a.out:
-        from bench.accuracy_text import replace_section
-
-        out = Path(a.out)
-        out.write_text(replace_section(out.read_text() if out.exists() else "", HEADING, text[len(HEADING):]))
-    return 0
+    return write_section(markdown(rows, command, time.strftime("%Y-%m-%d"), commit), HEADING, a.out)
 
 
 if __name__ == "__main__":
