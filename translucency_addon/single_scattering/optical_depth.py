@@ -211,7 +211,7 @@ PSI_NEGLIGIBLE = 1e-7  # sample_sh: a chord this black adds < 1e-6 of the world'
 
 
 def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *, batch: int = 32,
-              progress=None, entry: np.ndarray | None = None):
+              progress=None, entry=None):
     """SH coefficients of psi_i(w) = exp(-tau(b_i, w)) at ``points`` (N, 3), ((N, K, 3) float32).
 
     tau is recomputed per direction on the lattice and interpolated at the
@@ -252,11 +252,8 @@ def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *,
                 coef_entry[need] += Yo[:, :, None] * (g[:, None] * p3[need])[:, None, :]  # rows of (K, 3)
         if progress is not None:
             progress(float(idx[-1] + 1) / n)
-
-    def packed(c):
-        return np.ascontiguousarray(c.reshape(K, N, 3).transpose(1, 0, 2)).astype(np.float32)
-
-    return packed(coef) if coef_entry is None else (packed(coef), coef_entry.astype(np.float32))
+    sh = np.ascontiguousarray(coef.reshape(K, N, 3).transpose(1, 0, 2)).astype(np.float32)
+    return sh if coef_entry is None else (sh, coef_entry.astype(np.float32))
 
 
 def divergence_density(T: np.ndarray, h: float) -> np.ndarray:
