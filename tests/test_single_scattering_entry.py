@@ -71,6 +71,8 @@ def test_data_of_format_1_still_loads_and_renders_with_straight_chords():
     np.testing.assert_allclose(light_term(old, [], env, ETA), want, rtol=1e-6)
     np.testing.assert_allclose(light_term(data, [], env, ETA),
                                data.sigma_s / (4 * np.pi) * np.sqrt(4 * np.pi) * data.sh_env[:, 0, :], rtol=1e-6)
+    # the add-on's eta is Blender's float32 (1.2999999523), a command line's "1.3": the same baked cone
+    np.testing.assert_array_equal(light_term(data, [], env, float(np.float32(ETA))), light_term(data, [], env, ETA))
 
 
 def test_the_world_is_looked_up_where_each_chords_light_comes_from():

@@ -87,6 +87,9 @@ def eval_psi(sh: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     return np.clip(np.einsum("nk,nkc->nc", Y, np.asarray(sh, dtype=np.float32)), 0.0, 1.0).astype(np.float64)
 
 
+ETA_MATCH = 1e-6  # light_term: sh_env serves an eta this close to the one it was baked for
+
+
 def light_term(data, lights, environment, eta: float, mm_per_unit: float | None = None) -> np.ndarray:
     """Per-sample light factor (N, 3): sigma_s/(4 pi) * (F_in sum_l E_l psi_i(to l) + world).
 
@@ -107,7 +110,8 @@ def light_term(data, lights, environment, eta: float, mm_per_unit: float | None 
     acc *= f_in
     if environment is not None and not environment.is_black:
         sh_env = getattr(data, "sh_env", None)
-        if sh_env is not None and abs(float(getattr(data, "entry_eta", 1.0)) - float(eta)) < 1e-9:
+        # the baked eta, to Blender's float32 (the add-on's 1.3 is 1.2999999523; a CLI gets "1.3")
+        if sh_env is not None and abs(float(getattr(data, "entry_eta", 1.0)) - float(eta)) <= ETA_MATCH:
             sh, scale = sh_env, 1.0
         else:
             sh, scale = data.sh, f_in
