@@ -7,9 +7,9 @@ Meshes: a bumpy sphere 20 mm across (``primitives.icosphere`` at subdivision 4-8
 5 %, so no two triangles are alike), marble, Preview.  Each command runs as its own process, as a user or a
 farm runs it: ``bake MESH.obj --quality preview --json`` (its stage seconds, the rest of its wall time is
 reading the OBJ and writing the cache) and ``solve CACHE --sun ... --env ... --stats`` (a cold frame: the
-process starts with nothing built; the fastest of three, each with its stages); then, in one process that keeps the bake and the solver, a frame and
-five warm frames, the sun turned 0.5 degrees further each time (what the viewport renders after a light
-move; the engine's ``frame.render_frame``), their median.  The graph is the same size at every mesh size
+process starts with nothing built; the fastest of three, each with its stages); then, in one process that
+keeps the bake and the solver, a frame and five warm frames, the sun turned 0.5 degrees further each time
+(what the viewport renders after a light move; the engine's ``frame.render_frame``), their median.  The graph is the same size at every mesh size
 (Preview's QuadGraph), so what grows is what touches the render mesh: validation, decimation, the triangle
 BVH of the shadow and thickness rays, the output mapping.
 

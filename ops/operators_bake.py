@@ -92,7 +92,6 @@ class BakeJob:
                  base_bake=None, composite=None, material=None):
         self.obj_name = obj_name
         self.material = material  # the object's material: what the cache keeps of it (None: nothing)
-        self.eta = None if material is None else float(material.eta)  # its transport tables go into the cache
         self.ss = ss
         self.base_bake = base_bake
         self.composite = composite
@@ -149,7 +148,7 @@ class BakeJob:
                 bake = self.base_bake
             if self.cancel_requested:
                 raise BakeCancelled("bake cancelled")
-            if self.base_bake is None and self.composite is None and self._keeps_bounds():
+            if self.base_bake is None and self.material is not None:
                 self.stage = "spectral bounds"  # the material's, kept in the cache: a cold frame runs no Lanczos
                 from ..translucency_addon.diffusion.baked_bounds import with_kept_bounds
 
@@ -171,10 +170,10 @@ class BakeJob:
             self.seconds = time.perf_counter() - self.t0
             self.done = True
 
-    def _keeps_bounds(self) -> bool:
-        """Whether the cache keeps the material's spectral bounds: a homogeneous material (a field's values at
-        the nodes are the frame's to sample; an object with inner parts solves a material per part)."""
-        return self.material is not None and not self.material.heterogeneous
+    @property
+    def eta(self) -> float | None:
+        """The material's index of refraction: its transport tables go into the cache (None: no material)."""
+        return None if self.material is None else float(self.material.eta)
 
     def _bake_single_scattering(self, bake):
         from ..translucency_addon.errors import BakeCancelled, TranslucencyError

@@ -64,6 +64,11 @@ def test_another_material_scale_or_pose_computes_its_own(lanczos_calls):
                                                                    material_from_preset("marble"))):
         solver, L, runs = _solve(bake, material, lanczos_calls)
         assert solver.bounds_from_bake == 0 and runs == len(kept.levels) and np.all(np.isfinite(L))
+    # the bake keeps none where a frame's systems do not come from the material alone
+    heterogeneous = material_from_preset("marble", mix_with="skin1")
+    plain = replace(kept, spectral_bounds=None)
+    assert with_kept_bounds(plain, heterogeneous) is plain
+    assert with_kept_bounds(replace(plain, composite=object()), material_from_preset("marble")).spectral_bounds is None
     # bounds a caller already set (a pose carries the last frame's) are left as they are
     solver = DiffusionSolver(kept, material_from_preset("marble"))
     systems = [replace(s, lam_min=s.lam_min * 0.5, cache={}) for s in solver.systems]

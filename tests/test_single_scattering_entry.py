@@ -10,7 +10,7 @@ import pytest
 from translucency_addon.geometry import primitives
 from translucency_addon.scene import sh as shmod
 from translucency_addon.scene.fresnel import fresnel_transmittance
-from translucency_addon.single_scattering.entry import entry_weights, inside_transmittance
+from translucency_addon.single_scattering.entry import inside_transmittance, world_entry
 from translucency_addon.single_scattering.runtime import entry_transmittance
 
 ETA = 1.3
@@ -23,6 +23,10 @@ def test_inside_transmittance_is_fresnel_at_the_refracted_angle_and_zero_past_th
     want = np.where(mu > mu_c, fresnel_transmittance(cos_out, ETA), 0.0)
     np.testing.assert_allclose(inside_transmittance(mu, ETA), want, rtol=1e-12)
     assert inside_transmittance(np.array([1.0]), ETA)[0] == pytest.approx(0.98298677, rel=1e-6)
+
+
+def entry_weights(V, F, points, dirs, eta):
+    return world_entry(V, F, points, dirs, eta)[0]
 
 
 def test_entry_weights_on_a_ball():

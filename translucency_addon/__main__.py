@@ -281,7 +281,7 @@ def cmd_bake(a) -> int:
                                         progress=lambda f, st: progress(f, "ss: " + st))
         print(file=sys.stderr)
         bake = attach(bake, ss)
-    if kept is not None and not kept.heterogeneous:  # its spectral bounds too: a cold frame runs no Lanczos
+    if kept is not None:  # its spectral bounds too: a cold frame runs no Lanczos
         bake = with_kept_bounds(bake, kept)
     save_bake(a.output, bake, etas=etas)
     if a.json:

@@ -96,10 +96,14 @@ def adopt_bounds(systems: list, record: dict | None) -> int:
 
 def with_kept_bounds(bake, material, options=None):
     """``bake`` with the bounds of ``material``'s systems kept (:func:`bounds_record`; the bake command's and
-    the add-on's bake, for a homogeneous material: a field's values at the nodes are the frame's to sample).
-    The seconds it took join the bake's timings as "spectral bounds" (and its total)."""
+    the add-on's bake).  Only where a frame assembles the same systems from the material alone: not for a
+    heterogeneous material (a field's values at the nodes are the frame's to sample) nor for a bake with
+    inner parts (its frames solve a medium per part), which are returned as they are.  The seconds it took
+    join the bake's timings as "spectral bounds" (and its total)."""
     from .solver import DiffusionSolver  # the solver adopts kept bounds (this module): imported when called
 
+    if material.heterogeneous or getattr(bake, "composite", None) is not None:
+        return bake
     t0 = time.perf_counter()
     record = bounds_record(DiffusionSolver(bake, material, None, options).systems)
     stats = dict(bake.stats)

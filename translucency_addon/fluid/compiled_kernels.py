@@ -103,9 +103,10 @@ def in_disk(m, ux, uy, h, rho, R):
     their sum is twice the argument of the product of the ``x_k + i y_k``, which one ``atan2`` gives at the
     end.  That is exact because the half-angles' sum lies in (-pi, pi): the triangles of either sign form a
     fan from the disk's centre that never overlaps itself and stays inside the disk, which subtends
-    2 pi (1 - h/R) < 2 pi from the particle, so their sum is within that of zero.  The product is rescaled at every step (by ``|x| + |y|``) so it neither overflows nor underflows.  A sector
-    of zero angle (an edge that ends inside the disk) is skipped.  An interior face, whose polygon lies
-    inside its disk, then costs one ``atan2`` instead of two per edge: the kernel's most expensive call.
+    2 pi (1 - h/R) < 2 pi from the particle, so their sum is within that of zero.  The product is rescaled
+    at every step (by ``|x| + |y|``) so it neither overflows nor underflows.  A sector of zero angle (an edge
+    that ends inside the disk) is skipped.  An interior face, whose polygon lies inside its disk, then costs
+    one ``atan2`` instead of two per edge: the kernel's most expensive call.
     """
     r2 = rho * rho
     cone = 1.0 - h / R

@@ -146,10 +146,7 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
     eta = float(getattr(material, "eta", 1.0))
     sh_env = None
     if eta != 1.0:  # the world's light enters through the critical cone (entry.py eq. 2)
-        from ..geometry.raycast import mesh_bvh
-
-        entry = WorldEntry(V, F, centers, eta, bvh if bvh is not None else mesh_bvh(V, F))
-        sh, sh_env = od.sample_sh(volume, dirs, centers, order, progress=P, entry=entry)
+        sh, sh_env = od.sample_sh(volume, dirs, centers, order, progress=P, entry=WorldEntry(V, F, centers, eta, bvh))
     else:
         sh = od.sample_sh(volume, dirs, centers, order, progress=P)
     sig_s = trilinear(volume.sigma_s, volume.origin, volume.h, centers)
@@ -159,9 +156,8 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
     grid = SampleGrid.build(centers, support, float(s.cell_factor) * float(np.median(support)))
     P.end()
 
-    for name, arr in (("sh", sh), ("sh_env", sh if sh_env is None else sh_env), ("sigma_s", sig_s),
-                      ("weight", weight)):
-        if not np.all(np.isfinite(arr)):
+    for name, arr in (("sh", sh), ("sh_env", sh_env), ("sigma_s", sig_s), ("weight", weight)):
+        if arr is not None and not np.all(np.isfinite(arr)):
             raise MaterialError(f"the bake produced non-finite {name}: check the material coefficients")
     stats = {
         "time": P.times,

@@ -102,8 +102,3 @@ def world_entry(V, F, points, directions, eta: float, bvh=None) -> tuple[np.ndar
     if not parts:
         return np.zeros((0, P)), np.zeros((0, P, 3))
     return np.stack([p[0] for p in parts]), np.stack([p[1] for p in parts])
-
-
-def entry_weights(V, F, points, directions, eta: float, bvh=None) -> np.ndarray:
-    """``g_i(w_k)`` of eq. 2 alone, ``(n_directions, n_points)`` (:func:`world_entry`'s first part)."""
-    return world_entry(V, F, points, directions, eta, bvh)[0]

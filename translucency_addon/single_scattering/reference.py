@@ -36,6 +36,7 @@ import numpy as np
 
 from ..scene import sh as shmod
 from ..scene.lights import emitter_samples, light_irradiance
+from .entry import world_entry
 from .runtime import entry_transmittance
 from .volume import trilinear
 
@@ -114,7 +115,7 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
     ray stops once that depth exceeds ``tau_cut``.  Then a shadow ray is
     marched from every step to each light (and to ``env_dirs`` directions),
     all shadow rays at once (in chunks of ``chunk`` rays).  ``mesh``: ``(V, F)`` (and its ``bvh``) for the
-    world's entry weights (:func:`.entry.entry_weights`); without it the straight model, ``F_in``.
+    world's entry weights and directions (:func:`.entry.world_entry`); without it the straight model, ``F_in``.
     """
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
@@ -175,8 +176,6 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
             if mesh is None:
                 w_env = np.tile(Lenv * (4.0 * np.pi / env_dirs), (P, 1))
             else:  # g / F_in per march point and direction (Wv carries F_in), the world looked up at w'
-                from .entry import world_entry
-
                 g, w_out = world_entry(mesh[0], mesh[1], x, W, eta, bvh)
                 L_out = env_radiance(environment, w_out.transpose(1, 0, 2).reshape(-1, 3))
                 w_env = L_out * (4.0 * np.pi / env_dirs) * (g.T.reshape(-1) / f_in)[:, None]
