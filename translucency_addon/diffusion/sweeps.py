@@ -89,21 +89,33 @@ def sweep_pattern(system):
         inv = np.empty_like(perm)
         inv[perm] = np.arange(len(perm))
         n = system.n
-        nbr = np.asarray(system.nbr, dtype=np.int64)
+        nbr = np.asarray(system.nbr)
         K = nbr.shape[1]
         # row r of the sweep order is node perm[r]: its K link slots, then its diagonal, taken in that
         # order -- the rows come out grouped without a sort (their columns are not sorted; the
         # product does not need them to be)
-        cols = np.take(np.concatenate([np.where(nbr >= 0, np.take(inv, np.maximum(nbr, 0)), -1), inv[:, None]], axis=1),
-                       perm, axis=0)  # np.take: several times faster than fancy indexing on (N, K)
-        src = np.take(np.concatenate([np.arange(n * K).reshape(n, K), n * K + np.arange(n)[:, None]], axis=1), perm,
-                      axis=0)
+        idx_t = np.int32 if n * (K + 1) < 2**31 else np.int64
+        cols = np.empty((n, K + 1), dtype=idx_t)
+        src = np.arange(n * (K + 1), dtype=idx_t).reshape(n, K + 1)
+        src -= np.arange(n, dtype=idx_t)[:, None]  # slot k of node i: i K + k
+        src[:, K] = n * K + np.arange(n, dtype=idx_t)  # its diagonal: n K + i
+        if _identity(perm):  # a graph in spatial order already (a fluid frame): no gathers
+            cols[:, :K] = nbr
+            cols[:, K] = np.arange(n, dtype=idx_t)
+        else:  # np.take: several times faster than fancy indexing on (N, K)
+            cols[:, :K] = np.where(nbr >= 0, np.take(inv, np.maximum(nbr, 0)), -1)
+            cols[:, K] = inv
+            cols, src = np.take(cols, perm, axis=0), np.take(src, perm, axis=0)
         m = cols >= 0
         indptr = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(m.sum(axis=1), out=indptr[1:])
+        np.cumsum(np.count_nonzero(m, axis=1), out=indptr[1:])
         pat = (indptr, cols[m], src[m])
         system.cache["sweep_pattern"] = pat
     return pat
+
+
+def _identity(perm) -> bool:
+    return bool(len(perm) == 0 or (perm[0] == 0 and perm[-1] == len(perm) - 1 and (np.diff(perm) == 1).all()))
 
 
 class SweepOperator:
@@ -121,9 +133,12 @@ class SweepOperator:
         nnz = len(indices)
         blocks = self.C
         idx_t = np.int32 if max(n * blocks, nnz * blocks) < 2**31 else np.int64
-        vals = [np.take(np.concatenate([system.off[:, :, c].ravel(), -system.diag[:, c]]), src).astype(self.dtype)
-                for c in range(C)]
-        data = np.concatenate(vals * copies)
+        flat = np.empty((C, len(system.off) * system.off.shape[1] + n), dtype=self.dtype)
+        flat[:, :-n] = system.off.reshape(-1, C).T  # channel-major [off, -diag]: one gather for all channels
+        np.negative(system.diag.T, out=flat[:, -n:])
+        data = np.take(flat, src, axis=1).reshape(-1)
+        if copies > 1:
+            data = np.tile(data, copies)
         ind = np.empty(nnz * blocks, dtype=idx_t)
         ptr = np.empty(n * blocks + 1, dtype=idx_t)
         for b in range(blocks):
