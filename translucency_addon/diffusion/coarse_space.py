@@ -1,0 +1,118 @@
+r"""A coarse space for the conjugate gradients: aggregates of nearby nodes and their Galerkin operator.
+
+Jacobi-preconditioned CG (:func:`.iterative.cg_steps`) removes an error's short wavelengths in a few
+steps and its long ones slowly: a fluid frame's warm start leaves both (every particle re-jittered), and
+the long ones set the step count.  The two-level additive preconditioner
+
+.. math::  M^{-1} = D^{-1} + P A_c^{-1} P^T, \qquad A_c = P^T A P
+
+adds a coarse solve for them (Nicolaides 1987, *Deflation of conjugate gradients with applications to
+boundary value problems*; the two-level additive Schwarz method of Toselli & Widlund 2005, ch. 2).  P
+is piecewise constant on **aggregates**: the nodes that fall in one box of a grid laid over the graph's
+node positions, one box per :data:`NODES_PER_AGGREGATE` nodes within
+[:data:`MIN_AGGREGATES`, :data:`MAX_AGGREGATES`].  P has full column rank (no empty aggregate), so
+A_c is symmetric positive definite when A is, and M^{-1} is too: CG stays CG.  A_c is dense (a few hundred
+rows), one per channel, factored once per system (LAPACK's Cholesky); a step then costs per channel one
+restriction (a ``bincount``), two small triangular solves and one gather.
+
+Measured on a warm frame of ``bench/fluid.py`` (tol 1e-4, 2 cores, set-up included, one process, min of 9):
+at 16k particles (19k nodes) 44 Jacobi CG steps, 68 ms, against 22 / 19 / 18 / 16 steps and
+50 / 55 / 69 / 124 ms with grids of 128 / 256 / 512 / 1024 boxes (the ball fills about half of them); at 65k
+particles 46 steps, 326 ms, against 29 / 25 / 22 / 20 steps and 272 / 251 / 239 / 266 ms.  Past a few hundred
+aggregates the dense coarse factor costs more than the steps it saves, hence a box per 128 nodes, 128 to 512
+boxes.  On a QuadGraph level (3-5 links per node, where :func:`.iterative.fast_steps` keeps Chebyshev) it
+does not pay: the Preview bunny's finest level (42k nodes) warm 64 Chebyshev sweeps, 52 ms, against 42 CG
+steps, 71 ms, and 31 with the coarse space (512 boxes), 82 ms.  Why hand-written: the
+well-kept alternative, PyAMG's smoothed aggregation, is not a dependency of the extension, and its set-up
+per frame (a fluid's graph changes every frame) costs more than the steps it saves at these sizes (issue
+33's measurements); this set-up is a few milliseconds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+NODES_PER_AGGREGATE = 128  # boxes aimed at: one per this many nodes (fewer where the graph fills its box partly),
+MIN_AGGREGATES, MAX_AGGREGATES = 128, 512  # within these (see the module docstring for the measurements)
+MIN_NODES = 2000  # below this, Jacobi alone: the coarse solve would cost about what it saves
+
+
+def aggregates(position: np.ndarray, target: int) -> tuple[np.ndarray, int]:
+    """``(agg, n_agg)``: each node's aggregate (its box in a grid of at most ``2 target`` cubic boxes over
+    the positions' bounding box, about ``target`` where the graph fills it; empty boxes are not numbered)
+    and how many there are.  A flat or thin graph gets bigger boxes (the grid's count, not the volume, is
+    held to the target)."""
+    X = np.asarray(position, dtype=np.float64)
+    lo, ext = X.min(axis=0), np.ptp(X, axis=0)
+    h = (float(np.prod(ext)) / max(target, 1)) ** (1.0 / 3.0)
+    h = max(h, float(ext.max()) / max(target, 1), 1e-300)
+    dims = np.floor(ext / h).astype(np.int64) + 1
+    while np.prod(dims) > 2 * max(target, 1):  # a flat graph: its thin side holds one box, not h's share
+        h *= 1.25
+        dims = np.floor(ext / h).astype(np.int64) + 1
+    g = np.minimum(np.floor((X - lo) / h).astype(np.int64), dims - 1)
+    key = (g[:, 0] * dims[1] + g[:, 1]) * dims[2] + g[:, 2]
+    used = np.zeros(int(np.prod(dims)), dtype=np.int64)
+    used[key] = 1
+    number = np.cumsum(used) - 1  # boxes in key order, empty ones skipped: no sort of the nodes
+    return number[key], int(used.sum())
+
+
+class CoarseSpace:
+    """The coarse correction ``P A_c^{-1} P^T`` of one system, in a :class:`.sweeps.SweepOperator`'s
+    layout (channel-major, its node order).  Build it with :func:`coarse_space`."""
+
+    def __init__(self, agg: np.ndarray, n_agg: int, factors: list):
+        from scipy.linalg.lapack import dpotrs
+
+        self.agg = agg  # (N,) aggregate of each node, in the operator's order
+        self.n_agg = n_agg
+        self.factors = factors  # per channel the lower Cholesky factor of A_c (LAPACK's layout)
+        self._solve = dpotrs
+
+    def add_correction(self, R: np.ndarray, Z: np.ndarray) -> None:
+        """``Z += P A_c^{-1} P^T R`` for channel-major R, Z (C, N)."""
+        for c, r in enumerate(R):
+            y, _ = self._solve(self.factors[c], np.bincount(self.agg, r, self.n_agg), lower=1)  # A_c^-1 P^T r
+            Z[c] += np.take(y, self.agg)  # P y
+
+
+def coarse_space(system, op) -> CoarseSpace | None:
+    """The system's :class:`CoarseSpace` for the operator ``op`` (cached on the system), or None where the
+    graph is too small for one to pay (:data:`MIN_NODES`), the graph has no node positions, or A_c is not
+    numerically positive definite (then CG runs with Jacobi alone, as before)."""
+    cache = system.cache
+    if "coarse_space" in cache:
+        return cache["coarse_space"]
+    space = None
+    position = getattr(system.level, "position", None)
+    if system.n >= MIN_NODES and position is not None and len(position) == system.n:
+        target = int(np.clip(system.n // NODES_PER_AGGREGATE, MIN_AGGREGATES, MAX_AGGREGATES))
+        agg, n_agg = aggregates(np.asarray(position)[op.perm], target)
+        space = _galerkin(system, op, agg, n_agg)
+    cache["coarse_space"] = space
+    return space
+
+
+def _galerkin(system, op, agg, n_agg) -> CoarseSpace | None:
+    """A_c = P^T A P per channel, summed entry by entry over the operator's CSR (one ``bincount``), and its
+    inverse through the Cholesky factor."""
+    from scipy.linalg.lapack import dpotrf
+
+    from .sweeps import sweep_pattern
+
+    indptr, indices, _ = sweep_pattern(system)
+    nnz = len(indices)
+    rows = np.repeat(agg, np.diff(indptr))
+    key = rows * n_agg + np.take(agg, indices)
+    C = op.C
+    data = op.neg_a.data
+    Ac = np.stack([-np.bincount(key, data[c * nnz:(c + 1) * nnz], n_agg * n_agg) for c in range(C)])
+    Ac = Ac.reshape(C, n_agg, n_agg)
+    factors = []
+    for c in range(C):
+        low, info = dpotrf(Ac[c], lower=1, clean=0)
+        if info != 0 or not np.all(np.isfinite(np.diagonal(low))):  # not numerically positive definite
+            return None
+        factors.append(low)
+    return CoarseSpace(agg, n_agg, factors)
