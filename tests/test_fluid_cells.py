@@ -311,6 +311,41 @@ def test_one_particle_and_isolated_particles_get_zero_radiance_with_a_warning():
     assert not res.point_radiance[-2:].any() and res.point_radiance[:64].min() > 0
 
 
+def _links_by_cell(g):
+    """Each kept cell's links as a sorted list of (neighbour cell, length, area); surface links as cell -1."""
+    out = {}
+    for i in range(g.n_inner):
+        row = []
+        for k in range(g.neighbors.shape[1]):
+            j = g.neighbors[i, k]
+            if j >= 0:
+                row.append((int(g.cell[j]) if j < g.n_inner else -1, g.edge_length[i, k], g.face_area[i, k]))
+        out[int(g.cell[i])] = sorted(row)
+    return out
+
+
+def test_cells_left_out_leave_the_others_graph_as_it_was():
+    """Cells left out of the graph -- isolated particles, and a piece of two cells whose surface faces both
+    face a particle (interior voids: no light enters it) -- leave no node and no link: the lattice's nodes
+    keep exactly the links, lengths and areas they have without them, however the nodes are renumbered."""
+    rng = np.random.default_rng(2)
+    P = lattice(5) + rng.uniform(-0.1, 0.1, (125, 3))
+    o = np.array([-20.0, 5, 5])
+    dark = o + np.array([[0.0, 0, 0], [1.5, 0, 0]])  # a piece of two cells (1.5 < 2R apart)
+    caps = o + np.array([[-2.05, 0, 0], [3.55, 0, 0]])  # isolated (> 2R from all), each within R of a probe
+    far = np.vstack([dark, caps, [[20.0, 20, 20]]])
+    alone = build_graph(build_cells(P, 1.0))
+    both = build_graph(build_cells(np.vstack([P, far]), 1.0))
+    said = " ".join(both.warnings)
+    assert "3 of 130 particles have no neighbour" in said and "2 cells lie in pieces without" in said, said
+    assert both.n_inner == alone.n_inner == 125 and both.n_surface == alone.n_surface
+    a, b = _links_by_cell(alone), _links_by_cell(both)
+    assert a.keys() == b.keys()
+    for c in a:
+        assert [r[0] for r in a[c]] == [r[0] for r in b[c]]
+        np.testing.assert_allclose([r[1:] for r in a[c]], [r[1:] for r in b[c]], rtol=1e-12)
+
+
 def test_nan_positions_are_left_out_with_their_count():
     P = lattice(4)
     P[[3, 7]] = np.nan

@@ -258,7 +258,8 @@ class FluidSolver:
         return V, n
 
     def _weights(self, pts, nrm, graph, point_cloud):
-        args = (graph.surface_position, graph.normal, graph.area, self.radius, self.options.kernel_radii)
+        args = (graph.surface_position, graph.normal, graph.area, self.radius, self.options.kernel_radii,
+                graph.surface_tree)
         if not point_cloud:
             return surface_weights(pts, nrm, *args)
         has = np.linalg.norm(nrm, axis=1) > 0  # surface particles by their normal, inner ones by distance

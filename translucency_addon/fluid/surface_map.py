@@ -95,7 +95,8 @@ def _nearest_on_side(X, normals, tree, surface_normal, k):
     return np.where(agree.any(axis=1), pick, idx[:, 0])
 
 
-def smooth_normals(position, normal, area, radius: float, kernel_radii: float = KERNEL_RADII) -> np.ndarray:
+def smooth_normals(position, normal, area, radius: float, kernel_radii: float = KERNEL_RADII,
+                   tree=None) -> np.ndarray:
     """Surface-node normals averaged over the nodes within rho on the same side (the weights above).
 
     A cell's own normal (its surface face's vector area) turns by 10-20
@@ -103,9 +104,9 @@ def smooth_normals(position, normal, area, radius: float, kernel_radii: float = 
     surface is smooth above the particle scale, and the light pass (eq. 3's
     ``n . w``) needs that smooth normal, or the radiance near a terminator
     flickers from frame to frame.  Nodes on the other side of a thin sheet
-    do not take part (``n . n_s <= 0``).
+    do not take part (``n . n_s <= 0``).  ``tree``: the positions' ``cKDTree`` where one is built already.
     """
-    idx, w, _ = surface_weights(position, normal, position, normal, area, radius, kernel_radii)
+    idx, w, _ = surface_weights(position, normal, position, normal, area, radius, kernel_radii, tree)
     n = np.einsum("vk,vkj->vj", w, np.asarray(normal)[idx])
     length = np.linalg.norm(n, axis=1, keepdims=True)
     return np.where(length > 0, n / np.where(length > 0, length, 1.0), normal)
