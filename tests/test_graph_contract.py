@@ -94,6 +94,9 @@ def test_quadgraph_levels_implement_the_contract():
     (lambda g: setattr(g, "edge_length", g.edge_length[:, :4]), "edge_length must have the shape of neighbors"),
     (lambda g: g.neighbors.__setitem__((g.n_inner, 0), -1), "surface node needs its inner node in link slot 0"),
     (lambda g: g.edge_length.__setitem__((0, 4), 0.0), "finite length > 0"),
+    (lambda g: g.edge_length.__setitem__((0, 4), np.nan), "finite length > 0"),
+    (lambda g: g.face_area.__setitem__((0, 4), np.inf), "face area >= 0"),
+    (lambda g: g.face_area.__setitem__((0, 4), -1e-3), "face area >= 0"),
     (lambda g: g.neighbors.__setitem__((0, 1), 99), "outside 0.."),
     (lambda g: g.volume.__setitem__(0, -1.0), "volumes must be > 0"),
 ])
