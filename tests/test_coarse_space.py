@@ -5,6 +5,7 @@ direct sparse solve."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 
 from test_fluid_solve import ENV1, SUN, ball_of_particles
@@ -15,8 +16,15 @@ from translucency_addon.fluid import FluidSolver
 from translucency_addon.scene.materials import material_from_preset
 
 
+@pytest.fixture(autouse=True)
+def small_graphs_get_one(monkeypatch):
+    """The module's threshold (8,000 nodes, where the coarse space pays) lowered for this file's 2,800-node
+    frame, so the tests stay small; the last test checks the threshold itself."""
+    monkeypatch.setattr(cs, "MIN_NODES", 2000)
+
+
 def _frame():
-    """A warm frame of a ball of ~2,100 particles (~2,800 nodes: above MIN_NODES): system, b and start."""
+    """A warm frame of a ball of ~2,100 particles (~2,800 nodes): system, b and start."""
     P0 = ball_of_particles(8.0, 1.0)
     rng = np.random.default_rng(7)
     fs = FluidSolver(material_from_preset("skimmilk"), 1.0, 1.0)
@@ -80,11 +88,26 @@ def test_aggregates_number_every_occupied_box_once_and_survive_a_flat_graph():
     assert len(np.unique(agg)) == n and 20 <= n <= 200
 
 
-def test_small_graphs_run_jacobi_cg_alone():
-    """Below MIN_NODES the coarse solve would cost about what it saves: no coarse space (the ~800-particle
-    ball of tests/test_fluid_solve.py)."""
-    P0 = ball_of_particles(6.0, 1.0)
+def test_small_graphs_run_jacobi_cg_alone(monkeypatch):
+    """Below MIN_NODES the coarse solve would cost about what it saves: no coarse space (the ~2,100-particle
+    ball above, at the module's own threshold)."""
+    monkeypatch.setattr(cs, "MIN_NODES", 8000)
+    P0 = ball_of_particles(8.0, 1.0)
     r = FluidSolver(material_from_preset("skimmilk"), 1.0, 1.0).solve(P0, lights=SUN, environment=ENV1)
     system = r.diffusion.systems[0]
     assert system.n < cs.MIN_NODES
     assert cs.coarse_space(system, system.sweep_operator(np.float64)) is None
+
+
+def test_a_coarse_operator_that_is_not_positive_definite_leaves_jacobi_alone():
+    """A_c must be positive definite for M^-1 to be (CG's condition): the same graph with -A's entries
+    negated (A negative definite) gets no coarse space; the true entries get one."""
+    from types import SimpleNamespace
+
+    system, _, _ = _frame()
+    op = system.sweep_operator(np.float64)
+    flipped = SimpleNamespace(perm=op.perm, C=op.C, neg_a=SimpleNamespace(data=-op.neg_a.data))
+    system.cache.pop("coarse_space", None)
+    assert cs.coarse_space(system, flipped) is None
+    system.cache.pop("coarse_space", None)
+    assert cs.coarse_space(system, op) is not None

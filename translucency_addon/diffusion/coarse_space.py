@@ -11,16 +11,19 @@ boundary value problems*; the two-level additive Schwarz method of Toselli & Wid
 is piecewise constant on **aggregates**: the nodes that fall in one box of a grid laid over the graph's
 node positions, one box per :data:`NODES_PER_AGGREGATE` nodes within
 [:data:`MIN_AGGREGATES`, :data:`MAX_AGGREGATES`].  P has full column rank (no empty aggregate), so
-A_c is symmetric positive definite when A is, and M^{-1} is too: CG stays CG.  A_c is dense (a few hundred
-rows), one per channel, factored once per system (LAPACK's Cholesky); a step then costs per channel one
-restriction (a ``bincount``), two small triangular solves and one gather.
+A_c is symmetric positive definite when A is, and M^{-1} is too: CG stays CG.  A_c (a few hundred rows,
+each box coupled to its 26 neighbours at most) is summed densely and factored once per system and channel by
+SuperLU (scipy); a step then costs per channel one restriction (a ``bincount``), one small sparse solve and
+one gather.  Not LAPACK's dense Cholesky, though it is as fast here: at 128 rows and more it runs blocked on
+OpenBLAS's threads, which then spin for a while after the call and took the cores from the next frame's
+compiled (numba) cells, 37 -> 70-92 ms at 4k particles (measured; with OPENBLAS_NUM_THREADS=1 they did not).
 
 Measured on a warm frame of ``bench/fluid.py`` (tol 1e-4, 2 cores, set-up included, one process, min of 9):
 at 16k particles (19k nodes) 44 Jacobi CG steps, 68 ms, against 22 / 19 / 18 / 16 steps and
 50 / 55 / 69 / 124 ms with grids of 128 / 256 / 512 / 1024 boxes (the ball fills about half of them); at 65k
 particles 46 steps, 326 ms, against 29 / 25 / 22 / 20 steps and 272 / 251 / 239 / 266 ms.  Past a few hundred
-aggregates the dense coarse factor costs more than the steps it saves, hence a box per 128 nodes, 128 to 512
-boxes.  On a QuadGraph level (3-5 links per node, where :func:`.iterative.fast_steps` keeps Chebyshev) it
+aggregates the coarse factor costs more than the steps it saves, hence a box per 128 nodes, 128 to 512
+boxes; under :data:`MIN_NODES` (a 4k-particle frame: 17 steps against 36, 13 ms against 11) not at all.  On a QuadGraph level (3-5 links per node, where :func:`.iterative.fast_steps` keeps Chebyshev) it
 does not pay: the Preview bunny's finest level (42k nodes) warm 64 Chebyshev sweeps, 52 ms, against 42 CG
 steps, 71 ms, and 31 with the coarse space (512 boxes), 82 ms.  Why hand-written: the
 well-kept alternative, PyAMG's smoothed aggregation, is not a dependency of the extension, and its set-up
@@ -34,7 +37,7 @@ import numpy as np
 
 NODES_PER_AGGREGATE = 128  # boxes aimed at: one per this many nodes (fewer where the graph fills its box partly),
 MIN_AGGREGATES, MAX_AGGREGATES = 128, 512  # within these (see the module docstring for the measurements)
-MIN_NODES = 2000  # below this, Jacobi alone: the coarse solve would cost about what it saves
+MIN_NODES = 8000  # below this, Jacobi alone: the coarse solve costs about what it saves (4k particles)
 
 
 def aggregates(position: np.ndarray, target: int) -> tuple[np.ndarray, int]:
@@ -63,24 +66,21 @@ class CoarseSpace:
     layout (channel-major, its node order).  Build it with :func:`coarse_space`."""
 
     def __init__(self, agg: np.ndarray, n_agg: int, factors: list):
-        from scipy.linalg.lapack import dpotrs
-
         self.agg = agg  # (N,) aggregate of each node, in the operator's order
         self.n_agg = n_agg
-        self.factors = factors  # per channel the lower Cholesky factor of A_c (LAPACK's layout)
-        self._solve = dpotrs
+        self.factors = factors  # per channel A_c's sparse LU (scipy's SuperLU)
 
     def add_correction(self, R: np.ndarray, Z: np.ndarray) -> None:
         """``Z += P A_c^{-1} P^T R`` for channel-major R, Z (C, N)."""
         for c, r in enumerate(R):
-            y, _ = self._solve(self.factors[c], np.bincount(self.agg, r, self.n_agg), lower=1)  # A_c^-1 P^T r
+            y = self.factors[c].solve(np.bincount(self.agg, r, self.n_agg))  # A_c^-1 P^T r
             Z[c] += np.take(y, self.agg)  # P y
 
 
 def coarse_space(system, op) -> CoarseSpace | None:
     """The system's :class:`CoarseSpace` for the operator ``op`` (cached on the system), or None where the
     graph is too small for one to pay (:data:`MIN_NODES`), the graph has no node positions, or A_c is not
-    numerically positive definite (then CG runs with Jacobi alone, as before)."""
+    numerically positive definite (then CG runs with Jacobi alone: the answer is the same, the steps more)."""
     cache = system.cache
     if "coarse_space" in cache:
         return cache["coarse_space"]
@@ -95,24 +95,27 @@ def coarse_space(system, op) -> CoarseSpace | None:
 
 
 def _galerkin(system, op, agg, n_agg) -> CoarseSpace | None:
-    """A_c = P^T A P per channel, summed entry by entry over the operator's CSR (one ``bincount``), and its
-    inverse through the Cholesky factor."""
-    from scipy.linalg.lapack import dpotrf
+    """A_c = P^T A P per channel, summed entry by entry over the operator's CSR (one ``bincount`` into a dense
+    array), and its sparse LU (SuperLU: a box couples to its 26 neighbours at most)."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
 
     from .sweeps import sweep_pattern
 
     indptr, indices, _ = sweep_pattern(system)
     nnz = len(indices)
-    rows = np.repeat(agg, np.diff(indptr))
-    key = rows * n_agg + np.take(agg, indices)
-    C = op.C
+    key = np.repeat(agg, np.diff(indptr)) * n_agg + np.take(agg, indices)
     data = op.neg_a.data
-    Ac = np.stack([-np.bincount(key, data[c * nnz:(c + 1) * nnz], n_agg * n_agg) for c in range(C)])
-    Ac = Ac.reshape(C, n_agg, n_agg)
     factors = []
-    for c in range(C):
-        low, info = dpotrf(Ac[c], lower=1, clean=0)
-        if info != 0 or not np.all(np.isfinite(np.diagonal(low))):  # not numerically positive definite
+    for c in range(op.C):
+        Ac = -np.bincount(key, data[c * nnz:(c + 1) * nnz], n_agg * n_agg).reshape(n_agg, n_agg)
+        try:  # SuperLU's settings for a symmetric matrix: diagonal pivots, a symmetric ordering
+            lu = splu(sp.csc_matrix(Ac), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                      options={"SymmetricMode": True})
+        except RuntimeError:  # exactly singular
             return None
-        factors.append(low)
+        u = lu.U.diagonal()
+        if not (np.all(np.isfinite(u)) and np.all(u > 0)):  # not positive definite
+            return None
+        factors.append(lu)
     return CoarseSpace(agg, n_agg, factors)
