@@ -20,8 +20,8 @@ memory is measured there).  Per stage, the median over the warm frames:
   previous frame's phi, to a relative residual of 1e-4;
 * **output**: the surface map and the corrected eq. 4/7 at the vertices.
 
-``--baseline``: the cells (``build_cells`` as a frame calls it) of another checkout against this tree's,
-alternating processes, in the same run: a speed-up of the cells is a ratio measured at one time on
+``--baseline``: the cells (``build_cells`` as a frame calls it) and whole warm frames of another checkout
+against this tree's, alternating processes, in the same run: a speed-up is a ratio measured at one time on
 these shared cores, not two tables from different hours.
 
 Growth exponents ``log(t2/t1) / log(N2/N1)`` between consecutive sizes say how
@@ -79,11 +79,13 @@ NOTES = """**Reading the table.**
 * *No approximate cell geometry is offered*: the paper's sample counting, done with the same k-d tree
   (the table above), costs more CPU than the exact build (compiled path) for the volumes alone and far more
   for the face areas, and is off by 17 % per volume and 20 % of a face on average, differently every frame (flicker).
-* *Warm solve*: conjugate gradients with the Jacobi preconditioner (`iterative.cg_steps`), the shared
-  solver's default wherever a node has at least 8 links (a cell has 13-15; a QuadGraph node 4-5, where
-  Chebyshev stays). Chebyshev takes the steps its eigenvalue interval asks for whatever the start; CG adapts
-  to the start and the right-hand side, so the warm start counts (the table of the two iterations above:
-  about a third of Chebyshev's steps at 16k, each somewhat dearer). Every particle is re-jittered by 10 % of the
+* *Warm solve*: conjugate gradients (`iterative.cg_steps`), the shared solver's default wherever a node has
+  at least 8 links (a cell has 13-15; a QuadGraph node 4-5, where Chebyshev stays), preconditioned by Jacobi
+  plus a coarse space (`diffusion/coarse_space.py`: the cells grouped in boxes of a grid, one per 128 nodes,
+  their Galerkin operator P^T A P dense and factored once per frame, the correction P A_c^-1 P^T added to
+  every step's Jacobi update): the long-wavelength error that Jacobi removes slowly goes in one coarse solve,
+  and the steps halve (the table of the iterations above). Chebyshev takes the steps its eigenvalue interval
+  asks for whatever the start; CG adapts to the start and the right-hand side, so the warm start counts. Every particle is re-jittered by 10 % of the
   spacing each frame (the temporal-stability case), which changes every cell's coefficients: the warm
   start's residual is 15-30 %, and smooth motion starts closer
   (`tests/test_fluid_solve.py::test_warm_start_by_id_saves_sweeps_and_keeps_the_answer`). The default
@@ -189,9 +191,20 @@ def run_solvers(n: int) -> dict:
                              **light).state
     finally:
         iterative.SOLVER_FUNCTIONS["fast"] = fast
-    rows = {"cg": [], "chebyshev": []}
+    rows = {"cg": [], "cg_jacobi": [], "chebyshev": []}
+    coarse = iterative.coarse_space
+
+    def jacobi_cg(*args):  # CG without its coarse space (diffusion/coarse_space.py): Jacobi alone
+        iterative.coarse_space = lambda *_: None
+        try:
+            return iterative.solve_cg(*args)
+        finally:
+            iterative.coarse_space = coarse
+
     for args in captured[1:]:
-        for name, fn in (("cg", iterative.solve_cg), ("chebyshev", iterative.solve_chebyshev)) * 2:
+        for name, fn in (("cg", iterative.solve_cg), ("cg_jacobi", jacobi_cg),
+                         ("chebyshev", iterative.solve_chebyshev)) * 2:
+            args[0].cache.pop("coarse_space", None)  # its set-up counts, as in a frame
             t = time.perf_counter()
             _, info = fn(*args)
             rows[name].append((info.iterations, time.perf_counter() - t, info.converged_to))
@@ -270,7 +283,8 @@ def run_paths(n: int) -> dict:
 
 def run_cells(root: str, n: int, frames: int = 6) -> dict:
     """``build_cells`` of the tree at ``root`` (this one or ``--baseline``) on the frames' particles as a frame
-    prepares them (``prepare_particles``, its k-d tree handed on): wall ms of each jittered frame after the first."""
+    prepares them (``prepare_particles``, its k-d tree handed on), then whole warm frames of that tree
+    (``FluidSolver.solve``): wall ms of each jittered frame after the first."""
     sys.path.insert(0, root)
     from translucency_addon.fluid.cells import build_cells
     from translucency_addon.fluid.particles import prepare_particles, suggest_radius
@@ -286,32 +300,46 @@ def run_cells(root: str, n: int, frames: int = 6) -> dict:
         t = time.perf_counter()
         build_cells(ps.points, R, tree=ps.tree)
         ms.append(1e3 * (time.perf_counter() - t))
-    return {"n": int(len(rest)), "ms": ms[1:]}
+    # then whole warm frames (FluidSolver.solve, as run_one): cells + warm solve + output, and the wall
+    rest, R, (V, F), fs, light = scene(n)
+    state, frame_ms, wall_ms = None, [], []
+    for _ in range(frames):
+        t = time.perf_counter()
+        res = fs.solve(rest + rng.uniform(-0.1, 0.1, rest.shape), surface=(V, F), warm_start=state, **light)
+        wall_ms.append(1e3 * (time.perf_counter() - t))
+        state = res.state
+        st = _stages(res.stats["seconds"])
+        frame_ms.append(1e3 * (st["cells"] + st["warm solve"] + st["output"]))
+    return {"n": int(len(rest)), "ms": ms[1:], "frame_ms": frame_ms[1:], "wall_ms": wall_ms[1:]}
 
 
 def baseline_text(baseline: str, rows: list) -> str:
     rev = subprocess.run(["git", "-C", baseline, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-    lines = [f"The cells (`build_cells`, default path) against `--baseline` ({rev.stdout.strip() or baseline}) in this "
-             "run: each tree in its own process, alternating, twice; per process the minimum over 5 jittered frames "
-             "after a first; wall ms (the two runs' minima):", "",
-             "| particles | baseline ms | this tree ms | baseline / this tree (best of each) |", "|---|---|---|---|"]
+    lines = [f"This tree against `--baseline` ({rev.stdout.strip() or baseline}) in this run: each tree in its own "
+             "process, alternating, twice; per process the minimum over 5 jittered frames after a first, of the "
+             "cells (`build_cells`, default path) and of whole warm frames (cells + warm solve + output, as in the "
+             "first table); wall ms (the two runs' minima):", "",
+             "| particles | cells: baseline ms | this tree ms | baseline / this tree | frame: baseline ms | "
+             "this tree ms | baseline / this tree |", "|---|---|---|---|---|---|---|"]
     for r in rows:
-        b, o = r["baseline"], r["ours"]
+        b, o, fb, fo = r["baseline"], r["ours"], r["baseline_frame"], r["ours_frame"]
         lines.append(f"| {r['n']:,} | {' / '.join(f'{v:,.0f}' for v in b)} | {' / '.join(f'{v:,.0f}' for v in o)} | "
-                     f"{min(b) / min(o):.2f}x |")
+                     f"{min(b) / min(o):.2f}x | {' / '.join(f'{v:,.0f}' for v in fb)} | "
+                     f"{' / '.join(f'{v:,.0f}' for v in fo)} | {min(fb) / min(fo):.2f}x |")
     return "\n".join(lines)
 
 
 def compare_cells(baseline: str, sizes) -> list:
     rows = []
     for n in sizes:
-        got = {"baseline": [], "ours": []}
+        got = {"baseline": [], "ours": [], "baseline_frame": [], "ours_frame": []}
         for _ in range(2):
             for name, root in (("baseline", baseline), ("ours", str(ROOT))):
                 out = subprocess.run([sys.executable, __file__, "--cells", root, str(n)], capture_output=True,
                                      text=True, check=True)
                 rec = json.loads(out.stdout.strip().splitlines()[-1])
                 got[name].append(min(rec["ms"]))
+                got[name + "_frame"].append(min(rec["frame_ms"]))
         rows.append({"n": rec["n"], **got})
     return rows
 
@@ -337,12 +365,14 @@ def targets_text(results, sums) -> str:
 
 
 def extras_text(tol: dict, smp: dict, n: int, slv: dict) -> str:
-    lines = [f"The warm solve's two iterations on the same {slv['n']:,}-particle systems ({slv['links']:.1f} links per "
-             "node; each of 3 warm frames' system, right-hand side and warm start, solved by both in one process, "
+    lines = [f"The warm solve's iterations on the same {slv['n']:,}-particle systems ({slv['links']:.1f} links per "
+             "node; each of 3 warm frames' system, right-hand side and warm start, solved by each in one process, "
              "tolerance 1e-4; median):", "", "| iteration | steps | ms (wall) | worst relative residual |", "|---|---|---|---|",
-             f"| conjugate gradients, Jacobi-preconditioned (the default here, `iterative.fast_steps`) | "
-             f"{slv['cg']['steps']:.0f} | {slv['cg']['ms']:,.0f} | {slv['cg']['residual']:.1e} |",
-             f"| Chebyshev, Jacobi-preconditioned (the default before; QuadGraph levels and the GPU keep it) | "
+             f"| conjugate gradients, Jacobi + coarse space (the default here, `iterative.fast_steps`; set-up "
+             f"included) | {slv['cg']['steps']:.0f} | {slv['cg']['ms']:,.0f} | {slv['cg']['residual']:.1e} |",
+             f"| conjugate gradients, Jacobi-preconditioned (the default before) | "
+             f"{slv['cg_jacobi']['steps']:.0f} | {slv['cg_jacobi']['ms']:,.0f} | {slv['cg_jacobi']['residual']:.1e} |",
+             f"| Chebyshev, Jacobi-preconditioned (QuadGraph levels and the GPU keep it) | "
              f"{slv['chebyshev']['steps']:.0f} | {slv['chebyshev']['ms']:,.0f} | {slv['chebyshev']['residual']:.1e} |",
              "", f"Solve tolerance at {n:,} particles (warm frames, errors against a direct sparse solve of the same "
              f"frame; the exact radiance itself changes by {tol['flicker']:.1%} on average from one jittered frame to "
@@ -448,7 +478,7 @@ def main(argv=None):
     ap.add_argument("--one", type=int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--extra", choices=("tol", "sampling", "solvers"), default=None, help=argparse.SUPPRESS)
     ap.add_argument("--paths", type=int, default=None, help=argparse.SUPPRESS)
-    ap.add_argument("--baseline", default=None, help="another checkout: its cells timed against this tree's")
+    ap.add_argument("--baseline", default=None, help="another checkout: its cells and frames timed against this tree's")
     ap.add_argument("--cells", nargs=2, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.cells is not None:
