@@ -50,10 +50,12 @@ def outgoing_radiance(jplus: np.ndarray, cos_o, eta: float) -> np.ndarray:
     graphs finer than a transport mean free path, and in strong absorbers.
     The clamp removes no light from lit regions; the power it would add is
     taken back by :func:`clamp_scale` (every backend's output: ``DiffusionSolver.output_clamp``).
+    ``cos_o`` (n,) per point, or one number for all of them (the view along the normal: 1).
     """
     ft = fresnel_transmittance(np.clip(cos_o, 0.0, 1.0), eta)
     ft = np.where(np.asarray(cos_o) > 0, ft, 0.0)
-    return jplus * (ft / (np.pi * eta * eta))[:, None]
+    f = ft / (np.pi * eta * eta)
+    return jplus * (f[:, None] if np.ndim(f) else f)  # one cosine for every point (seen along the normal)
 
 
 def mapping_operator(idx, w, n_nodes: int):

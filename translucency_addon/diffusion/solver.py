@@ -628,9 +628,12 @@ class DiffusionSolver:
                                     idx, w, cos_o, beam_in_volume=in_volume, local=transported)
         shape, single = terms[:2]
         if transported:
-            c = np.ones(len(shape)) if cos_o is None else cos_o
-            unit = outgoing_radiance(np.ones((len(c), 1)), c, self.eta)  # L per unit J+: the output power
-            power = np.where(unit > 0, (1.0 - self.fdr) * np.asarray(L) / np.where(unit > 0, unit, 1.0), 0.0)
+            c = 1.0 if cos_o is None else cos_o  # along the normal: one cosine, one factor for every point
+            unit = outgoing_radiance(np.ones((np.size(c), 1)), np.atleast_1d(c), self.eta)  # L per unit J+
+            if cos_o is None:
+                power = (1.0 - self.fdr) * np.asarray(L) / unit[0, 0] if unit[0, 0] > 0 else np.zeros_like(L)
+            else:
+                power = np.where(unit > 0, (1.0 - self.fdr) * np.asarray(L) / np.where(unit > 0, unit, 1.0), 0.0)
             shape = half_space_split(self.eta).with_transported(shape, terms[2], power, c)
         if on.all():  # in the terms' own (new) arrays: per render-mesh vertex, each temporary costs
             shape *= L
@@ -878,7 +881,8 @@ class DiffusionSolver:
         """
         (j_v,) = map_to_points(idx, w, self.surface_partial_current(result))
         n = np.asarray(normals, dtype=np.float64)
-        cos_o = np.ones(len(n)) if view_dirs is None else np.einsum("vj,vj->v", n, view_dirs)
+        # along the normal one cosine serves every point: no Fresnel factor per render-mesh vertex
+        cos_o = 1.0 if view_dirs is None else np.einsum("vj,vj->v", n, view_dirs)
         return self.split_radiance_at(result, outgoing_radiance(j_v, cos_o, self.eta), idx, w, normals, view_dirs,
                                       transported)
 

@@ -564,12 +564,22 @@ class HalfSpaceSplit:
     def with_transported(self, shape, local, out_power, cos_o) -> np.ndarray:
         """Eq. (9): the output's shape where the diffusion sends out ``out_power`` (n, C; ``(1 - F_dr) J+``) of
         which ``local`` (:meth:`local_return`) is the half-space's return of the point's own light, with the
-        split's ``shape`` (eqs. 4, 6); the rest, carried from elsewhere, leaves with :meth:`transported_shape`."""
+        split's ``shape`` (eqs. 4, 6); the rest, carried from elsewhere, leaves with :meth:`transported_shape`.
+        ``cos_o`` (n,) per point or one number for all."""
         P = np.asarray(out_power, dtype=np.float64)
-        rest = np.maximum(P - local, 0.0)
+        rest = np.subtract(P, local)
+        np.maximum(rest, 0.0, out=rest)
         tot = np.maximum(P, local)
-        c = self.transported_shape(cos_o)[:, None]
-        return np.where(tot > 0, (shape * (tot - rest) + c * rest) / np.where(tot > 0, tot, 1.0), shape)
+        c = np.asarray(self.transported_shape(cos_o))
+        out = np.subtract(tot, rest)  # per render-mesh vertex: in place, each temporary costs
+        out *= shape
+        rest *= c[:, None] if c.ndim else c
+        out += rest
+        ok = tot > 0
+        np.divide(out, tot, out=out, where=ok)
+        if not ok.all():
+            out[~ok] = np.broadcast_to(shape, out.shape)[~ok]
+        return out
 
     def output_terms(self, q, alpha, cos_o, beam=None, beam_in_volume: bool = False):
         """``(shape, single)`` at points seen at outside cosine ``cos_o``: the factor c on the diffusion's
