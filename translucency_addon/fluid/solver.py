@@ -10,7 +10,9 @@ engine's one solver:
 3. :func:`.cellgraph.build_graph` -- the cells as a graph of the contract;
 4. :class:`FluidDiffusionSolver`, the :class:`~..diffusion.DiffusionSolver`
    itself on a one-level :class:`FluidFrame`: the same ``assemble``, light
-   pass (``lights.incident_flux`` with shadow rays), Chebyshev solve with its
+   pass (``lights.incident_flux`` with shadow rays), default solve (conjugate
+   gradients on a cell graph, with a coarse space from 8,000 nodes:
+   ``iterative.fast_steps``, ``diffusion/coarse_space.py``) with its
    maximum-principle and energy-balance guard (sparse LU fallback),
    relative-residual stop and output (J+ clamp, corrected eq. 4/7).  Only two
    helpers of the light pass differ for a fluid: the occluder for shadow rays
