@@ -192,14 +192,9 @@ def run_solvers(n: int) -> dict:
     finally:
         iterative.SOLVER_FUNCTIONS["fast"] = fast
     rows = {"cg": [], "cg_jacobi": [], "chebyshev": []}
-    coarse = iterative.coarse_space
 
     def jacobi_cg(*args):  # CG without its coarse space (diffusion/coarse_space.py): Jacobi alone
-        iterative.coarse_space = lambda *_: None
-        try:
-            return iterative.solve_cg(*args)
-        finally:
-            iterative.coarse_space = coarse
+        return iterative.solve_cg(*args, coarse=False)
 
     for args in captured[1:]:
         for name, fn in (("cg", iterative.solve_cg), ("cg_jacobi", jacobi_cg),

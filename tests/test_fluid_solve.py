@@ -83,6 +83,16 @@ def test_one_solver_for_every_graph():
     np.testing.assert_allclose(pb["out"], pb["in"], rtol=1e-9)
 
 
+def jittered_frames(radius, seed):
+    """Two frames of a skim-milk ball of particles (spacing and radius 1, the sun and the white world): the
+    lattice cold, then jittered by 10 % of the spacing and warm-started from it.  ``(first, second)``."""
+    P0 = ball_of_particles(radius, 1.0)
+    rng = np.random.default_rng(seed)
+    fs = FluidSolver(material_from_preset("skimmilk"), 1.0, 1.0)
+    r0 = fs.solve(P0, lights=SUN, environment=ENV1)
+    return r0, fs.solve(P0 + rng.uniform(-0.1, 0.1, P0.shape), lights=SUN, environment=ENV1, warm_start=r0.state)
+
+
 def test_the_default_solve_of_a_fluid_frame_is_cg_and_needs_fewer_steps_than_chebyshev():
     """Issue 34, item 3: the cells' graph has 13-15 links per cell, where conjugate gradients beat Chebyshev
     (``iterative.fast_steps``).  The frame's default solve is CG: its steps are CG's on the same system (not
@@ -91,11 +101,7 @@ def test_the_default_solve_of_a_fluid_frame_is_cg_and_needs_fewer_steps_than_che
     A QuadGraph level (4-5 links per node) keeps Chebyshev (tests/test_diffusion.py)."""
     from translucency_addon.diffusion import iterative
 
-    P0 = ball_of_particles(6.0, 1.0)
-    rng = np.random.default_rng(3)
-    fs = FluidSolver(material_from_preset("skimmilk"), 1.0, 1.0)
-    r0 = fs.solve(P0, lights=SUN, environment=ENV1)
-    r1 = fs.solve(P0 + rng.uniform(-0.1, 0.1, P0.shape), lights=SUN, environment=ENV1, warm_start=r0.state)
+    _, r1 = jittered_frames(6.0, 3)
     system = r1.diffusion.systems[0]
     assert iterative.links_per_node(system) >= iterative.CG_MIN_LINKS
     b = system.rhs(r1.solve.q[0])

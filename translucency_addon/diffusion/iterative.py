@@ -254,12 +254,12 @@ def chebyshev_steps(system, b, x0, tol, max_iter, check_every=8):
     return x, LevelSolve(it, res, hist, time.perf_counter() - t0)
 
 
-def solve_cg(system, b, x0, tol, max_iter, check_every=8) -> tuple[np.ndarray, LevelSolve]:
-    """Jacobi-preconditioned conjugate gradients: :func:`cg_steps` run to its end."""
-    return drain(cg_steps(system, b, x0, tol, max_iter, check_every))
+def solve_cg(system, b, x0, tol, max_iter, check_every=8, coarse: bool = True) -> tuple[np.ndarray, LevelSolve]:
+    """Preconditioned conjugate gradients: :func:`cg_steps` run to its end."""
+    return drain(cg_steps(system, b, x0, tol, max_iter, check_every, coarse))
 
 
-def cg_steps(system, b, x0, tol, max_iter, check_every=8):
+def cg_steps(system, b, x0, tol, max_iter, check_every=8, coarse: bool = True):
     """Preconditioned conjugate gradients (Saad Alg. 9.1), per channel, as a generator.
 
     Solves ``A x = b`` for the symmetric M-matrix of the finite-volume scheme (:mod:`.assembly`; the
@@ -268,7 +268,8 @@ def cg_steps(system, b, x0, tol, max_iter, check_every=8):
     ``z = M^-1 r``, ``p = z + (r.z)_new / (r.z) p``, all channels in one fused sparse product per step
     (:class:`.sweeps.SweepOperator`, fp64: CG's recurrences lose their orthogonality in fp32).  M^-1 is
     Jacobi's ``D^-1`` plus, on graphs of some thousands of nodes, the coarse correction
-    ``P A_c^-1 P^T`` of :mod:`.coarse_space` (fewer than half the steps on a fluid frame).
+    ``P A_c^-1 P^T`` of :mod:`.coarse_space` (fewer than half the steps on a fluid frame; ``coarse=False``:
+    Jacobi alone, for comparisons).
 
     Why the CPU's default over :func:`chebyshev_steps` on this scheme: Chebyshev needs the spectrum's
     interval and takes the steps that interval asks for whatever the start; CG adapts to the right-hand
@@ -282,12 +283,12 @@ def cg_steps(system, b, x0, tol, max_iter, check_every=8):
     """
     t0 = time.perf_counter()
     op = system.sweep_operator(np.float64)
-    coarse = coarse_space(system, op)
+    space = coarse_space(system, op) if coarse else None
 
     def precondition(R, Z):  # Z = M^-1 R: Jacobi, plus the coarse correction where the graph has one
         np.multiply(R, op.inv_diag, out=Z)
-        if coarse is not None:
-            coarse.add_correction(R, Z)
+        if space is not None:
+            space.add_correction(R, Z)
 
     def true_residual(X):  # b - A x, channel-major
         R = op.to_cm(b)

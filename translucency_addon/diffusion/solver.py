@@ -629,11 +629,8 @@ class DiffusionSolver:
         shape, single = terms[:2]
         if transported:
             c = 1.0 if cos_o is None else cos_o  # along the normal: one cosine, one factor for every point
-            unit = outgoing_radiance(np.ones((np.size(c), 1)), np.atleast_1d(c), self.eta)  # L per unit J+
-            if cos_o is None:
-                power = (1.0 - self.fdr) * np.asarray(L) / unit[0, 0] if unit[0, 0] > 0 else np.zeros_like(L)
-            else:
-                power = np.where(unit > 0, (1.0 - self.fdr) * np.asarray(L) / np.where(unit > 0, unit, 1.0), 0.0)
+            unit = outgoing_radiance(np.ones((np.size(c), 1)), c, self.eta)  # L per unit J+: (n, 1) or (1, 1)
+            power = np.where(unit > 0, (1.0 - self.fdr) * np.asarray(L) / np.where(unit > 0, unit, 1.0), 0.0)
             shape = half_space_split(self.eta).with_transported(shape, terms[2], power, c)
         if on.all():  # in the terms' own (new) arrays: per render-mesh vertex, each temporary costs
             shape *= L
