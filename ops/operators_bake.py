@@ -275,7 +275,7 @@ class BakeJob:
         messages += [('WARNING', f"'{obj.name}': {w}") for w in warnings]
         if turned_on:
             messages.append(('INFO', f"'{obj.name}': Single Scattering was off; it is baked and turned on because "
-                                     f"{self.needs_ss} (without it those channels would render black); turn it "
+                                     f"{self.needs_ss}; turn it "
                                      "off in the Translucency panel to leave it out"))
         if s.packed_cache:  # the packed copy follows the bake
             name, size = cache_files.pack_cache(obj)

@@ -349,6 +349,36 @@ def test_single_scattering_replaces_diffusion_only_where_it_is_invalid(finned):
     assert "turn it on to use it" in describe_plan(off)
 
 
+def test_diffusion_is_blended_with_single_scattering_near_its_albedo_limit():
+    """Between ALBEDO_MIN (0.5) and ALBEDO_FULL (0.6) diffusion's weight rises linearly from 0 to 1 and single
+    scattering takes the rest (issue 30: diffusion alone is +7.9 % at 0.51, single scattering with the orders
+    after the first -3.6 % at 0.49 against a random walk); outside the band one pass has it all.  Without the
+    single-scattering bake diffusion runs alone and the plan says what the bake would add."""
+    from translucency_addon.frame import single_scattering_needed
+    from translucency_addon.planner import ALBEDO_FULL, ALBEDO_MIN
+
+    b = baked("sphere", mm_per_unit=15.0)
+
+    def grey(a):
+        return Material(Medium((1.0 - a,) * 3, (a,) * 3, "grey"), None, 1.3)
+
+    for a, w in ((0.45, 0.0), (0.52, 0.2), (0.55, 0.5), (0.58, 0.8), (0.65, 1.0)):
+        plan = plan_object(b, grey(a), SUN, None, has_single_scattering=True, name="grey")
+        w_ms, w_ss = (plan.vertex_weights(k, *b.vertex_map) for k in ("multiple", "single"))
+        np.testing.assert_allclose(w_ms, w, atol=1e-9, err_msg=f"alpha' {a}")
+        np.testing.assert_allclose(w_ms + w_ss, 1.0, atol=1e-9)
+        assert plan.replaces_diffusion("single") == ((True,) * 3 if w < 1.0 else (False,) * 3)
+        if 0.0 < w < 1.0:
+            text = describe_plan(plan)
+            assert f"blended with single scattering where reduced albedo between {ALBEDO_MIN} and {ALBEDO_FULL}" \
+                in text and "100 % of the surface" in text, text
+            assert single_scattering_needed(grey(a), 30.0).startswith("grey has a reduced albedo of")
+    assert single_scattering_needed(grey(0.65), 30.0) == ""
+    alone = plan_object(b, grey(0.55), SUN, None, has_single_scattering=False, name="grey")
+    assert alone.multiple.weights is None and alone.multiple.channels == (True, True, True)
+    assert "better: RGB: single scattering would be more accurate on 100 % of the surface" in describe_plan(alone)
+
+
 def test_nothing_runs_only_when_no_pass_returns_light():
     """An absorber (reduced albedo 0.1) with no single scattering: the skip says why, in numbers."""
     b = baked("sphere", mm_per_unit=15.0)

@@ -153,17 +153,19 @@ def lights_at_quality(lights, quality: str) -> tuple:
 
 
 def single_scattering_needed(material, thickness_mm: float) -> str:
-    """Why this material needs single scattering baked ('' when diffusion holds): the planner's own
-    criteria (``planner.ALBEDO_MIN``, ``THICK_MIN``) on the material's media before any bake.
+    """Why this material needs single scattering baked ('' when diffusion holds alone): the planner's own
+    criteria (``planner.ALBEDO_MIN``, ``ALBEDO_FULL``, ``THICK_MIN``) on the material's media before any bake.
 
-    Where a medium's reduced albedo is below ``ALBEDO_MIN`` in a channel, or the object
-    (``thickness_mm``: its smallest extent) is thinner than ``THICK_MIN`` transport mean free paths,
-    the planner hands that channel to single scattering; without its bake the channel renders black
-    (diffusion there returns a fraction of the light, or several times too much).  A bake asks this
-    first, so no default scene renders black because a pass was not baked.
+    Where a medium's reduced albedo is below ``ALBEDO_MIN`` in a channel, or the object (``thickness_mm``:
+    its smallest extent) is thinner than ``THICK_MIN`` transport mean free paths, the planner hands that
+    channel to single scattering; without its bake the channel renders black (diffusion there returns a
+    fraction of the light, or several times too much).  Between ``ALBEDO_MIN`` and ``ALBEDO_FULL`` the
+    planner blends diffusion with single scattering (``planner_rules.diffusion_weight``); without its bake
+    diffusion runs alone there, up to 8 % too bright.  A bake asks this first, so no default scene renders
+    black, or less accurate than it could, because a pass was not baked.
     """
     from .scene.materials import reduced_albedo
-    from .planner import ALBEDO_MIN, THICK_MIN
+    from .planner import ALBEDO_FULL, ALBEDO_MIN, THICK_MIN
 
     media = [material.medium_a] + ([material.medium_b] if material.medium_b is not None else [])
     names = "RGB"
@@ -173,13 +175,19 @@ def single_scattering_needed(material, thickness_mm: float) -> str:
         low = [names[c] for c in range(3) if alpha[c] < ALBEDO_MIN]
         if low:
             return (f"{m.name or 'the medium'} has a reduced albedo of {min(alpha):.2f} (below {ALBEDO_MIN}) in "
-                    f"{', '.join(low)}: diffusion does not hold there")
+                    f"{', '.join(low)}: diffusion does not hold there (without single scattering those channels "
+                    "would render black)")
         l_tr = 1.0 / (sa + ss)  # transport mean free path, mm
         thin = [names[c] for c in range(3) if thickness_mm < THICK_MIN * l_tr[c]]
         if thin:
             return (f"the object ({thickness_mm:.3g} mm thin) is thinner than {THICK_MIN:g} transport mean free "
                     f"path ({max(l_tr):.3g} mm) of {m.name or 'the medium'} in {', '.join(thin)}: diffusion "
-                    "does not hold there")
+                    "does not hold there (without single scattering those channels would render black)")
+        near = [names[c] for c in range(3) if alpha[c] < ALBEDO_FULL]
+        if near:
+            return (f"{m.name or 'the medium'} has a reduced albedo of {min(alpha):.2f} in {', '.join(near)}, "
+                    f"between {ALBEDO_MIN} and {ALBEDO_FULL}: diffusion is blended with single scattering there "
+                    "(alone it would be up to 8 % too bright)")
     return ""
 
 

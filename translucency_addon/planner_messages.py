@@ -33,7 +33,12 @@ def _where(region: Region) -> str:
         parts.append(f"thinner than {region.thinner_than_mm:.2g} mm ({region.thick_min:g} transport mean free path)")
     if region.low_share > 0:
         parts.append(f"reduced albedo below {region.albedo_min}")
-    return " or ".join(parts) + f": {_pct(region.fraction)} of the surface"
+    text = " or ".join(parts) + f": {_pct(region.fraction)} of the surface" if parts else ""
+    if region.blend_share > 0:
+        blend = (f"reduced albedo between {region.albedo_min} and {region.albedo_full} (diffusion's weight rising "
+                 f"from 0 to 1 across it): {_pct(region.blend_share)} of the surface")
+        text = f"{text}; and blended with it where {blend}" if text else blend
+    return text
 
 
 def _invalid(r: Reason) -> str:
@@ -56,6 +61,8 @@ def _text(r: Reason) -> str:
     if w is Why.VALID_IN_REGION:
         return (f"diffusion valid on {_pct(r.value(VALID_SHARE))} of the surface; single "
                 f"scattering replaces it where {_where(r.region)}")
+    if w is Why.VALID_BLENDED:
+        return f"diffusion valid (reduced albedo {r.value(ALBEDO):.3f}); blended with single scattering where {_where(r.region)}"
     if w is Why.DOUBTFUL_IN_REGION:
         return f"diffusion doubtful where {_where(r.region)}; it runs there too"
     if w is Why.DOUBTFUL_EVERYWHERE:
@@ -88,6 +95,8 @@ def _text(r: Reason) -> str:
         return "the valid term where diffusion is not"
     if w is Why.REPLACES_IN_REGION:
         return f"the valid term where diffusion is not ({_where(r.region)})"
+    if w is Why.BLENDS:
+        return f"blended with diffusion where {_where(r.region)}"
     if w is Why.NOT_BAKED:
         return "not baked"
     if w is Why.TURNED_OFF:
