@@ -102,3 +102,31 @@ def test_a_coarse_operator_that_is_not_positive_definite_leaves_jacobi_alone():
     assert cs.coarse_space(system, flipped) is None
     system.cache.pop("coarse_space", None)
     assert cs.coarse_space(system, op) is not None
+
+
+@pytest.mark.parametrize("coarse", [True, False])
+def test_the_compiled_cg_step_is_the_numpy_step(coarse):
+    """diffusion/compiled_cg.py's two passes per step (z never formed: r.z = r.D^-1 r + (P^T r).y) against
+    cg_steps's numpy step: the same iterates to rounding at every step, the same step count, the same
+    answer; with and without the coarse space (one aggregate whose value stays 0)."""
+    from translucency_addon.diffusion import compiled_cg
+
+    if compiled_cg.available():
+        pytest.skip(f"the compiled CG step cannot run here: {compiled_cg.available()}")
+    system, b, x0 = _frame()
+    runs = {}
+    for compiled in (True, False):
+        gen = iterative.cg_steps(system, b, x0, 1e-8, 400, coarse=coarse, compiled=compiled)
+        its = []
+        try:
+            while True:
+                its.append(next(gen)())
+        except StopIteration as stop:
+            runs[compiled] = (its, stop.value)
+    (it_c, (x_c, info_c)), (it_n, (x_n, info_n)) = runs[True], runs[False]
+    assert info_c.iterations == info_n.iterations == len(it_c) == len(it_n) > 5
+    scale = np.abs(x_n).max()
+    for k in (0, len(it_n) // 2, len(it_n) - 1):
+        np.testing.assert_allclose(it_c[k], it_n[k], rtol=0, atol=1e-9 * scale, err_msg=f"step {k}")
+    np.testing.assert_allclose(x_c, x_n, rtol=0, atol=1e-10 * scale)
+    assert info_c.residual.max() <= 1e-8 and info_c.seconds > 0

@@ -186,7 +186,32 @@ def test_the_operator_bakes_sky_visibility_and_solves_with_the_bounce(blender, a
     assert np.abs(written - with_bounce).max() < 0.1 * gap, (np.abs(written - with_bounce).max(), gap)
 
 
-def test_one_block_solve_equals_the_two_passes_and_a_direct_solve(torus_bake):
+@pytest.fixture(params=["block Chebyshev", "block by block, CG"])
+def block_solve(request, monkeypatch):
+    """Both ways the finest level's block system (1) is solved (interreflection.py): the block Chebyshev
+    iteration, and forward substitution with CG per block, the default on levels of
+    iterative.CG_MIN_NODES nodes and more (lowered here to the torus's) where the compiled CG step runs.
+    Yields a list that counts the block-by-block solves, so a test can check its path ran."""
+    from translucency_addon.diffusion import compiled_cg, interreflection, iterative
+
+    calls = []
+    if request.param == "block Chebyshev":
+        monkeypatch.setattr(iterative, "CG_MIN_NODES", 1 << 40)
+    else:
+        if compiled_cg.available():
+            pytest.skip(f"the compiled CG step cannot run here: {compiled_cg.available()}")
+        monkeypatch.setattr(iterative, "CG_MIN_NODES", 0)
+        inner = interreflection._block_by_block
+
+        def counted(*a, **k):
+            calls.append(1)
+            return (yield from inner(*a, **k))
+
+        monkeypatch.setattr(interreflection, "_block_by_block", counted)
+    yield request.param, calls
+
+
+def test_one_block_solve_equals_the_two_passes_and_a_direct_solve(torus_bake, block_solve):
     """interreflection.py: the bounce folded into one Chebyshev solve gives the two passes' answer
     (the plain solve, then the solve with ``bounce=`` its vertex radiance: the old path, which does
     not use interreflection.py) and the sparse LU of the 2N block system."""
@@ -218,9 +243,10 @@ def test_one_block_solve_equals_the_two_passes_and_a_direct_solve(torus_bake):
         phi1 = direct[block.n:]
         assert np.abs(phi1 - res.phi[-1][:, c]).max() < 1e-8 * np.abs(phi1).max()
         assert np.abs(direct[:block.n] - res.first_pass[:, c]).max() < 1e-8 * np.abs(phi1).max()
+    assert bool(block_solve[1]) == (block_solve[0] == "block by block, CG")
 
 
-def test_a_frame_does_not_depend_on_the_frame_before(torus_bake):
+def test_a_frame_does_not_depend_on_the_frame_before(torus_bake, block_solve):
     """Warm-started from another frame's pair, a frame converges to its own answer."""
     from translucency_addon.scene.lights import Light
 
@@ -231,9 +257,10 @@ def test_a_frame_does_not_depend_on_the_frame_before(torus_bake):
     warm_res, warm = s.solve_interreflected(now, UNIFORM, warm_start=before)
     assert len(warm_res.level_solves) == 1  # the finest level only, from the previous pair
     assert np.abs(warm - cold).max() < 1e-6 * cold.max()
+    assert bool(block_solve[1]) == (block_solve[0] == "block by block, CG")
 
 
-def test_one_block_solve_carries_the_first_scatter_split(torus_bake):
+def test_one_block_solve_carries_the_first_scatter_split(torus_bake, block_solve):
     """(1') of interreflection.py: with the split on (the planner's default for marble), the one block
     solve gives the two passes of the split solve, which differ from the solve without the split."""
     from scipy.sparse.linalg import splu
@@ -269,3 +296,4 @@ def test_one_block_solve_carries_the_first_scatter_split(torus_bake):
     for c in range(3):
         direct = splu(block.matrix(c).tocsc()).solve(np.concatenate([B[:, c], B[:, 3 + c]]))
         assert np.abs(direct[block.n:] - res.phi[-1][:, c]).max() < 1e-8 * np.abs(direct[block.n:]).max()
+    assert bool(block_solve[1]) == (block_solve[0] == "block by block, CG")

@@ -80,6 +80,11 @@ class CoarseSpace:
             y = self.factors[c].solve(np.bincount(self.agg, r, self.n_agg))  # A_c^-1 P^T r
             Z[c] += np.take(y, self.agg)  # P y
 
+    def solve(self, sums: np.ndarray) -> np.ndarray:
+        """``A_c^{-1} s`` per channel for the aggregate sums ``s = P^T r`` (C, n_agg) (the compiled CG step's
+        coarse solve, :mod:`.compiled_cg`)."""
+        return np.stack([self.factors[c].solve(np.ascontiguousarray(s)) for c, s in enumerate(sums)])
+
 
 def coarse_space(system, op) -> CoarseSpace | None:
     """The system's :class:`CoarseSpace` for the operator ``op`` (cached on the system), or None where the

@@ -85,7 +85,7 @@ import scipy.sparse as sp
 
 from . import kernels
 from ..scene.fresnel import fresnel_transmittance
-from .iterative import LevelSolve, chebyshev_steps, drain, lit_channels, relay, start_image
+from .iterative import LevelSolve, cg_steps, chebyshev_steps, drain, lit_channels, prefers_cg, relay, start_image
 from .spectral import deflation, spectral_bounds
 from .sweeps import SweepOperator
 
@@ -392,9 +392,13 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
     X[:, ~lit_channels(B)] = 0.0  # no light in a channel: the answer is exactly 0 (solve_systems)
     if X.any():  # the start is an image already, before the iteration's set-up (its fp64 true residual)
         yield start_image(lambda: _bounced_partial(system, qd, X, C, cols, fine, partial, direct))
-    steps = chebyshev_steps(system, B, X, solver.level_tolerance(fine), opts.max_iterations, opts.check_every)
-    x, info = yield from relay(steps, lambda get: lambda: _bounced_partial(system, qd, get(), C, cols, fine, partial,
-                                                                           direct))
+    tol = solver.level_tolerance(fine)
+    if opts.solver == "fast" and prefers_cg(base):
+        x, info = yield from _block_by_block(system, base, B, X, C, tol, opts, qd, cols, fine, partial, direct)
+    else:
+        steps = chebyshev_steps(system, B, X, tol, opts.max_iterations, opts.check_every)
+        x, info = yield from relay(steps, lambda get: lambda: _bounced_partial(system, qd, get(), C, cols, fine,
+                                                                               partial, direct))
     phi0, phi1 = x[:, :C], x[:, C:]
     q_dif, q_tot = _entered(system, phi0, qd, direct)
     info = LevelSolve(info.iterations, np.maximum(info.residual[:C], info.residual[C:]), info.history,
@@ -404,6 +408,27 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
     full = kernels.in_channels
     return FinestStep(phi=full(phi1, cols), q=full(q_dif, cols), q_incident=full(q_tot, cols),
                       first_pass=full(phi0, cols), info=info)
+
+
+def _block_by_block(system, base, B, X, C, tol, opts, qd, cols, fine, partial, direct):
+    """(1) block by block, each block by CG (:func:`.iterative.cg_steps`): ``A phi0 = B0``, then
+    ``A phi1 = B1 + K phi0`` -- forward substitution of the lower-triangular system, exact at convergence like
+    the block Chebyshev iteration; each block warm-starts from its part of ``X``.  Where the default solve of
+    A is CG (:func:`.iterative.prefers_cg`) this takes fewer products than the block iteration, which
+    sweeps both blocks every step.  Yields like it (phi1's iterate with the bounce of phi0's; during the
+    first block phi1 is its start); returns ``(x, info)`` with info over both blocks (2C residuals)."""
+    max_iter, every = opts.max_iterations, opts.check_every
+    x1_start = X[:, C:]
+    steps0 = cg_steps(base, np.ascontiguousarray(B[:, :C]), np.ascontiguousarray(X[:, :C]), tol, max_iter, every)
+    x0, info0 = yield from relay(steps0, lambda get: lambda: _bounced_partial(
+        system, qd, np.hstack([get(), x1_start]), C, cols, fine, partial, direct))
+    b1 = B[:, C:] + system.coupling(x0)
+    steps1 = cg_steps(base, b1, np.ascontiguousarray(x1_start), tol, max(max_iter - info0.iterations, 1), every)
+    x1, info1 = yield from relay(steps1, lambda get: lambda: _bounced_partial(
+        system, qd, np.hstack([x0, get()]), C, cols, fine, partial, direct))
+    info = LevelSolve(info0.iterations + info1.iterations, np.concatenate([info0.residual, info1.residual]),
+                      info0.history + info1.history, info0.seconds + info1.seconds)
+    return np.hstack([x0, x1]), info
 
 
 def _entered(system, phi0, qd, direct=None) -> tuple:
