@@ -27,9 +27,11 @@ boxes; under :data:`MIN_NODES` (a 4k-particle frame: 17 steps against 36, 13 ms 
 does not pay: the Preview bunny's finest level (42k nodes) warm 64 Chebyshev sweeps, 52 ms, against 42 CG
 steps, 71 ms, and 31 with the coarse space (512 boxes), 82 ms; the Final bunny's (396k nodes) warm 160 sweeps,
 1.9-2.0 s, against 95 CG steps, 2.3 s, and 52 / 46 / 43 with the coarse space (268 / 869 / 1,587
-aggregates), 1.8 / 1.7 / 1.6 s.  A CG step there costs about three Chebyshev sweeps (fp64, and its vector
-passes outweigh a sparse product of 4-5 links per row), so the coarse space wins back only 10-20 %, and a
-frame with Self-Occlusion solves the bounce's block system, which is not symmetric (Chebyshev's).  Why hand-written: the
+aggregates), 1.8 / 1.7 / 1.6 s.  A CG step there cost about three Chebyshev sweeps in numpy (fp64, and its
+vector passes outweigh a sparse product of 4-5 links per row); with the step's vector work compiled
+(:mod:`.compiled_cg`: two passes) the same level takes 74 steps in 1.07 s against 176 sweeps in 1.75 s, so
+:func:`.iterative.prefers_cg` runs CG with this coarse space on QuadGraph levels of 20,000 nodes and more, and
+the bounce's block system block by block (:mod:`.interreflection`).  Why hand-written: the
 well-kept alternative, PyAMG's smoothed aggregation, is not a dependency of the extension, and its set-up
 per frame (a fluid's graph changes every frame) costs more than the steps it saves at these sizes (issue
 33's measurements); this set-up is a few milliseconds.
