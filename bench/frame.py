@@ -60,7 +60,7 @@ def worker(root: str, quality: str, out: str) -> None:
     s = mk()
     from translucency_addon.diffusion.spectral import deflation, spectral_bounds
 
-    clock = time.process_time  # CPU time of this process: steadier than wall time on a shared machine
+    clock = time.perf_counter  # wall time: the compiled CG step (diffusion/compiled_cg.py) runs on both cores
     t = {}
     t0 = clock()
     for system in s.systems:  # what a new material costs once: bounds, deflation check, sweep layout
@@ -212,6 +212,12 @@ def run_tree(root: Path, quality: str, tag: str) -> dict:
     return rec
 
 
+def commit_of(root: Path) -> str:
+    """The short commit of a checkout (for the table's text)."""
+    out = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    return out.stdout.strip() or "?"
+
+
 def frame_section(baseline: Path | None, qualities) -> tuple[str, list]:
     rows = []
     for q in qualities:
@@ -233,13 +239,15 @@ def frame_section(baseline: Path | None, qualities) -> tuple[str, list]:
                         old["parts_ms"][k] = min(old["parts_ms"][k], v)
         rows.append((q, best))
     lines = ["## A frame with Self-Occlusion (bunny_marble_sky, tol 1e-4)", "",
-             f"Both trees in this run, alternating, best of two: *baseline* = `{baseline}` (today's two passes, "
-             "node-major sweeps), *ours* = this tree (one block solve, `interreflection.py`; sweeps in "
-             "`sweeps.py`).  Command: `nice .venv/bin/python bench/frame.py --baseline OTHER_CHECKOUT`.", "",
-             "Times are CPU ms of the process (`time.process_time`; numpy/scipy run these sweeps on one core), "
-             "steadier than wall time on this shared machine; the wall time of the same runs is in brackets.", "",
+             f"Both trees in this run, alternating, best of two: *baseline* = `{baseline}` "
+             f"({commit_of(baseline) if baseline else '-'}), *ours* = this tree "
+             f"({commit_of(ROOT)}).  Command: `nice .venv/bin/python bench/frame.py --baseline OTHER_CHECKOUT`.", "",
+             "Times are wall ms (`time.perf_counter`; the compiled CG step of `diffusion/compiled_cg.py` runs on "
+             "both cores, so CPU time would count it twice); the CPU ms of the process (`time.process_time`) of "
+             "the same runs are in brackets.  *Finest steps*: the finest level's block sweeps (Chebyshev on the "
+             "block system) or CG steps over both blocks (`interreflection._block_by_block`), per warm frame.", "",
              "| preset | finest nodes | first frame ms: baseline / ours | ratio | warm frame ms: baseline / ours | "
-             "ratio | warm sweeps: baseline (pass 1 + 2) / ours (block) | radiance: max rel. difference |",
+             "ratio | finest steps per warm frame: baseline / ours | radiance: max rel. difference |",
              "|---|---|---|---|---|---|---|---|"]
     for q, b in rows:
         base, ours = b.get("base"), b["ours"]
@@ -248,15 +256,15 @@ def frame_section(baseline: Path | None, qualities) -> tuple[str, list]:
                          f"- / {ours['warm_sweeps']} | - |")
             continue
         diff = float(np.abs(base["L"] - ours["L"]).max() / np.abs(base["L"]).max())
-        lines.append(f"| {q} | {ours['nodes']:,} | {base['first_ms']:,.0f} / {ours['first_ms']:,.0f} "
-                     f"({base['first_wall_ms']:,.0f} / {ours['first_wall_ms']:,.0f}) | "
-                     f"{base['first_ms'] / ours['first_ms']:.2f}x | {base['warm_ms']:,.0f} / {ours['warm_ms']:,.0f} "
-                     f"({base['warm_wall_ms']:,.0f} / {ours['warm_wall_ms']:,.0f}) | "
-                     f"{base['warm_ms'] / ours['warm_ms']:.2f}x | {base['warm_sweeps']} x 2 passes / "
+        lines.append(f"| {q} | {ours['nodes']:,} | {base['first_wall_ms']:,.0f} / {ours['first_wall_ms']:,.0f} "
+                     f"({base['first_ms']:,.0f} / {ours['first_ms']:,.0f}) | "
+                     f"{base['first_wall_ms'] / ours['first_wall_ms']:.2f}x | {base['warm_wall_ms']:,.0f} / "
+                     f"{ours['warm_wall_ms']:,.0f} ({base['warm_ms']:,.0f} / {ours['warm_ms']:,.0f}) | "
+                     f"{base['warm_wall_ms'] / ours['warm_wall_ms']:.2f}x | {base['warm_sweeps']} / "
                      f"{ours['warm_sweeps']} | {diff:.1e} |")
-    lines += ["", "Where the first frame's time goes (today's two passes, run by both trees' code, so the "
-              "sweeps' own speed-up shows; *finest pass* = the finest level's solve; ms):", "",
-              "| preset | part | baseline ms | ours ms | sweeps |", "|---|---|---|---|---|"]
+    lines += ["", "Where the first frame's time goes (the two passes run one after the other by both trees' code; "
+              "*finest pass* = the finest level's solve; wall ms; *steps*: ours, sweeps or CG steps):", "",
+              "| preset | part | baseline ms | ours ms | steps |", "|---|---|---|---|---|"]
     for q, b in rows:
         base, ours = b.get("base"), b["ours"]
         for k, v in ours["parts_ms"].items():

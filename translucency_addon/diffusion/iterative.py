@@ -431,7 +431,7 @@ def fast_steps(system, b, x0, tol, max_iter, check_every=8):
     return chebyshev_steps(system, b, x0, tol, max_iter, check_every)
 
 
-CG_MIN_NODES = 20_000  # nodes from which CG with its compiled step is the default on a QuadGraph level
+CG_MIN_NODES = 50_000  # nodes from which CG with its compiled step is the default on a QuadGraph level
 
 
 def prefers_cg(system) -> bool:
@@ -440,7 +440,9 @@ def prefers_cg(system) -> bool:
     :data:`CG_MIN_NODES` nodes.  Measured on the bunny's QuadGraph levels (3-4 links per node, warm, tol 1e-4,
     2 cores): the Final finest level (402k nodes) 74 compiled CG steps, 1.07 s, against 176 Chebyshev sweeps,
     1.75 s (numpy CG 2.06 s; from zero 1.46 against 2.61 s); 55k nodes 82 against 115 ms; the Preview
-    finest (42k) 42 against 48 ms; 2k-8k nodes 2.7-10.4 against 1.9-8.2 ms (Chebyshev's)."""
+    finest (42k) 42 against 48 ms alone, but with the bounce 87 CG steps over both blocks against 72 block
+    sweeps, a warm frame 145 against 140 ms wall (``bench/frame.py``), hence 50,000; 2k-8k nodes 2.7-10.4
+    against 1.9-8.2 ms (Chebyshev's)."""
     if getattr(system, "scheme", None) != "fv":
         return False
     if links_per_node(system) >= CG_MIN_LINKS:
