@@ -130,3 +130,23 @@ def test_the_compiled_cg_step_is_the_numpy_step(coarse):
         np.testing.assert_allclose(it_c[k], it_n[k], rtol=0, atol=1e-9 * scale, err_msg=f"step {k}")
     np.testing.assert_allclose(x_c, x_n, rtol=0, atol=1e-10 * scale)
     assert info_c.residual.max() <= 1e-8 and info_c.seconds > 0
+
+
+def test_without_the_compiled_step_large_levels_keep_chebyshev_and_cg_its_numpy_step(monkeypatch):
+    """Where numba is missing (macOS x86-64) compiled_cg says so, iterative.prefers_cg keeps Chebyshev on a
+    level of few links however large (its rule for CG there is the compiled step), a fluid's cells (many
+    links) keep CG with the numpy step, and the answer is the same."""
+    from translucency_addon.diffusion import compiled_cg
+
+    system, b, x0 = _frame()
+    x_fast, _ = iterative.solve_cg(system, b, x0, 1e-9, 400)
+    monkeypatch.setattr(compiled_cg, "_KERNEL", {"error": "numba is not installed"})
+    assert compiled_cg.available() == "numba is not installed"
+    assert iterative.prefers_cg(system)  # 14-15 links per cell: CG either way
+    x_numpy, info = iterative.solve_cg(system, b, x0, 1e-9, 400)
+    np.testing.assert_allclose(x_numpy, x_fast, rtol=0, atol=1e-8 * np.abs(x_fast).max())
+    monkeypatch.setattr(iterative, "CG_MIN_LINKS", 1e9)  # as a QuadGraph level (3-4 links) ...
+    monkeypatch.setattr(iterative, "CG_MIN_NODES", 0)  # ... of any size
+    assert not iterative.prefers_cg(system)
+    monkeypatch.setattr(compiled_cg, "_KERNEL", {})  # the kernels load again: CG there
+    assert iterative.prefers_cg(system) == (compiled_cg.available() == "")

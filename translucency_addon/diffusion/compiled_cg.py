@@ -22,9 +22,9 @@ Where numba is missing (macOS x86-64) or fails to compile, :func:`available` say
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
+
+from ..compiled import load_kernels
 
 _KERNEL = {}  # {"update": fn, "direction": fn, "nchunk": int, "first_call_s": float} or {"error": "why not"}
 
@@ -53,23 +53,16 @@ def direction(P, R, inv_diag, y, agg, beta) -> None:
 def _kernel() -> dict:
     """The kernels, imported and run once on a tiny case (numba compiles them, or loads them from its cache);
     ``{"error": why}`` where that fails."""
-    if _KERNEL:
-        return _KERNEL
-    try:
+
+    def load():
         import numba
-    except ImportError:
-        _KERNEL["error"] = "numba is not installed"
-        return _KERNEL
-    t0 = time.perf_counter()
-    try:
+
         from . import cg_kernels as k
 
         nchunk = 4 * max(int(numba.get_num_threads()), 1)
         X, agg = np.zeros((1, 4)), np.zeros(4, dtype=np.int64)
         k.update(X, X.copy(), X.copy(), X.copy(), np.zeros(1), X.copy(), agg, 1, nchunk)
         k.direction(X, X.copy(), X.copy(), np.zeros((1, 1)), agg, np.zeros(1), nchunk)
-    except Exception as ex:  # noqa: BLE001 - any compile failure means the numpy step, with its reason
-        _KERNEL["error"] = f"numba {numba.__version__} could not compile the CG kernels ({type(ex).__name__}: {ex})"
-        return _KERNEL
-    _KERNEL.update(update=k.update, direction=k.direction, nchunk=nchunk, first_call_s=time.perf_counter() - t0)
-    return _KERNEL
+        return dict(update=k.update, direction=k.direction, nchunk=nchunk)
+
+    return load_kernels(_KERNEL, load, "the CG kernels")

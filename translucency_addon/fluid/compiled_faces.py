@@ -40,9 +40,9 @@ them to each other.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
+
+from ..compiled import load_kernels
 
 _KERNEL = {}  # the compiled kernel, built at the first call ({"fn": ...} or {"error": "why not"})
 
@@ -134,24 +134,14 @@ def first_call_seconds() -> float:
 def _kernel() -> dict:
     """The kernels, imported and run once on a tiny case (numba compiles them, or loads them from its
     cache, at their first call: timed for the log); ``{"error": why}`` where that fails."""
-    if _KERNEL:
-        return _KERNEL
-    try:
-        import numba
-    except ImportError:
-        _KERNEL["error"] = "numba is not installed"
-        return _KERNEL
-    t0 = time.perf_counter()
-    try:
+
+    def load():
         from . import compiled_kernels as k
 
         _warm_up(k)
-    except Exception as ex:  # noqa: BLE001 - any compile failure means the numpy path, with its reason
-        _KERNEL["error"] = f"numba {numba.__version__} could not compile the kernel ({type(ex).__name__}: {ex})"
-        return _KERNEL
-    _KERNEL.update(fn=k.faces, sort=k.sort_rows, frames=k.frames, voxels=k.ball_voxels, lists=k.neighbour_lists,
-                   first_call_s=time.perf_counter() - t0)
-    return _KERNEL
+        return dict(fn=k.faces, sort=k.sort_rows, frames=k.frames, voxels=k.ball_voxels, lists=k.neighbour_lists)
+
+    return load_kernels(_KERNEL, load, "the kernel")
 
 
 def ball_voxels():
