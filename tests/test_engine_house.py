@@ -26,7 +26,7 @@ FLOORS = (
     ("diffusion",),
     ("scene",),
     ("geometry",),
-    ("errors", "__init__"),
+    ("errors", "compiled", "__init__"),
 )
 
 

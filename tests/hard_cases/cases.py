@@ -45,8 +45,9 @@ Tolerances, and why:
 * CPU vs GPU (fp32): max |L_gpu - L_cpu| / max L_cpu <= ``GPU_TOL`` = 1e-4,
   the tolerance of tests/test_gpu_solver.py, or the fp32 floor where that
   is larger (:func:`residual_floor`), or twice the CPU's measured distance
-  from the direct solve (two iterates stopped at the same residual differ by
-  up to that: the slivers); the GPU's convergence is judged
+  from the direct solve, the larger of its default's (CG on large levels)
+  and its Chebyshev iterate's, the GPU's method (two iterates stopped at the
+  same residual differ by up to that: the slivers); the GPU's convergence is judged
   against the same floor.  Both outputs apply the same power-preserving
   clamp (``DiffusionSolver.output_clamp``), so the radiance is compared as it is.
 * fp16 storage: ``FP16_TOL`` = 3e-3 (coefficients and q rounded to 11
