@@ -419,17 +419,20 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
 def _block_by_block(system, base, B, X, C, tol, opts, qd, cols, fine, partial, direct):
     """(1) block by block, each block by CG (:func:`.iterative.cg_steps`): ``A phi0 = B0``, then
     ``A phi1 = B1 + K phi0`` -- forward substitution of the lower-triangular system, exact at convergence like
-    the block Chebyshev iteration; each block warm-starts from its part of ``X``.  Where the default solve of
-    A is CG (:func:`.iterative.prefers_cg`) this takes fewer products than the block iteration, which
-    sweeps both blocks every step.  Yields like it (phi1's iterate with the bounce of phi0's; during the
-    first block phi1 is its start); returns ``(x, info)`` with info over both blocks (2C residuals)."""
+    the block Chebyshev iteration.  phi0 warm-starts from its part of ``X``; phi1 from phi0's answer plus
+    the start's ``phi1 - phi0`` (the last frame's bounce, which a light move changes less than phi0), and
+    so, while phi0 is solved, the image shows phi0's iterate plus that bounce (phi1's start alone would
+    hold the last frame's image until the second block: at Final 3.5 s to come within 5 %, against 0.16 s
+    for the block iteration, ``bench.progressive``).  Where the default solve of A is CG
+    (:func:`.iterative.prefers_cg`) this takes fewer products than the block iteration, which sweeps both
+    blocks every step.  Returns ``(x, info)`` with info over both blocks (2C residuals)."""
     max_iter, every = opts.max_iterations, opts.check_every
-    x1_start = X[:, C:]
+    bounce = X[:, C:] - X[:, :C]  # the start's phi1 - phi0
     steps0 = cg_steps(base, np.ascontiguousarray(B[:, :C]), np.ascontiguousarray(X[:, :C]), tol, max_iter, every)
     x0, info0 = yield from relay(steps0, lambda get: lambda: _bounced_partial(
-        system, qd, np.hstack([get(), x1_start]), C, cols, fine, partial, direct))
+        system, qd, np.hstack([(x := get()), x + bounce]), C, cols, fine, partial, direct))
     b1 = B[:, C:] + system.coupling(x0)
-    steps1 = cg_steps(base, b1, np.ascontiguousarray(x1_start), tol, max(max_iter - info0.iterations, 1), every)
+    steps1 = cg_steps(base, b1, x0 + bounce, tol, max(max_iter - info0.iterations, 1), every)
     x1, info1 = yield from relay(steps1, lambda get: lambda: _bounced_partial(
         system, qd, np.hstack([x0, get()]), C, cols, fine, partial, direct))
     info = LevelSolve(info0.iterations + info1.iterations, np.concatenate([info0.residual, info1.residual]),
