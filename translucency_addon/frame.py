@@ -166,6 +166,7 @@ def single_scattering_needed(material, thickness_mm: float) -> str:
     """
     from .scene.materials import reduced_albedo
     from .planner import ALBEDO_FULL, ALBEDO_MIN, THICK_MIN
+    from .planner_rules import diffusion_weight
 
     media = [material.medium_a] + ([material.medium_b] if material.medium_b is not None else [])
     names = "RGB"
@@ -183,7 +184,7 @@ def single_scattering_needed(material, thickness_mm: float) -> str:
             return (f"the object ({thickness_mm:.3g} mm thin) is thinner than {THICK_MIN:g} transport mean free "
                     f"path ({max(l_tr):.3g} mm) of {m.name or 'the medium'} in {', '.join(thin)}: diffusion "
                     "does not hold there (without single scattering those channels would render black)")
-        near = [names[c] for c in range(3) if alpha[c] < ALBEDO_FULL]
+        near = [names[c] for c in range(3) if diffusion_weight(alpha[c]) < 1.0]  # the planner's blend
         if near:
             return (f"{m.name or 'the medium'} has a reduced albedo of {min(alpha):.2f} in {', '.join(near)}, "
                     f"between {ALBEDO_MIN} and {ALBEDO_FULL}: diffusion is blended with single scattering there "

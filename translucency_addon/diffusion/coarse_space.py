@@ -78,13 +78,12 @@ class CoarseSpace:
 
     def add_correction(self, R: np.ndarray, Z: np.ndarray) -> None:
         """``Z += P A_c^{-1} P^T R`` for channel-major R, Z (C, N)."""
-        for c, r in enumerate(R):
-            y = self.factors[c].solve(np.bincount(self.agg, r, self.n_agg))  # A_c^-1 P^T r
-            Z[c] += np.take(y, self.agg)  # P y
+        y = self.solve(np.stack([np.bincount(self.agg, r, self.n_agg) for r in R]))  # A_c^-1 P^T r
+        Z += np.take(y, self.agg, axis=1)  # P y
 
     def solve(self, sums: np.ndarray) -> np.ndarray:
-        """``A_c^{-1} s`` per channel for the aggregate sums ``s = P^T r`` (C, n_agg) (the compiled CG step's
-        coarse solve, :mod:`.compiled_cg`)."""
+        """``A_c^{-1} s`` per channel for the aggregate sums ``s = P^T r`` (C, n_agg): the coarse solve of
+        :meth:`add_correction` and of the compiled CG step (:mod:`.compiled_cg`)."""
         return np.stack([self.factors[c].solve(np.ascontiguousarray(s)) for c, s in enumerate(sums)])
 
 

@@ -50,6 +50,31 @@ def direction(P, R, inv_diag, y, agg, beta) -> None:
                    np.ascontiguousarray(beta, dtype=np.float64), k["nchunk"])
 
 
+class CompiledStep:
+    """:func:`.iterative.cg_steps`'s vector work in the two compiled passes (its numpy twin:
+    :class:`.iterative.NumpyStep`, the same calls): the coarse space's aggregates (one aggregate whose
+    coarse value stays 0 without one) and the coarse solution ``y`` kept between the two calls of a step."""
+
+    def __init__(self, op, space):
+        self.inv_diag = np.ascontiguousarray(op.inv_diag, dtype=np.float64)
+        self.space = space
+        if space is not None:
+            self.agg, self.n_agg = np.ascontiguousarray(space.agg, dtype=np.int64), space.n_agg
+        else:  # Jacobi alone
+            self.agg, self.n_agg = np.zeros(op.n, dtype=np.int64), 1
+        self.y = None
+
+    def advance(self, X, R, P, Q, alpha) -> tuple:
+        """Pass 1 and the coarse solve; returns ``(|r|^2, r . z)`` per channel, r . z = r . D^-1 r + s . y."""
+        box, sums = update(X, R, P, Q, alpha, self.inv_diag, self.agg, self.n_agg)
+        self.y = self.space.solve(box) if self.space is not None else np.zeros((len(R), 1))
+        return sums[0], sums[1] + np.einsum("ca,ca->c", box, self.y)
+
+    def direction(self, P, R, beta) -> None:
+        """Pass 2: ``p = beta p + D^-1 r + y[aggregate]``."""
+        direction(P, R, self.inv_diag, self.y, self.agg, beta)
+
+
 def _kernel() -> dict:
     """The kernels, imported and run once on a tiny case (numba compiles them, or loads them from its cache);
     ``{"error": why}`` where that fails."""

@@ -286,16 +286,7 @@ def cg_steps(system, b, x0, tol, max_iter, check_every=8, coarse: bool = True, c
     t0 = time.perf_counter()
     op = system.sweep_operator(np.float64)
     space = coarse_space(system, op) if coarse else None
-    if compiled and not compiled_cg.available():
-        steps = _compiled_cg_steps(system, op, space, b, x0, tol, max_iter, check_every)
-        x, info = yield from steps
-        info.seconds = time.perf_counter() - t0
-        return x, info
-
-    def precondition(R, Z):  # Z = M^-1 R: Jacobi, plus the coarse correction where the graph has one
-        np.multiply(R, op.inv_diag, out=Z)
-        if space is not None:
-            space.add_correction(R, Z)
+    step = compiled_cg.CompiledStep(op, space) if compiled and not compiled_cg.available() else NumpyStep(op, space)
 
     def true_residual(X):  # b - A x, channel-major
         R = op.to_cm(b)
@@ -309,29 +300,26 @@ def cg_steps(system, b, x0, tol, max_iter, check_every=8, coarse: bool = True, c
     res = _cm_norms(R) / bn
     hist = [float(res.max())]
     it = restarts = 0
+    P, Q = np.zeros_like(R), np.zeros_like(R)
+    zero = np.zeros(len(R))
     while res.max() > tol and it < max_iter:
-        # (re)started from the true residual: the recursive one drifts from b - A x by rounding
-        Z = np.empty_like(R)
-        precondition(R, Z)
-        P = Z.copy()
-        Q = np.empty_like(R)
-        rz = np.einsum("cn,cn->c", R, Z)
+        # (re)started from the true residual (the recursive one drifts from b - A x by rounding): alpha 0
+        # leaves x and r as they are and gives r . z, and beta 0 makes p = z
+        P[:] = 0.0
+        _, rz = step.advance(X, R, P, Q, zero)
+        step.direction(P, R, zero)
         while it < max_iter:
             Q[:] = 0.0
             op.sub_a(Q, P)  # Q = -A P
             pap = -np.einsum("cn,cn->c", P, Q)
             live = (res > tol) & (pap > 0.0)  # a converged (or source-free) channel stays where it is
             alpha = np.where(live, rz / np.where(live, pap, 1.0), 0.0)
-            X += alpha[:, None] * P
-            R += alpha[:, None] * Q
-            precondition(R, Z)
-            rz_new = np.einsum("cn,cn->c", R, Z)
+            rr, rz_new = step.advance(X, R, P, Q, alpha)
             beta = np.where(live & (rz > 0.0), rz_new / np.where(rz > 0.0, rz, 1.0), 0.0)
-            P *= beta[:, None]
-            P += Z
+            step.direction(P, R, beta)
             rz = rz_new
             it += 1
-            res = np.where(live, _cm_norms(R) / bn, res)
+            res = np.where(live, np.sqrt(rr) / bn, res)
             yield lambda X=X: op.from_cm(X)  # the iterate now (X is updated in place)
             if it % check_every == 0:
                 hist.append(float(res.max()))
@@ -346,68 +334,27 @@ def cg_steps(system, b, x0, tol, max_iter, check_every=8, coarse: bool = True, c
     return op.from_cm(X), LevelSolve(it, res, hist, time.perf_counter() - t0)
 
 
-def _compiled_cg_steps(system, op, space, b, x0, tol, max_iter, check_every):
-    """:func:`cg_steps`'s iteration with each step's vector work in two compiled passes (:mod:`.compiled_cg`):
-    ``x``, ``r`` and, from the new r, ``P_c^T r``, ``|r|^2``, ``r . D^-1 r`` in one; after the coarse solve
-    ``y = A_c^-1 P_c^T r``, ``r . z = r . D^-1 r + (P_c^T r) . y`` and ``p = beta p + D^-1 r + P_c y`` in the
-    other.  The same recurrences as the numpy step (its restarts from the true residual included)."""
-    C, n = op.C, op.n
-    inv_diag = np.ascontiguousarray(op.inv_diag, dtype=np.float64)
-    if space is not None:
-        agg, n_agg = np.ascontiguousarray(space.agg, dtype=np.int64), space.n_agg
-    else:  # Jacobi alone: one aggregate whose coarse value stays 0
-        agg, n_agg = np.zeros(n, dtype=np.int64), 1
+class NumpyStep:
+    """:func:`cg_steps`'s vector work in numpy (and the fallback of :class:`.compiled_cg.CompiledStep`, the
+    same arithmetic in two compiled passes): ``z = M^-1 r`` kept between the two calls of a step."""
 
-    def coarse(sums):
-        return space.solve(sums) if space is not None else np.zeros((C, 1))
+    def __init__(self, op, space):
+        self.op, self.space = op, space
+        self.Z = np.empty((op.C, op.n))
 
-    def true_residual(X):  # b - A x, channel-major
-        R = op.to_cm(b)
-        op.sub_a(R, X)
-        return R
+    def advance(self, X, R, P, Q, alpha) -> tuple:
+        """``x += alpha p``, ``r += alpha q`` (q = -A p), ``z = M^-1 r``; returns ``(|r|^2, r . z)`` per channel."""
+        X += alpha[:, None] * P
+        R += alpha[:, None] * Q
+        np.multiply(R, self.op.inv_diag, out=self.Z)  # Jacobi, plus the coarse correction where there is one
+        if self.space is not None:
+            self.space.add_correction(R, self.Z)
+        return np.einsum("cn,cn->c", R, R), np.einsum("cn,cn->c", R, self.Z)
 
-    X = np.ascontiguousarray(op.to_cm(x0))
-    bn = np.sqrt(kernels.squared_norms(b))
-    bn = np.where(bn > 0, bn, 1.0)
-    R = true_residual(X)
-    res = _cm_norms(R) / bn
-    hist = [float(res.max())]
-    it = restarts = 0
-    zero = np.zeros(C)
-    P, Q = np.zeros_like(R), np.zeros_like(R)
-    while res.max() > tol and it < max_iter:
-        # (re)started from the true residual: alpha 0 leaves x and r as they are and gives r's sums
-        P[:] = 0.0
-        box, sums = compiled_cg.update(X, R, P, Q, zero, inv_diag, agg, n_agg)
-        y = coarse(box)
-        rz = sums[1] + np.einsum("ca,ca->c", box, y)
-        compiled_cg.direction(P, R, inv_diag, y, agg, zero)  # p = z
-        while it < max_iter:
-            Q[:] = 0.0
-            op.sub_a(Q, P)  # Q = -A P
-            pap = -np.einsum("cn,cn->c", P, Q)
-            live = (res > tol) & (pap > 0.0)
-            alpha = np.where(live, rz / np.where(live, pap, 1.0), 0.0)
-            box, sums = compiled_cg.update(X, R, P, Q, alpha, inv_diag, agg, n_agg)
-            y = coarse(box)
-            rz_new = sums[1] + np.einsum("ca,ca->c", box, y)
-            beta = np.where(live & (rz > 0.0), rz_new / np.where(rz > 0.0, rz, 1.0), 0.0)
-            compiled_cg.direction(P, R, inv_diag, y, agg, beta)
-            rz = rz_new
-            it += 1
-            res = np.where(live, np.sqrt(sums[0]) / bn, res)
-            yield lambda X=X: op.from_cm(X)
-            if it % check_every == 0:
-                hist.append(float(res.max()))
-            if not (live & (res > tol)).any():
-                break
-        R = np.ascontiguousarray(true_residual(X))
-        res = _cm_norms(R) / bn
-        hist.append(float(res.max()))
-        restarts += 1
-        if restarts > 5:
-            break
-    return op.from_cm(X), LevelSolve(it, res, hist, 0.0)
+    def direction(self, P, R, beta) -> None:
+        """``p = beta p + z``."""
+        P *= beta[:, None]
+        P += self.Z
 
 
 CG_MIN_LINKS = 8.0  # links per node from which the default solve is CG (fast_steps)
