@@ -399,10 +399,9 @@ def scaling_section(sizes, tol: float) -> str:
                 f()
             dt = (clock() - t0) / k
             times[name] = min(times.get(name, np.inf), dt)
-        m = op.neg_a
         mem = (system.off.nbytes + system.diag.nbytes + system.nbr.nbytes + system.b_scale.nbytes
                + sum(c.data.nbytes + c.indices.nbytes + c.indptr.nbytes for c in system.off_csr())
-               + m.data.nbytes + m.indices.nbytes + m.indptr.nbytes + op.inv_diag.nbytes + 4 * X.nbytes)
+               + op.nbytes + 4 * X.nbytes)
         row = (f"| {g.n_nodes:,} | {g.h:.3f} | {info.iterations} | {1e3 * times['ours']:.2f} | "
                f"{1e3 * times['node']:.2f} | {times['node'] / times['ours']:.2f}x | {1e3 * solve_s:,.0f} | "
                f"{winfo.iterations} | {1e3 * warm_s:,.0f} | {1e3 * setup:,.0f} | {mem / 2**20:,.0f} |")

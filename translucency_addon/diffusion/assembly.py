@@ -122,7 +122,7 @@ class LevelSystem:
                               mm_per_unit=self.mm_per_unit,
                               boundary_diag=None if self.boundary_diag is None else self.boundary_diag[:, idx])
             sub.cache["off_csr"] = [off_csr[c] for c in idx]
-            for k in ("rcm", "sweep_pattern"):  # the graph's, shared by every channel subset
+            for k in ("rcm", "sweep_links", "sweep_pattern"):  # the graph's, shared by every channel subset
                 if k in self.cache:
                     sub.cache[k] = self.cache[k]
             if self.lam_max is not None:

@@ -1,4 +1,5 @@
-"""The numba kernels of :mod:`.compiled_cg` (see its docstring for what they compute and why).
+"""The numba kernels of :mod:`.compiled_cg` (see its docstring for what they compute and why): CG's two
+vector passes and the sparse product over the graph's link slots (also :class:`.sweeps.SweepOperator`'s).
 
 Imported only by :func:`.compiled_cg._kernel`, inside a guard: importing this module needs numba.  Module-level
 functions, so numba's on-disk cache (``cache=True``) finds them again in a new process.  Each kernel splits
@@ -47,3 +48,34 @@ def direction(P, R, inv_diag, y, agg, beta, nchunk):
             b = beta[c]
             for i in range(lo, hi):
                 P[c, i] = b * P[c, i] + inv_diag[c, i] * R[c, i] + y[c, agg[i]]
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def link_product(nbr, off, neg_diag, D, R, accumulate, nchunk):
+    """``r (+)= -A d`` per channel over the graph's link slots, and ``d . (-A d)`` per channel.
+
+    ``(-A d)_i = -diag_i d_i + sum_k off_ik d_nbr[i,k]`` (slots with ``nbr < 0`` empty): nbr (N, K) in the
+    sweep order, off (C0, N, K) and neg_diag (C0, N) per base channel; channel c of d and r (C, N) takes
+    base channel ``c % C0`` (the bounce's two copies share one operator).  ``accumulate``: add to r, else
+    overwrite it (no zeroing pass)."""
+    C, n = D.shape
+    C0, K = off.shape[0], nbr.shape[1]
+    dots = np.zeros((nchunk, C))
+    for k in numba.prange(nchunk):
+        lo, hi = (n * k) // nchunk, (n * (k + 1)) // nchunk
+        for c in range(C):
+            b = c % C0
+            s = 0.0
+            for i in range(lo, hi):
+                acc = neg_diag[b, i] * D[c, i]
+                for m in range(K):
+                    j = nbr[i, m]
+                    if j >= 0:
+                        acc += off[b, i, m] * D[c, j]
+                s += D[c, i] * acc
+                if accumulate:
+                    R[c, i] += acc
+                else:
+                    R[c, i] = acc
+            dots[k, c] = s
+    return dots.sum(axis=0)

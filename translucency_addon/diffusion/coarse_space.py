@@ -105,7 +105,7 @@ def coarse_space(system, op) -> CoarseSpace | None:
 
 
 def _galerkin(system, op, agg, n_agg) -> CoarseSpace | None:
-    """A_c = P^T A P per channel, summed entry by entry over the operator's CSR (one ``bincount`` into a dense
+    """A_c = P^T A P per channel, summed entry by entry over the operator's entries (one ``bincount`` into a dense
     array), and its sparse LU (SuperLU: a box couples to its 26 neighbours at most)."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
@@ -113,12 +113,10 @@ def _galerkin(system, op, agg, n_agg) -> CoarseSpace | None:
     from .sweeps import sweep_pattern
 
     indptr, indices, _ = sweep_pattern(system)
-    nnz = len(indices)
     key = np.repeat(agg, np.diff(indptr)) * n_agg + np.take(agg, indices)
-    data = op.neg_a.data
     factors = []
     for c in range(op.C):
-        Ac = -np.bincount(key, data[c * nnz:(c + 1) * nnz], n_agg * n_agg).reshape(n_agg, n_agg)
+        Ac = -np.bincount(key, op.entries(c), n_agg * n_agg).reshape(n_agg, n_agg)
         try:  # SuperLU's settings for a symmetric matrix: diagonal pivots, a symmetric ordering
             lu = splu(sp.csc_matrix(Ac), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                       options={"SymmetricMode": True})

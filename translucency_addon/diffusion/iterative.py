@@ -309,9 +309,7 @@ def cg_steps(system, b, x0, tol, max_iter, check_every=8, coarse: bool = True, c
         _, rz = step.advance(X, R, P, Q, zero)
         step.direction(P, R, zero)
         while it < max_iter:
-            Q[:] = 0.0
-            op.sub_a(Q, P)  # Q = -A P
-            pap = -np.einsum("cn,cn->c", P, Q)
+            pap = op.product(P, Q)  # Q = -A P, and p . A p
             live = (res > tol) & (pap > 0.0)  # a converged (or source-free) channel stays where it is
             alpha = np.where(live, rz / np.where(live, pap, 1.0), 0.0)
             rr, rz_new = step.advance(X, R, P, Q, alpha)
