@@ -1,0 +1,74 @@
+"""The sweeps' operator (diffusion/sweeps.py): ``r -= A d`` over the graph's link slots in compiled code
+against the system's matrix built independently (assembly.sparse_matrix), in both sweep precisions, with
+the bounce's two copies, on a QuadGraph level (RCM order) and a fluid frame's cells (their own order)."""
+
+import numpy as np
+import pytest
+
+from translucency_addon.quadgraph.bake import BakeSettings, bake_mesh
+from translucency_addon.diffusion import compiled_cg
+from translucency_addon.diffusion.assembly import sparse_matrix
+from translucency_addon.diffusion.solver import DiffusionSolver
+from translucency_addon.diffusion.sweeps import SweepOperator, _identity
+from translucency_addon.scene.materials import material_from_preset
+from translucency_addon.geometry import primitives
+
+from test_fluid_solve import jittered_frames
+
+_SYSTEMS = {}
+
+
+def _system(kind):
+    if kind not in _SYSTEMS:
+        if kind == "quadgraph":
+            V, F = primitives.box((1.0, 1.0, 1.0), subdivisions=3)
+            b = bake_mesh(V, F, BakeSettings(quality="draft", levels=1, base_triangles=300, mm_per_unit=20.0))
+            _SYSTEMS[kind] = DiffusionSolver(b, material_from_preset("marble")).systems[-1]
+        else:
+            _SYSTEMS[kind] = jittered_frames(8.0, 7)[1].diffusion.systems[0]
+    return _SYSTEMS[kind]
+
+
+@pytest.mark.parametrize("kind", ["quadgraph", "fluid"])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("copies", [1, 2])
+def test_the_link_product_is_the_assembled_matrix(kind, dtype, copies):
+    assert compiled_cg.available() == ""  # numba is in the test environment: the compiled product runs
+    system = _system(kind)
+    op = SweepOperator(system, copies=copies, dtype=dtype)
+    assert op.links is not None and op._neg_a is None  # the link slots, no CSR built
+    assert _identity(op.perm) == (kind == "fluid")
+    C0, n = system.diag.shape[1], system.n
+    A = [sparse_matrix(system, c)[op.perm][:, op.perm] for c in range(C0)]  # sweep order
+    rng = np.random.default_rng(3)
+    d = rng.standard_normal((C0 * copies, n)).astype(dtype)
+    r0 = rng.standard_normal((C0 * copies, n)).astype(dtype)
+    expected = np.stack([r0[c].astype(np.float64) - A[c % C0] @ d[c].astype(np.float64) for c in range(len(d))])
+    r = r0.copy()
+    op.sub_a(r, d)
+    rtol = 1e-5 if dtype == np.float32 else 1e-12
+    scale = np.abs(expected).max()
+    np.testing.assert_allclose(r, expected, rtol=0, atol=rtol * scale)
+    out = np.full_like(d, np.nan)  # overwritten, not accumulated
+    dad = op.product(d, out)
+    Ad = np.stack([A[c % C0] @ d[c].astype(np.float64) for c in range(len(d))])
+    np.testing.assert_allclose(out, -Ad, rtol=0, atol=rtol * np.abs(Ad).max())
+    np.testing.assert_allclose(dad, np.einsum("cn,cn->c", d.astype(np.float64), Ad), rtol=10 * rtol)
+    for c in range(len(d)):  # the coarse space's Galerkin sums read these: the CSR's entries, channel by channel
+        nnz = op.neg_a.nnz // len(d)
+        np.testing.assert_array_equal(op.entries(c), op.neg_a.data[c * nnz:(c + 1) * nnz])
+
+
+def test_without_numba_the_product_is_scipys_csr(monkeypatch):
+    """Where the kernels cannot load, the same operator (built with link slots) falls back to the CSR."""
+    system = _system("fluid")
+    op = SweepOperator(system)
+    d = np.random.default_rng(0).standard_normal((op.C, op.n))
+    fast = np.zeros_like(d)
+    op.sub_a(fast, d)
+    monkeypatch.setattr(compiled_cg, "_KERNEL", {"error": "numba is not installed"})
+    slow = np.zeros_like(d)
+    op.sub_a(slow, d)
+    assert op._neg_a is not None
+    np.testing.assert_allclose(slow, fast, rtol=0, atol=1e-12 * np.abs(fast).max())
+    assert SweepOperator(system).links is None
