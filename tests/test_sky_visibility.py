@@ -297,3 +297,25 @@ def test_one_block_solve_carries_the_first_scatter_split(torus_bake, block_solve
         direct = splu(block.matrix(c).tocsc()).solve(np.concatenate([B[:, c], B[:, 3 + c]]))
         assert np.abs(direct[block.n:] - res.phi[-1][:, c]).max() < 1e-8 * np.abs(direct[block.n:]).max()
     assert bool(block_solve[1]) == (block_solve[0] == "block by block, CG")
+
+
+def test_block_by_block_asks_for_no_spectral_bounds(torus_bake, block_solve, monkeypatch):
+    """CG needs no Chebyshev interval: where every level runs CG, a cold frame with the bounce runs no Lanczos
+    estimate (BouncedSystem computes its bounds on first use: 1.4 s of a first Final frame on the bunny);
+    the block Chebyshev iteration still computes them."""
+    from dataclasses import replace
+
+    from translucency_addon.diffusion import spectral
+    from translucency_addon.scene.lights import Light
+
+    calls = []
+    real = spectral.lanczos_lower
+    monkeypatch.setattr(spectral, "lanczos_lower", lambda system, *a, **k: calls.append(system.n) or real(system, *a, **k))
+    s = DiffusionSolver(replace(torus_bake, spectral_bounds=None), material_from_preset("marble"),
+                        options=SolveOptions(tol=1e-6))
+    res, L = s.solve_interreflected([Light("sun", irradiance=1000.0, direction=(0.3, -0.2, -1.0))], UNIFORM)
+    assert res.first_pass is not None and np.all(np.isfinite(L))
+    if block_solve[0] == "block by block, CG":
+        assert calls == [] and block_solve[1]
+    else:
+        assert s.systems[-1].n in calls
