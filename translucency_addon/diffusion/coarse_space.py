@@ -31,7 +31,14 @@ aggregates), 1.8 / 1.7 / 1.6 s.  A CG step there cost about three Chebyshev swee
 vector passes outweigh a sparse product of 4-5 links per row); with the step's vector work compiled
 (:mod:`.compiled_cg`: two passes) the same level takes 74 steps in 1.07 s against 176 sweeps in 1.75 s, so
 :func:`.iterative.prefers_cg` runs CG with this coarse space on QuadGraph levels of 50,000 nodes and more, and
-the bounce's block system block by block (:mod:`.interreflection`).  Why hand-written: the
+the bounce's block system block by block (:mod:`.interreflection`).  There the set-up is paid once per
+material, not per frame, and with the sparse product compiled too (:mod:`.sweeps`) a step costs ~8 ms
+against 0.06-0.5 ms for the coarse solve, so a level kept across frames gets finer boxes (one per
+:data:`NODES_PER_AGGREGATE_KEPT` nodes, up to :data:`MAX_AGGREGATES_KEPT`): warm Final frame (sky turned
+5 degrees, both blocks) with 267 / 478 / 872 / 1,258 / 1,587 / 2,309 aggregates 113 / 108 / 99 / 93 / 88 /
+86 steps, 1.25-1.28 s with 267 against 1.03-1.09 s with 1,587 (set-up 208 against 242 ms, the coarse solve
+0.06 against 0.5 ms a step for three channels); 2,309 cost more than they saved.  A fluid's graph, built
+every frame (``built_per_frame``), keeps the rule above.  Why hand-written: the
 well-kept alternative, PyAMG's smoothed aggregation, is not a dependency of the extension, and its set-up
 per frame (a fluid's graph changes every frame) costs more than the steps it saves at these sizes (issue
 33's measurements); this set-up is a few milliseconds.
@@ -43,6 +50,9 @@ import numpy as np
 
 NODES_PER_AGGREGATE = 128  # boxes aimed at: one per this many nodes (fewer where the graph fills its box partly),
 MIN_AGGREGATES, MAX_AGGREGATES = 128, 512  # within these (see the module docstring for the measurements)
+# a graph whose systems are kept from frame to frame (a bake's QuadGraph level: the set-up is paid once per
+# material), not built anew each frame (a fluid's cells): finer boxes, up to more of them
+NODES_PER_AGGREGATE_KEPT, MAX_AGGREGATES_KEPT = 64, 4096
 MIN_NODES = 8000  # below this, Jacobi alone: the coarse solve costs about what it saves (4k particles)
 
 
@@ -97,7 +107,10 @@ def coarse_space(system, op) -> CoarseSpace | None:
     space = None
     position = getattr(system.level, "position", None)
     if system.n >= MIN_NODES and position is not None and len(position) == system.n:
-        target = int(np.clip(system.n // NODES_PER_AGGREGATE, MIN_AGGREGATES, MAX_AGGREGATES))
+        if getattr(system.level, "built_per_frame", False):
+            target = int(np.clip(system.n // NODES_PER_AGGREGATE, MIN_AGGREGATES, MAX_AGGREGATES))
+        else:
+            target = int(np.clip(system.n // NODES_PER_AGGREGATE_KEPT, MIN_AGGREGATES, MAX_AGGREGATES_KEPT))
         agg, n_agg = aggregates(np.asarray(position)[op.perm], target)
         space = _galerkin(system, op, agg, n_agg)
     cache["coarse_space"] = space

@@ -73,6 +73,7 @@ class FluidGraph:
     surface_cell: np.ndarray  # (n_surface,) inner node each surface node closes
     surface_tree: object = None  # cKDTree of the surface nodes' positions
     local_order: bool = True  # nodes numbered in the cells' spatial order: the sweeps keep it (sweeps.rcm_order)
+    built_per_frame: bool = True  # a new graph every frame: its solver set-ups are paid per frame (coarse_space)
     stats: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
 
