@@ -282,13 +282,20 @@ def test_warm_start_from_previous_frame_saves_sweeps():
     assert warm.residual.max() <= 1e-4
     Lw, Lc = s.vertex_radiance(warm), s.vertex_radiance(cold)
     assert np.abs(Lw - Lc).max() < 2e-3 * Lc.max()  # both are within the tolerance of the same solution
-    # a QuadGraph level (4 link slots) keeps Chebyshev as the default solve (iterative.fast_steps)
-    from translucency_addon.diffusion import iterative
+    # a QuadGraph level (4 link slots) keeps Chebyshev as the default solve (iterative.fast_steps) below
+    # CG_MIN_NODES nodes, and runs CG from there where the compiled step runs
+    from translucency_addon.diffusion import compiled_cg, iterative
 
     system = s.systems[-1]
     assert iterative.links_per_node(system) < iterative.CG_MIN_LINKS
-    steps = iterative.fast_steps(system, system.rhs(warm.q[-1]), warm.phi[-1], 1e-4, 10)
-    assert steps.gi_code is iterative.chebyshev_steps.__code__
+    for threshold, method in ((system.n + 1, iterative.chebyshev_steps), (system.n, iterative.cg_steps)):
+        iterative.CG_MIN_NODES, saved = threshold, iterative.CG_MIN_NODES
+        try:
+            steps = iterative.fast_steps(system, system.rhs(warm.q[-1]), warm.phi[-1], 1e-4, 10)
+        finally:
+            iterative.CG_MIN_NODES = saved
+        if not compiled_cg.available():
+            assert steps.gi_code is method.__code__
 
 
 def test_no_light_gives_exactly_zero():

@@ -30,7 +30,8 @@ steps, 71 ms, and 31 with the coarse space (512 boxes), 82 ms; the Final bunny's
 aggregates), 1.8 / 1.7 / 1.6 s.  A CG step there cost about three Chebyshev sweeps in numpy (fp64, and its
 vector passes outweigh a sparse product of 4-5 links per row); with the step's vector work compiled
 (:mod:`.compiled_cg`: two passes) the same level takes 74 steps in 1.07 s against 176 sweeps in 1.75 s, so
-:func:`.iterative.prefers_cg` runs CG with this coarse space on QuadGraph levels of 50,000 nodes and more, and
+:func:`.iterative.prefers_cg` runs CG with this coarse space on QuadGraph levels (of 8,000 nodes and more since the
+sparse product is compiled too), and
 the bounce's block system block by block (:mod:`.interreflection`).  There the set-up is paid once per
 material, not per frame, and with the sparse product compiled too (:mod:`.sweeps`) a step costs ~8 ms
 against 0.06-0.5 ms for the coarse solve, so a level kept across frames gets finer boxes (one per

@@ -20,7 +20,7 @@ which :func:`.iterative.solve_chebyshev` solves as one iteration over 2C
 "channels" (:class:`BouncedSystem`): each sweep is one fused product with
 the block-diagonal ``-A`` plus the sparse coupling ``S G`` on the surface
 nodes.  Where A's default solve is CG (:func:`.iterative.prefers_cg`: the
-compiled CG step on a level of 50,000 nodes and more) (1) is solved block by
+compiled CG step on a level of 8,000 nodes and more) (1) is solved block by
 block instead, ``A phi0 = B0`` then ``A phi1 = B1 + K phi0``, each by CG
 (:func:`_block_by_block`): the same answer, in fewer sparse products (a warm
 Final bunny frame 147 CG steps over both blocks against 176 block sweeps,

@@ -368,26 +368,29 @@ def fast_steps(system, b, x0, tol, max_iter, check_every=8):
     per cell) 44 CG steps, 67 ms, against 112 Chebyshev sweeps, 148 ms; the Preview bunny's finest
     QuadGraph level (4-5 links per node), warm, 34-47 CG steps, 54-104 ms, against 72 sweeps, 53-60 ms.
     So: CG on the symmetric finite-volume scheme with at least :data:`CG_MIN_LINKS` links per node, or on
-    large levels where its step is compiled (:func:`prefers_cg`), Chebyshev elsewhere (and always on the
-    paper's scheme, which is not symmetric).
+    levels of :data:`CG_MIN_NODES` nodes where its step is compiled (:func:`prefers_cg`: a compiled step is
+    two passes and its sparse product returns p.A p), Chebyshev elsewhere (and always on the paper's scheme,
+    which is not symmetric).
     """
     if prefers_cg(system):
         return cg_steps(system, b, x0, tol, max_iter, check_every)
     return chebyshev_steps(system, b, x0, tol, max_iter, check_every)
 
 
-CG_MIN_NODES = 50_000  # nodes from which CG with its compiled step is the default on a QuadGraph level
+CG_MIN_NODES = 8_000  # nodes from which CG with its compiled step is the default on a QuadGraph level
 
 
 def prefers_cg(system) -> bool:
     """Whether the default solve of ``system`` is CG (else Chebyshev): the symmetric finite-volume scheme, and
     either :data:`CG_MIN_LINKS` links per node or, with the compiled step (:mod:`.compiled_cg`), at least
-    :data:`CG_MIN_NODES` nodes.  Measured on the bunny's QuadGraph levels (3-4 links per node, warm, tol 1e-4,
-    2 cores): the Final finest level (402k nodes) 74 compiled CG steps, 1.07 s, against 176 Chebyshev sweeps,
-    1.75 s (numpy CG 2.06 s; from zero 1.46 against 2.61 s); 55k nodes 82 against 115 ms; the Preview
-    finest (42k) 42 against 48 ms alone, but with the bounce 87 CG steps over both blocks against 72 block
-    sweeps, a warm frame 145 against 140 ms wall (``bench/frame.py``), hence 50,000; 2k-8k nodes 2.7-10.4
-    against 1.9-8.2 ms (Chebyshev's)."""
+    :data:`CG_MIN_NODES` nodes (where the coarse space starts, :data:`.coarse_space.MIN_NODES`).  Measured
+    on the bunny (3-5 links per node, tol 1e-4, 2 cores, with the bounce, the sky turned 5 degrees and back),
+    with both the CG step and the Chebyshev sweep's sparse product compiled (:mod:`.sweeps`): the Draft
+    finest level (15,928 nodes) first frame 83-85 against 138-566 ms, warm 31-130 against 54-150 ms (50 against
+    64 steps); Preview (41,544) first 196 against 338-767 ms, warm 79-176 against 140-238 ms (67 against 72);
+    the Final (401,888) 88 steps, 1.03-1.09 s a warm frame, against 176 block sweeps; every level CG
+    (threshold 0) measured the same as 8,000 within the noise.  (With scipy's CSR product the Preview
+    finest level was a tie, 145 against 140 ms, hence 50,000 until then.)"""
     if getattr(system, "scheme", None) != "fv":
         return False
     if links_per_node(system) >= CG_MIN_LINKS:
