@@ -133,7 +133,7 @@ class Bench:
 
     # -- converged solution --------------------------------------------------------------
     def converged(self, name, final: "Render"):
-        """The scene's converged image: the Final preset's solve continued (Chebyshev, finest
+        """The scene's converged image: the Final preset's solve continued (the default solver, finest
         level, warm-started) to a relative residual of CONVERGED["tol"].  A direct LU of the Final
         graph (several hundred thousand nodes) does not fit this machine's time budget; on the
         Preview graph the direct solve and this continuation agree (the tol section)."""
@@ -229,7 +229,7 @@ class Bench:
             sc = self.scenes[name]
             direct = self.ev.run(sc, dict(quality=base), dict(solver="direct"), frames=False)
             self.record("solver", "direct LU (ours)", name, direct)
-            for solver, label in (("fast", "Chebyshev (ours)"), ("jacobi", "Jacobi (our scheme)"),
+            for solver, label in (("fast", "ours: CG / Chebyshev"), ("jacobi", "Jacobi (our scheme)"),
                                   ("paper", "Jacobi (paper eq. 5-9)")):
                 r = self.ev.run(sc, dict(quality=base), dict(solver=solver, tol=USER_TOL, max_iterations=cap),
                                 frames=False)

@@ -13,7 +13,7 @@ KNOB_TITLES = {
     "K_final": "Final surface with Preview's K",
     "levels": "levels (multi-resolution), Preview",
     "tol": "tolerance, Preview",
-    "iterations": "fixed Chebyshev steps per level, Preview",
+    "iterations": "fixed steps per level, Preview",
     "solver": "solver, Preview",
     "precision": "GPU fp16 / fp32 (llvmpipe), Preview",
     "ss": "single scattering, Preview",
@@ -248,7 +248,7 @@ def plot_kappa(b, path):
         h = np.asarray(r.get("history_finest", r["history"]), dtype=float)
         it = np.arange(len(h)) * 8
         ax.semilogy(it, np.where(np.isfinite(h), h, np.nan),
-                    label={"fast": "ours: finite volumes + Chebyshev", "paper": "paper: eq. 5-6 + Jacobi"}[r["solver"]])
+                    label={"fast": "ours: finite volumes + CG / Chebyshev", "paper": "paper: eq. 5-6 + Jacobi"}[r["solver"]])
     ax.axhline(1e-4, color="gray", ls=":", lw=1)
     ax.set_xlabel("iterations (finest level alone, from zero)")
     ax.set_ylabel("relative residual (max over RGB)")
