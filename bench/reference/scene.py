@@ -382,7 +382,11 @@ def sky_environment(to_light=(0.4, 0.5, 1.0), lobe: int = 2, irradiance: float =
     dirs = fibonacci_directions(4096)
     f = peak * ((1.0 + dirs @ s) / 2.0) ** lobe
     Y = sh_basis(dirs, 2)
-    coef, *_ = np.linalg.lstsq(Y, f, rcond=None)  # exact: f is a polynomial of degree <= 2
+    # Least squares by its 9x9 normal equations (exact: f is a polynomial of degree <= 2, in Y's span), not
+    # np.linalg.lstsq: LAPACK on 4096 rows runs on OpenBLAS's threads, which then spin for ~0.1 s and took
+    # the cores from the frame a bench timed right after turning the sky (a warm Draft bunny frame 117-128 ms
+    # against 30-32 ms; bench/frame.py, bench/accuracy).
+    coef = np.linalg.solve(np.einsum("nk,nl->kl", Y, Y), np.einsum("nk,n->k", Y, f))
     col = np.asarray(color, dtype=np.float64).reshape(3)
     return Environment(radiance=tuple(float(ambient) * col), sh=coef[:, None] * col[None, :])
 
