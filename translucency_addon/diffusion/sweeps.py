@@ -35,6 +35,8 @@ library offers a fused Chebyshev step or a product over link slots shared by the
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -154,7 +156,7 @@ class SweepOperator:
         self.inv[self.perm] = np.arange(len(self.perm))
         n, C = system.n, system.diag.shape[1]
         self.n, self.C, self.copies = n, C * copies, copies
-        self.system = system
+        self._system = weakref.ref(system)  # for the CSR built on first use; no cycle through system.cache
         self._neg_a = None
         self.links = None
         if not compiled_cg.available():
@@ -180,7 +182,7 @@ class SweepOperator:
     def _block_csr(self) -> sp.csr_matrix:
         """The one-channel pattern (:func:`sweep_pattern`, built once per system) repeated per block, with
         offsets: no COO -> CSR conversion."""
-        system, n, blocks = self.system, self.n, self.C
+        system, n, blocks = self._system(), self.n, self.C
         C = system.diag.shape[1]
         indptr, indices, src = sweep_pattern(system)
         nnz = len(indices)
