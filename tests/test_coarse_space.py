@@ -117,7 +117,7 @@ def test_a_coarse_operator_that_is_not_positive_definite_leaves_jacobi_alone():
 
     system, _, _ = _frame()
     op = system.sweep_operator(np.float64)
-    flipped = SimpleNamespace(perm=op.perm, C=op.C, entries=lambda c: -op.entries(c))
+    flipped = SimpleNamespace(perm=op.perm, C=op.C, slot_values=lambda c: tuple(-v for v in op.slot_values(c)))
     system.cache.pop("coarse_space", None)
     assert cs.coarse_space(system, flipped) is None
     system.cache.pop("coarse_space", None)

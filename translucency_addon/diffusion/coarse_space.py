@@ -119,18 +119,23 @@ def coarse_space(system, op) -> CoarseSpace | None:
 
 
 def _galerkin(system, op, agg, n_agg) -> CoarseSpace | None:
-    """A_c = P^T A P per channel, summed entry by entry over the operator's entries (one ``bincount`` into a dense
-    array), and its sparse LU (SuperLU: a box couples to its 26 neighbours at most)."""
+    """A_c = P^T A P per channel, summed link slot by link slot (one ``bincount`` into a dense array), and
+    its sparse LU (SuperLU: a box couples to its 26 neighbours at most)."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
-    from .sweeps import sweep_pattern
+    from .sweeps import sweep_links
 
-    indptr, indices, _ = sweep_pattern(system)
-    key = np.repeat(agg, np.diff(indptr)) * n_agg + np.take(agg, indices)
+    links = sweep_links(system)
+    valid = links >= 0
+    rows = np.broadcast_to(agg[:, None], links.shape)[valid]
+    key = rows * n_agg + np.take(agg, links[valid])  # each occupied slot's (aggregate, aggregate) entry
+    key_diag = agg * (n_agg + 1)
     factors = []
     for c in range(op.C):
-        Ac = -np.bincount(key, op.entries(c), n_agg * n_agg).reshape(n_agg, n_agg)
+        off, neg_diag = op.slot_values(c)
+        Ac = -(np.bincount(key, off[valid], n_agg * n_agg)
+               + np.bincount(key_diag, neg_diag, n_agg * n_agg)).reshape(n_agg, n_agg)
         try:  # SuperLU's settings for a symmetric matrix: diagonal pivots, a symmetric ordering
             lu = splu(sp.csc_matrix(Ac), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                       options={"SymmetricMode": True})

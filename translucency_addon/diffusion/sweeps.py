@@ -201,16 +201,16 @@ class SweepOperator:
         ptr[-1] = nnz * blocks
         return sp.csr_matrix((data, ind, ptr), shape=(n * blocks, n * blocks), copy=False)
 
-    def entries(self, c: int) -> np.ndarray:
-        """``-A``'s entries of channel ``c`` in :func:`sweep_pattern`'s order (row by row in sweep order: the
-        occupied link slots, then the diagonal)."""
-        if self.links is None:
-            nnz = len(self._neg_a.data) // self.C
-            return self._neg_a.data[c * nnz:(c + 1) * nnz]
-        nbr, off, neg_diag = self.links
-        b = c % off.shape[0]
-        full = np.concatenate([off[b], neg_diag[b][:, None]], axis=1)
-        return full[np.concatenate([nbr >= 0, np.ones((self.n, 1), dtype=bool)], axis=1)]
+    def slot_values(self, c: int) -> tuple:
+        """``-A`` of channel ``c`` by link slot in sweep order: ``(off (N, K), -diag (N,))``, with
+        :func:`sweep_links` naming each slot's neighbour (the coarse space's Galerkin sums read these)."""
+        if self.links is not None:
+            _, off, neg_diag = self.links
+            b = c % off.shape[0]
+            return off[b], neg_diag[b]
+        system = self._system()
+        b = c % system.diag.shape[1]
+        return np.take(system.off[:, :, b], self.perm, axis=0), -np.take(system.diag[:, b], self.perm)
 
     @property
     def nbytes(self) -> int:
