@@ -80,7 +80,7 @@ NOTES = """**Reading the table.**
   (the table above), costs more CPU than the exact build (compiled path) for the volumes alone and far more
   for the face areas, and is off by 17 % per volume and 20 % of a face on average, differently every frame (flicker).
 * *Warm solve*: conjugate gradients (`iterative.cg_steps`), the shared solver's default wherever a node has
-  at least 8 links (a cell has 13-15; a QuadGraph node 4-5, where Chebyshev stays), preconditioned by Jacobi
+  at least 8 links (a cell has 13-15; a QuadGraph node 4-5, CG there from 8,000 nodes with the compiled step), preconditioned by Jacobi
   plus a coarse space (`diffusion/coarse_space.py`: the cells grouped in boxes of a grid, one per 128 nodes,
   their Galerkin operator P^T A P dense and factored once per frame, the correction P A_c^-1 P^T added to
   every step's Jacobi update): the long-wavelength error that Jacobi removes slowly goes in one coarse solve,
@@ -367,7 +367,7 @@ def extras_text(tol: dict, smp: dict, n: int, slv: dict) -> str:
              f"included) | {slv['cg']['steps']:.0f} | {slv['cg']['ms']:,.0f} | {slv['cg']['residual']:.1e} |",
              f"| conjugate gradients, Jacobi-preconditioned (the default before) | "
              f"{slv['cg_jacobi']['steps']:.0f} | {slv['cg_jacobi']['ms']:,.0f} | {slv['cg_jacobi']['residual']:.1e} |",
-             f"| Chebyshev, Jacobi-preconditioned (QuadGraph levels and the GPU keep it) | "
+             f"| Chebyshev, Jacobi-preconditioned (the GPU and QuadGraph levels under 8,000 nodes keep it) | "
              f"{slv['chebyshev']['steps']:.0f} | {slv['chebyshev']['ms']:,.0f} | {slv['chebyshev']['residual']:.1e} |",
              "", f"Solve tolerance at {n:,} particles (warm frames, errors against a direct sparse solve of the same "
              f"frame; the exact radiance itself changes by {tol['flicker']:.1%} on average from one jittered frame to "
