@@ -23,7 +23,7 @@ nodes.  Where A's default solve is CG (:func:`.iterative.prefers_cg`: the
 compiled CG step on a level of 8,000 nodes and more) (1) is solved block by
 block instead, ``A phi0 = B0`` then ``A phi1 = B1 + K phi0``, each by CG
 (:func:`_block_by_block`): the same answer, in fewer sparse products (a warm
-Final bunny frame 147 CG steps over both blocks against 176 block sweeps,
+Final bunny frame 88 CG steps over both blocks against 176 block sweeps,
 each of which sweeps both).  A frame warm-starts both blocks from the previous frame's pair, so
 its initial residual is what the frame changed, not the bounce itself; the
 answer depends on the frame's inputs only (the warm start moves the iterate,
@@ -203,6 +203,7 @@ class BouncedSystem:
         return self.bounds()[1]
 
     def bounds(self) -> tuple:
+        """``(lam_min, lam_max)`` of (1), computed once."""
         if self._bounds is None:
             lo, hi = spectral_bounds(self.base)
             self._bounds = (np.tile(lo, 2), np.tile(hi, 2))
