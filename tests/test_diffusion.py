@@ -399,3 +399,19 @@ def test_the_vertex_map_is_one_sparse_product_equal_to_the_gather():
     w2[:, 0] = 0.0
     (got2,) = radiance.map_to_points(idx, w2, a)
     np.testing.assert_allclose(got2, np.einsum("vk,vkc->vc", w2.astype(np.float64), a[idx]), rtol=1e-14, atol=0)
+
+
+def test_the_drivers_sparse_upsample_is_eq_10s_gather():
+    """DiffusionSolver.upsample (eq. 10 as one sparse product, kernels.shepard_matrix) gives what the GPU
+    kernel's twin, kernels.shepard_upsample (a gather of the 8 coarse neighbours), gives, empty slots
+    included; a multi-level solve starts its finer levels from it."""
+    from translucency_addon.diffusion import kernels
+
+    b = baked("spot", levels=2, base_triangles=300, mm_per_unit=40.0)
+    s = DiffusionSolver(b, MARBLE)
+    idx, w = b.shepard[0]
+    assert (idx < 0).any()  # the gather's zero row is exercised
+    x = np.random.default_rng(0).standard_normal((b.levels[0].n_nodes, 3))
+    np.testing.assert_allclose(s.upsample(1, x), kernels.shepard_upsample(idx, w, x), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(s.initial_guess(1, (0, 2), coarser=x), kernels.shepard_upsample(idx, w, x[:, [0, 2]]),
+                               rtol=0, atol=1e-13)

@@ -769,9 +769,18 @@ class DiffusionSolver:
             if warm_start is not None and warm_start.phi[-1] is not None:
                 return np.array(warm_start.phi[-1][:, cols], dtype=np.float64)
         if coarser is not None and level > 0:
-            idx, w = self.bake.shepard[level - 1]
-            return kernels.shepard_upsample(idx, w, np.asarray(coarser)[:, cols])
+            return self.upsample(level, np.asarray(coarser)[:, cols])
         return np.zeros((self.bake.levels[level].n_nodes, len(cols)))
+
+    def upsample(self, level: int, x_coarse: np.ndarray) -> np.ndarray:
+        """Eq. 10: level ``level - 1``'s values carried up to ``level`` by Shepard interpolation, as a sparse
+        product (:func:`.kernels.shepard_matrix`, built once per level; the gather of
+        :func:`.kernels.shepard_upsample`, the GPU kernel's twin, gives the same)."""
+        mats = self.cache.setdefault("shepard", {})
+        if level not in mats:
+            idx, w = self.bake.shepard[level - 1]
+            mats[level] = kernels.shepard_matrix(idx, w, self.bake.levels[level - 1].n_nodes)
+        return mats[level] @ np.asarray(x_coarse, dtype=np.float64)
 
     def _partial_result(self, q, q_incident, single, cols, beams=None, volume=None):
         """``partial(level, iterate, q_fine=None, q_incident_fine=None)``: a :class:`SolveResult` of the solve
@@ -785,8 +794,7 @@ class DiffusionSolver:
         def partial(level, iterate, q_fine=None, q_incident_fine=None):
             x = kernels.in_channels(np.asarray(iterate, dtype=np.float64), cols)
             for lv in range(level + 1, fine + 1):
-                idx, w = self.bake.shepard[lv - 1]
-                x = kernels.shepard_upsample(idx, w, x)
+                x = self.upsample(lv, x)
             qs, qi = list(q), None if q_incident is None else list(q_incident)
             if q_fine is not None:
                 qs[fine] = q_fine
