@@ -429,3 +429,20 @@ def test_light_carried_from_elsewhere_leaves_in_the_diffusion_s_own_shape(eta):
     cT = split.transported_shape(np.ones(1))[0]
     assert out[0, 0] == pytest.approx(0.9) and out[2, 0] == pytest.approx(cT)  # all local; none local
     assert out[1, 0] == pytest.approx((0.9 * 1.0 + cT * 2.0) / 3.0)
+
+
+def test_many_albedos_by_one_eigendecomposition_are_the_dense_solves():
+    """half_space.HalfSpaceTransport.solve_albedos (one eigendecomposition of K for every albedo, what the
+    split's tables use) gives each albedo's dense LU solve (solve) to 1e-10, at eta 1 and 1.3."""
+    from translucency_addon.diffusion.half_space import HalfSpaceTransport, depth_grid
+    from translucency_addon.diffusion.split import inside_transmittance
+
+    for eta in (1.0, 1.3):
+        ht = HalfSpaceTransport(eta, lambda m, eta=eta: inside_transmittance(m, eta),
+                                depth_grid(h0=0.004, growth=1.12, h_max=2.0))
+        phi0 = ht.uncollided(np.array([0.3, 0.7, 1.0]), np.eye(3))
+        alphas = np.array([0.1, 0.5, 0.9, 0.99, 0.999])
+        many = ht.solve_albedos(alphas, phi0)
+        for a, got in zip(alphas, many):
+            ref = ht.solve(a, phi0)
+            np.testing.assert_allclose(got, ref, rtol=0, atol=1e-10 * np.abs(ref).max())

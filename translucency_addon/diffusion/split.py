@@ -345,8 +345,7 @@ class HalfSpaceSplit:
             phi0 = ht.uncollided(nu, P)
             K_phi0 = ht.K @ phi0  # the same for every alpha
             phi_s = np.zeros((len(alpha), len(ht.z), D))
-            for i in np.flatnonzero(solved):
-                phi_s[i] = ht.solve(alpha[i], phi0, K_phi0)
+            phi_s[solved] = ht.solve_albedos(alpha[solved], phi0, K_phi0)  # one eigendecomposition, every alpha
             # every alpha's exitance and eq. (4)'s radiance at once (one product each, not one per alpha:
             # small multi-column products per alpha cost more in BLAS threading than they compute)
             M = alpha[:, None] * np.einsum("c,acd->ad", ht.exitance_weights(), phi_s)
