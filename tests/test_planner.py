@@ -57,12 +57,15 @@ def test_ketchup_skips_diffusion_where_it_is_invalid():
     assert plan.multiple.channels == (True, False, False)
     assert plan.single.channels == (False, True, True)  # the valid term where diffusion is not
     assert "reduced albedo 0.07" in plan.multiple.reasons[1]
-    # skipped channels cost nothing and leave the channel that runs exactly as in a full run
+    # skipped channels cost nothing and leave the channel that runs as in a full run, to the solve's
+    # tolerance: CG on the finest level (iterative.prefers_cg) is not linear in its start, so a last-bit
+    # difference in the coarse levels' iterates (numpy's sums over 3 columns or 1) moves its answer within
+    # the tolerance (up to 3e-7 of a vertex's radiance at tol 1e-6, measured), not bit for bit as Chebyshev did
     s = DiffusionSolver(b, ketchup, options=SolveOptions(tol=1e-6))
     full = s.vertex_radiance(s.solve(SUN))
     planned = s.vertex_radiance(s.solve(SUN, channels=plan.multiple.channels))
     assert np.all(planned[:, 1:] == 0.0)
-    np.testing.assert_allclose(planned[:, 0], full[:, 0], rtol=1e-9)
+    np.testing.assert_allclose(planned[:, 0], full[:, 0], rtol=1e-5)
 
 
 @pytest.mark.parametrize("name", ["marble", "skimmilk", "skin1", "potato"])

@@ -780,7 +780,11 @@ class DiffusionSolver:
         if level not in mats:
             idx, w = self.bake.shepard[level - 1]
             mats[level] = kernels.shepard_matrix(idx, w, self.bake.levels[level - 1].n_nodes)
-        return mats[level] @ np.asarray(x_coarse, dtype=np.float64)
+        m, x = mats[level], np.asarray(x_coarse, dtype=np.float64)
+        # column by column: a channel's values then do not depend on which other channels are solved (scipy's
+        # product of several columns sums in another order), so the planner's skipped channels leave the
+        # others bit for bit as in a full solve
+        return np.stack([m @ x[:, c] for c in range(x.shape[1])], axis=1) if x.ndim == 2 else m @ x
 
     def _partial_result(self, q, q_incident, single, cols, beams=None, volume=None):
         """``partial(level, iterate, q_fine=None, q_incident_fine=None)``: a :class:`SolveResult` of the solve
