@@ -109,9 +109,10 @@ def coarse_space(system, op) -> CoarseSpace | None:
     position = getattr(system.level, "position", None)
     if system.n >= MIN_NODES and position is not None and len(position) == system.n:
         if getattr(system.level, "built_per_frame", False):
-            target = int(np.clip(system.n // NODES_PER_AGGREGATE, MIN_AGGREGATES, MAX_AGGREGATES))
+            per, most = NODES_PER_AGGREGATE, MAX_AGGREGATES
         else:
-            target = int(np.clip(system.n // NODES_PER_AGGREGATE_KEPT, MIN_AGGREGATES, MAX_AGGREGATES_KEPT))
+            per, most = NODES_PER_AGGREGATE_KEPT, MAX_AGGREGATES_KEPT
+        target = int(np.clip(system.n // per, MIN_AGGREGATES, most))
         agg, n_agg = aggregates(np.asarray(position)[op.perm], target)
         space = _galerkin(system, op, agg, n_agg)
     cache["coarse_space"] = space

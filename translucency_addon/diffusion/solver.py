@@ -773,8 +773,8 @@ class DiffusionSolver:
         return np.zeros((self.bake.levels[level].n_nodes, len(cols)))
 
     def upsample(self, level: int, x_coarse: np.ndarray) -> np.ndarray:
-        """Eq. 10: level ``level - 1``'s values carried up to ``level`` by Shepard interpolation, as a sparse
-        product (:func:`.kernels.shepard_matrix`, built once per level; the gather of
+        """Eq. 10: level ``level - 1``'s values (n, channels) carried up to ``level`` by Shepard interpolation, as
+        a sparse product (:func:`.kernels.shepard_matrix`, built once per level; the gather of
         :func:`.kernels.shepard_upsample`, the GPU kernel's twin, gives the same)."""
         mats = self.cache.setdefault("shepard", {})
         if level not in mats:
@@ -784,7 +784,7 @@ class DiffusionSolver:
         # column by column: a channel's values then do not depend on which other channels are solved (scipy's
         # product of several columns sums in another order), so the planner's skipped channels leave the
         # others bit for bit as in a full solve
-        return np.stack([m @ x[:, c] for c in range(x.shape[1])], axis=1) if x.ndim == 2 else m @ x
+        return np.stack([m @ x[:, c] for c in range(x.shape[1])], axis=1)
 
     def _partial_result(self, q, q_incident, single, cols, beams=None, volume=None):
         """``partial(level, iterate, q_fine=None, q_incident_fine=None)``: a :class:`SolveResult` of the solve

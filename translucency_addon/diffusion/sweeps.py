@@ -152,24 +152,20 @@ class SweepOperator:
 
         self.dtype = np.dtype(dtype)
         self.perm = rcm_order(system)
-        self.inv = np.empty_like(self.perm)
-        self.inv[self.perm] = np.arange(len(self.perm))
         n, C = system.n, system.diag.shape[1]
         self.n, self.C, self.copies = n, C * copies, copies
         self._system = weakref.ref(system)  # for the CSR built on first use; no cycle through system.cache
         self._neg_a = None
         self.links = None
+        in_order = _identity(self.perm)  # a graph in spatial order already (a fluid frame): no gathers
+        diag = np.asarray(system.diag) if in_order else np.take(system.diag, self.perm, axis=0)
         if not compiled_cg.available():
-            nbr = sweep_links(system)
-            if _identity(self.perm):
-                off, diag = np.asarray(system.off), np.asarray(system.diag)
-            else:
-                off, diag = np.take(system.off, self.perm, axis=0), np.take(system.diag, self.perm, axis=0)
+            off = np.asarray(system.off) if in_order else np.take(system.off, self.perm, axis=0)
             off_cm = np.ascontiguousarray(np.moveaxis(off, 2, 0), dtype=self.dtype)  # (C0, N, K)
-            self.links = (nbr, off_cm, np.ascontiguousarray(-diag.T, dtype=self.dtype))
+            self.links = (sweep_links(system), off_cm, np.ascontiguousarray(-diag.T, dtype=self.dtype))
         else:
             self._neg_a = self._block_csr()
-        self.inv_diag = np.ascontiguousarray(np.tile(1.0 / system.diag[self.perm].T, (copies, 1)), dtype=self.dtype)
+        self.inv_diag = np.ascontiguousarray(np.tile(1.0 / diag.T, (copies, 1)), dtype=self.dtype)
 
     @property
     def neg_a(self) -> sp.csr_matrix:
