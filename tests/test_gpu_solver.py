@@ -68,6 +68,21 @@ def options(solver):
     return diffusion.SolveOptions(solver=solver, tol=TOLS[solver])
 
 
+def step_allowance(solver: str, cpu_steps: int, levels: int = 1) -> int:
+    """How far the GPU's step count may stray from the CPU's under the same stopping rule.
+
+    Both stop at the first check (every 8 steps) where the residual is under tol; the GPU's
+    residual is an fp32 sum.  Chebyshev (``fast``) converges fast, so a rounding difference in
+    the residual moves the stop by a check or two per level.  Jacobi (``paper``) at tol 1e-4
+    shrinks the residual by well under 1 % a step, so the same rounding difference moves the
+    stop by many steps, and more on the bakes that need more steps (fTetWild's bakes differ
+    from run to run).  Measured: 0 on five fresh bakes needing 400-1,100 steps; 32 on a CI bake
+    needing 2,264; 96-168 on earlier CI bakes.  So Jacobi gets 5 % of the CPU's count on top.
+    """
+    fixed = 2 * 8 * levels
+    return fixed + (cpu_steps // 20 if solver == "paper" else 0)
+
+
 @pytest.fixture(scope="module")
 def cpu_results(scene):
     bk, mat, _, q = scene
@@ -89,7 +104,7 @@ def test_gpu_solve_matches_cpu(scene, cpu_results, solver):
     r = s.solve(q=q)
     assert isinstance(r, GPUSolveResult) and r.backend == "GPU"
     assert r.residual.max() <= TOLS[solver] * 1.05
-    assert abs(r.iterations - rc.iterations) <= 2 * 8 * len(bk.levels)  # same rule, fp32 rounding aside
+    assert abs(r.iterations - rc.iterations) <= step_allowance(solver, rc.iterations, len(bk.levels))
     for lvl in range(len(bk.levels)):
         assert rel_err(r.phi[lvl], rc.phi[lvl]) < SOLVE_TOL
     assert rel_err(r.phi_surface[-1], rc.phi[-1][bk.finest.n_inner:]) < SOLVE_TOL
@@ -141,14 +156,14 @@ def test_warm_start(scene, solver):
     r2 = s.solve(q=q2, warm_start=r1)  # resident: no upload of the start
     assert sum(g.uploads["x"] for g in s.gpu_levels) == x_uploads
     assert len(r2.level_solves) == 1  # finest level only, like the CPU
-    assert abs(r2.iterations - r_cpu.iterations) <= 16  # same start, same rule as the CPU warm start
+    assert abs(r2.iterations - r_cpu.iterations) <= step_allowance(solver, r_cpu.iterations)  # same start, same rule
     if solver == "fast":  # (Jacobi is slowest on exactly the smooth change a 5 % brightening is)
         assert r2.iterations < s.solve(q=q2).iterations
     assert rel_err(r2.phi_surface[-1], r_cpu.phi[-1][bk.finest.n_inner:]) < 20 * TOLS[solver]
     # A CPU result (or any result not resident any more) is uploaded as the start.
     r3 = s.solve(q=q2, warm_start=r_cpu)
     assert sum(g.uploads["x"] for g in s.gpu_levels) == x_uploads + 1
-    assert r3.iterations <= r2.iterations + 8
+    assert r3.iterations <= r2.iterations + step_allowance(solver, r2.iterations) // 2
     s.free()
 
 
