@@ -204,6 +204,18 @@ def test_cache_errors(tmp_path, monkeypatch, threads):
     np.savez(tree, **arrays)
     with pytest.raises(CacheError, match="triangle tree does not match the mesh .*exactly once.*re-bake"):
         cache.load_bake(tree)
+    # each level's sweep order kept with the bake: read back as written, refused when it is not one
+    loaded = cache.load_bake(path)
+    for lv, lv2 in zip(bake.levels, loaded.levels):
+        np.testing.assert_array_equal(lv2.sweep_order, lv.sweep_order)
+    for bad, why in ((lambda o: o[:-1], "has shape"), (lambda o: np.where(o == 0, 1, o), "is not a permutation"),
+                     (lambda o: o[::-1], "does not put the inner nodes first")):
+        arrays = cache.bake_to_arrays(bake)
+        arrays["L0/sweep_order"] = bad(arrays["L0/sweep_order"])
+        swept = tmp_path / "swept.npz"
+        np.savez(swept, **arrays)
+        with pytest.raises(CacheError, match=f"level 0's sweep order {why}.*re-bake"):
+            cache.load_bake(swept)
     # the planner's surface thickness kept with the bake: read back as written, refused when it does not fit
     kept = cache.load_bake(path).surface_thickness
     np.testing.assert_array_equal(kept.values, bake.surface_thickness.values)

@@ -80,3 +80,22 @@ def test_without_numba_the_product_is_scipys_csr(monkeypatch):
     assert op._neg_a is not None
     np.testing.assert_allclose(slow, fast, rtol=0, atol=1e-12 * np.abs(fast).max())
     assert SweepOperator(system).links is None
+
+
+def test_a_bake_carries_its_sweep_order_so_a_frame_computes_no_rcm(monkeypatch):
+    """The bake computes each level's RCM order once (GraphLevel.sweep_order, kept in the cache); the solver
+    sweeps in it and runs no Cuthill-McKee of its own, and the order is the one it would compute."""
+    from translucency_addon.diffusion import sweeps
+
+    V, F = primitives.box((1.0, 1.0, 1.0), subdivisions=3)
+    b = bake_mesh(V, F, BakeSettings(quality="draft", levels=2, base_triangles=300, mm_per_unit=20.0))
+    for lv in b.levels:
+        np.testing.assert_array_equal(lv.sweep_order, sweeps.rcm_permutation(lv.neighbors, lv.n_inner))
+
+    def no_rcm(*a, **k):
+        raise AssertionError("the solver ran RCM though the bake keeps the order")
+
+    monkeypatch.setattr(sweeps, "rcm_permutation", no_rcm)
+    s = DiffusionSolver(b, material_from_preset("marble"))
+    for system, lv in zip(s.systems, b.levels):
+        np.testing.assert_array_equal(SweepOperator(system, dtype=np.float32).perm, lv.sweep_order)

@@ -405,6 +405,12 @@ def _check_consistency(bake: Bake, path) -> None:
                 and lv.tets.min() >= 0 and lv.tets.max() < len(lv.tet_vertices)
                 and np.all(np.isfinite(lv.tet_vertices))):
             raise CacheError(f"bake cache {os.fspath(path)!r}: level {i} tetrahedral mesh does not match its graph")
+        if lv.sweep_order is not None:
+            from .diffusion.sweeps import check_sweep_order
+
+            why = check_sweep_order(lv.sweep_order, N, lv.n_inner)
+            if why:
+                raise CacheError(f"bake cache {os.fspath(path)!r}: level {i}'s sweep order {why}; re-bake the object")
     idx, w = bake.vertex_map
     if len(idx) != len(bake.mesh_vertices) or (idx.size and idx.max() >= bake.levels[-1].n_surface):
         raise CacheError(f"bake cache {os.fspath(path)!r}: vertex mapping does not match the mesh")

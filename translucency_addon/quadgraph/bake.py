@@ -35,6 +35,7 @@ from ..errors import BakeCancelled, MeshError
 from ..scene.materials import check_mm_per_unit
 from .levels import BLOCK_SIZE, GraphLevel, build_level
 from ..geometry.raycast import KeptThickness, inward_thickness, mesh_bvh, ray_path_note, thickness_digest
+from ..diffusion.sweeps import rcm_permutation
 
 BAKE_FORMAT = 1
 
@@ -417,6 +418,7 @@ def bake_mesh(V, F, settings: BakeSettings = BakeSettings(), progress=None) -> B
         gl = build_level(TV, TT, bvh, normals, relax_iterations=s.relax_iterations,
                          block_size=s.block_size, topo=topo)
         gl.stats.update(level_stats[lvl])
+        gl.sweep_order = rcm_permutation(gl.neighbors, gl.n_inner).astype(np.int32)  # once per bake, not per frame
         levels.append(gl)
         pr.within("quadgraph", (lvl + 1) / len(meshes))
 

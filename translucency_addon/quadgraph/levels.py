@@ -50,9 +50,13 @@ class GraphLevel:
     # opposite link slot k).  None in caches written before it was stored (format 1).
     tet_vertices: np.ndarray | None = None  # (n_tet_vertices, 3)
     tets: np.ndarray | None = None  # (n_inner, 4) int32
+    # The order the solver sweeps the nodes in (RCM, inner nodes first: diffusion.sweeps.rcm_permutation),
+    # computed once at bake time and kept in the cache; None in older caches (the solver computes it).
+    sweep_order: np.ndarray | None = None  # (N,) int32
 
     ARRAYS = ("position", "neighbors", "edge_length", "face_area", "volume", "normal", "area")
     TET_ARRAYS = ("tet_vertices", "tets")
+    OPTIONAL_ARRAYS = TET_ARRAYS + ("sweep_order",)
 
     @property
     def n_nodes(self) -> int:
@@ -80,7 +84,7 @@ class GraphLevel:
 
     def to_arrays(self, prefix: str) -> dict:
         d = {prefix + a: getattr(self, a) for a in self.ARRAYS}
-        d.update({prefix + a: getattr(self, a) for a in self.TET_ARRAYS if getattr(self, a) is not None})
+        d.update({prefix + a: getattr(self, a) for a in self.OPTIONAL_ARRAYS if getattr(self, a) is not None})
         d[prefix + "counts"] = np.array([self.n_inner, self.n_surface, self.block_size], dtype=np.int64)
         return d
 
@@ -88,7 +92,7 @@ class GraphLevel:
     def from_arrays(cls, d, prefix: str, stats: dict | None = None) -> "GraphLevel":
         n_inner, n_surface, block = (int(x) for x in d[prefix + "counts"])
         kw = {a: np.asarray(d[prefix + a]) for a in cls.ARRAYS}
-        kw.update({a: np.asarray(d[prefix + a]) for a in cls.TET_ARRAYS if prefix + a in d})
+        kw.update({a: np.asarray(d[prefix + a]) for a in cls.OPTIONAL_ARRAYS if prefix + a in d})
         return cls(n_inner=n_inner, n_surface=n_surface, block_size=block, stats=stats or {}, **kw)
 
 
