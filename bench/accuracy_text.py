@@ -46,7 +46,9 @@ def render(b, link: dict, costs, head: str) -> str:
     add("* **(b)** against the path tracer (model + discretisation + iteration). The reference carries noise "
         "(its *noise floor*, the error a perfect image would show); **(b) debiased** = "
         "sqrt((b)^2 - floor^2) is the error against a noise-free reference.")
-    add("* *first frame*: light pass + all levels solved coarse to fine from zero + vertex radiance; "
+    add("* *first frame*: light pass + all levels solved coarse to fine from zero + vertex radiance, in a process "
+        "that has loaded the bake (whose cache keeps the split's half-space tables for the material's index, as "
+        "the add-on's and the command line's bakes do; `save_bake(etas=...)`); "
         "*frame (warm)*: the sky turned by 5 degrees, the finest level warm-started from the previous frame "
         "(what an interactive edit costs). Tolerance 1e-4 (the add-on's default), the default CPU solver (CG with a "
         "coarse space on levels of 8,000 nodes and more, Chebyshev below).")

@@ -486,7 +486,9 @@ def test_the_cache_keeps_the_transport_tables_of_the_material(tmp_path, monkeypa
         raise AssertionError("the tables were solved again")
 
     monkeypatch.setattr(split.HalfSpaceSplit, "_transport", no_solve)
+    assert not split.has_transport_tables(eta)
     cache.load_bake(path)
+    assert split.has_transport_tables(eta) and not split.has_transport_tables(1.3)
     got = split.half_space_split(eta)
     np.testing.assert_array_equal(got.shape_table, want["c"])
     np.testing.assert_array_equal(got.beam_shape_table, want["c_beam"])  # eq. 6's tables travel with them
@@ -501,7 +503,7 @@ def test_the_cache_keeps_the_transport_tables_of_the_material(tmp_path, monkeypa
     np.savez(tmp_path / "old.npz", **arrays)
     split._KEPT.clear()
     cache.load_bake(tmp_path / "old.npz")  # another format: ignored, not adopted
-    assert not split._KEPT
+    assert not split._KEPT and not split.has_transport_tables(eta)
     monkeypatch.undo()
     split.half_space_split.cache_clear()
 

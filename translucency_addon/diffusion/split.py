@@ -640,6 +640,11 @@ def transport_tables(eta: float) -> dict:
             "M_beam": np.asarray(M_b, dtype=np.float64), "c_beam": np.asarray(c_b, dtype=np.float64)}
 
 
+def has_transport_tables(eta: float) -> bool:
+    """Whether this process holds the transport tables for ``eta`` (solved here or adopted from a bake cache)."""
+    return transport_key(check_eta(eta)) in _KEPT
+
+
 def adopt_transport_tables(key: str, M, c, M_beam=None, c_beam=None) -> bool:
     """Keep tables a bake cache carried; False (ignored) when they are of another format or quadrature
     than this code's.  Raises ``ValueError`` for tables of this format with the wrong shape or values
