@@ -12,7 +12,7 @@ is piecewise constant on **aggregates**: the nodes that fall in one box of a gri
 node positions, one box per :data:`NODES_PER_AGGREGATE` nodes within
 [:data:`MIN_AGGREGATES`, :data:`MAX_AGGREGATES`].  P has full column rank (no empty aggregate), so
 A_c is symmetric positive definite when A is, and M^{-1} is too: CG stays CG.  A_c (a few hundred rows,
-each box coupled to its 26 neighbours at most) is summed densely and factored once per system and channel by
+each box coupled to its 26 neighbours at most) is summed into its occupied entries and factored once per system and channel by
 SuperLU (scipy); a step then costs per channel one restriction (a ``bincount``), one small sparse solve and
 one gather.  Not LAPACK's dense Cholesky, though it is as fast here: at 128 rows and more it runs blocked on
 OpenBLAS's threads, which then spin for a while after the call and took the cores from the next frame's
