@@ -96,7 +96,8 @@ def test_deposits_keep_each_chord_s_power():
     st = np.array([[0.772, 1.05, 1.49]])
     al = np.array([[0.74, 0.88, 1.01]]) / st
     beam = (np.ones((1, 3)), np.ones(1), np.array([[0.0, 0.0, 1.0]]))
-    x, p = beam_source.beam_deposits(One, bvh, 10.0, beam, st, al, 1.0, diag=3.46)
+    dep = beam_source.beam_deposits(One, bvh, 10.0, beam, st, al, 1.0, diag=3.46)
+    x, p = dep.points, dep.power
     assert np.allclose(x[:, :2], 0.0, atol=1e-9) and np.all((x[:, 2] < 1.0) & (x[:, 2] > -1.0))
     t = np.linspace(0.0, 19.998, 200_001)
     for c in range(3):
@@ -104,7 +105,7 @@ def test_deposits_keep_each_chord_s_power():
         want = al[0, c] * np.trapezoid(dens, t)
         assert p[:, c].sum() == pytest.approx(want, rel=5e-3)
     grazing = (np.ones((1, 3)), np.array([0.2]), np.array([[np.sqrt(1 - 0.04), 0.0, 0.2]]))
-    _, pg = beam_source.beam_deposits(One, bvh, 10.0, grazing, st, al, 1.0, diag=3.46)
+    pg = beam_source.beam_deposits(One, bvh, 10.0, grazing, st, al, 1.0, diag=3.46).power
     assert np.all(pg.sum(axis=0) < p.sum(axis=0))
 
 
@@ -148,12 +149,14 @@ def test_a_sun_through_the_volume_lights_the_terminator_as_transport_does(sphere
 def test_light_carried_to_the_terminator_leaves_in_the_diffusion_s_own_shape(sphere_under_a_sun):
     """Eq. 9 of split.py on the same sphere: around the terminator most of the output is light the diffusion
     carried there from the lit side; seen along the normal it leaves in the diffusion's own distribution
-    (1.25x the isotropic output at eta 1) and the band 80-100 degrees comes within 8 % of the walk (measured
-    1.05); with the split's shape for all of it (eq. 4, the local half-space's) the band is 0.88."""
+    (1.25x the isotropic output at eta 1) and the band 80-100 degrees comes within 10 % of the walk (measured
+    1.05, and 1.08 since the beam's shallowest collisions enter at the boundary, beam_source.py eq. 9, which
+    brightens the cap too: 0.97 -> 0.98 here); with the split's shape for all of it (eq. 4, the local
+    half-space's) the band is 0.90 (0.88 before eq. 9 of beam_source.py), 0.18 below."""
     bk, theta, ref = sphere_under_a_sun
     _, cap, term = _cap_and_terminator(bk, theta, ref, "volume")
     _, cap_4, term_4 = _cap_and_terminator(bk, theta, ref, "volume", transported=False)
-    assert abs(term - 1.0) < 0.08 and term_4 < 0.9
+    assert abs(term - 1.0) < 0.10 and term > term_4 + 0.1
     assert cap == pytest.approx(cap_4, rel=0.01)  # the lit cap is its own light: the shape there is unchanged
 
 
@@ -171,4 +174,36 @@ def test_the_volume_source_keeps_the_energy_balance(sphere_under_a_sun):
         assert np.all(s.phi_bound(res, level) >= res.phi[level].max(axis=0) * (1 - 1e-6))
     boundary = dmod.DiffusionSolver(bk, mat, options=dmod.SolveOptions(single_scattering=True, tol=1e-8,
                                                                        lamp_source="boundary")).solve([sun])
-    assert res.q[-1].sum() < 1e-9 * boundary.q[-1].sum()  # a sun alone: nothing left on the boundary
+    # a sun alone: on the coarser levels nothing is left on the boundary; on the finest only the beams'
+    # collisions nearer to the surface than to a node (beam_source.shallow_to_boundary), a part of the light
+    for level in range(len(bk.levels) - 1):
+        assert res.q[level].sum() < 1e-9 * boundary.q[level].sum()
+    assert 0.0 < res.q[-1].sum() < 0.5 * boundary.q[-1].sum()
+
+
+def test_collisions_the_graph_cannot_place_enter_at_the_boundary(sphere_under_a_sun, monkeypatch):
+    """The same sphere 40 mm across at Draft: its nodes lie ~5 mm apart, against skin's mean free path of
+    0.7-1.3 mm, so most of a sun's collisions lie nearer to the surface than to the node whose cell would hold
+    them, and the diffusion would return them from the node's depth.  Taken at the boundary with their
+    calibrated return (beam_source.shallow_to_boundary), the lit cap (within 30 degrees of the pole) comes
+    within 8 % of the random walk in every channel (measured 0.98, 1.00, 1.03 in R, G, B); all in the cells, as
+    before, 0.89, 0.78, 0.70."""
+    from bench.sphere_walk import sphere_lamp_walk
+
+    bk, theta, _ = sphere_under_a_sun
+    big = bk.with_scale(40.0)
+    ang = np.array([0.0, 10.0, 20.0, 30.0, 40.0])
+    mat = replace(materials.material_from_preset("skin1"), eta=1.0)
+    sa, ss = np.array(mat.medium_a.sigma_a), np.array(mat.medium_a.sigma_s)
+    ref = np.stack([np.interp(theta, ang, sphere_lamp_walk(40.0, sa[c] + ss[c], ss[c] / (sa[c] + ss[c]),
+                                                           np.radians(ang), n=6000, seed=4)[0]) for c in range(3)], 1)
+    cap = theta <= 30.0
+
+    def cap_ratio():
+        s = dmod.DiffusionSolver(big, mat, options=dmod.SolveOptions(single_scattering=True, tol=1e-6))
+        res = s.solve([Light(kind="sun", irradiance=1.0, direction=(0.0, 0.0, -1.0))])
+        return s.vertex_radiance(res)[cap].mean(axis=0) / ref[cap].mean(axis=0)
+
+    assert np.all(np.abs(cap_ratio() - 1.0) < 0.08)
+    monkeypatch.setattr(beam_source, "shallow_to_boundary", lambda dep, d, area, *a, **k: (dep.power, np.zeros((len(area), 3))))
+    assert cap_ratio()[2] < 0.8

@@ -286,10 +286,11 @@ def test_one_block_solve_carries_the_first_scatter_split(torus_bake, block_solve
     beams = [None] * len(torus_bake.levels)
     q = s.incident(sun, UNIFORM, levels=[fine], beams=beams)[fine]
     block = bounced_system(s, (0, 1, 2), split)
-    volume = s.lamp_volume(beams, split)[fine]  # the sun's light through the volume (beam_source.py)
+    volume, at_surface = s.lamp_volume(beams, split)  # the sun's light through the volume (beam_source.py)
+    volume, at_surface = volume[fine], at_surface[fine]
     assert res.volume is not None and np.allclose(res.volume[fine], volume)
-    # the sun's incidence (split.py eq. 6), its part of q in the volume
-    direct = direct_light(s, block, q, beams[fine], (0, 1, 2), split, beam_in_volume=True)
+    # the sun's incidence (split.py eq. 6), its part of q in the volume but its shallowest collisions
+    direct = direct_light(s, block, q, beams[fine], (0, 1, 2), split, beam_in_volume=True, beam_at_surface=at_surface)
     assert direct is not None
     block.set_frame(direct)
     B = block.rhs(q, direct, volume)

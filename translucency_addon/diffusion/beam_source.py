@@ -61,6 +61,21 @@ exactly per channel and deposited, with eq. (8)'s weight at their mean depth, at
 cell of the nearest inner node (scipy's k-d tree).  16 pieces are within 3 % of 96 on that sphere.  The medium is taken as homogeneous along each
 chord with the entry node's coefficients, as the split takes it at the surface node.
 
+**Collisions the graph cannot place.**  A deposit nearer to the surface than to the inner node whose cell
+holds it sits, for the diffusion, at that node's depth, and comes back ``P_d`` of the node's depth, not of its
+own: where the nodes lie far apart against the mean free path (a 40 mm skin sphere at Draft or Preview,
+nodes ~5 mm apart against 0.7-1.3 mm) the lit cap came out at 0.62-0.89 of the walk.  Such a deposit enters
+the diffusion at its entry node as a boundary source instead (:func:`shallow_to_boundary`), of the strength
+whose half-space return ``B`` (the boundary source's, which the graph's fitted surface links reproduce) is the
+deposit's calibrated return::
+
+    q_s = sum over the node's shallow deposits of  power P_d(tau) / (B a_s)                            (9)
+
+(the split's ``m`` carries it: :meth:`.split.HalfSpaceSplit.source_factors` ``beam_at_surface``), on the level
+the beams are traced from; a coarser level, only the finer one's starting guess, keeps all of it in its cells.
+On the 40 mm sphere the cap comes to 0.94-0.99 at Draft and Preview (``tests/test_beam_source.py``); on the
+10 mm sphere of docs/accuracy.md, whose Preview nodes lie ~1 mm apart, blue's cap moves from 0.98 to 1.04.
+
 Where it runs: the diffusion solve of :class:`.solver.DiffusionSolver` in the split's channels (option
 ``lamp_source="volume"``), on the CPU and the GPU (the source rides in the inner nodes' texels of the
 ``q`` texture).  A point light's or area light's beam is taken at each node as one beam from the
@@ -74,6 +89,7 @@ scipy's ``cKDTree``.
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
@@ -129,12 +145,20 @@ def _depth_weight_table(eta: float) -> tuple:
             y = linalg.solve((np.eye(n) - a * ht.K).T, w)
             G = a * (y @ ht.K) / ht.h
             s = np.sqrt(3.0 * (1.0 - a))
-            W[i] = (G * (1.0 + 2.0 * A * s / 3.0) * np.exp(s * ht.z))[keep]
+            W[i] = (G * (1.0 + 2.0 * A * s / 3.0) * np.exp(s * ht.z))[keep]  # G / diffusion_return
             if s > 1.0:  # G's rounding (~1e-17) times e^{s tau} would outgrow the beam's e^{-tau} past here:
                 deep = ht.z[keep] > 25.0 / (s - 1.0)  # hold W (deposits there carry < e^{-25} of the beam)
                 if deep.any():
                     W[i, deep] = W[i, np.argmax(deep) - 1]
     return ht.z[keep], W
+
+
+def diffusion_return(alpha, tau, eta: float) -> np.ndarray:
+    """``P_d = e^{-s tau}/(1 + 2 A s/3)``, ``s = sqrt(3 (1 - alpha))``: the part of a plane source's power at optical
+    depth ``tau`` below a half-space's boundary that the diffusion (eq. 1-2) sends out (eq. 8's denominator)."""
+    a = np.clip(np.asarray(alpha, dtype=np.float64), 0.0, 1.0)
+    s = np.sqrt(3.0 * (1.0 - a))
+    return np.exp(-s * np.asarray(tau, dtype=np.float64)) / (1.0 + 2.0 * boundary_A(eta) * s / 3.0)
 
 
 def depth_weight(alpha, tau, eta: float) -> np.ndarray:
@@ -184,10 +208,23 @@ def chord_lengths(bvh, points, normals, directions, diag: float) -> np.ndarray:
     return np.where(hit, t, np.median(t[hit]) if hit.any() else diag)
 
 
+class Deposits(NamedTuple):
+    """:func:`beam_deposits`' point deposits; per deposit: ``points`` (m, 3) object units, ``power`` (m, 3) in the
+    units of the system's right-hand side (mm^2 W/m^2), ``entry`` (m,) the surface node its beam entered at,
+    ``depth`` (m,) mm below that node's tangent plane, ``tau`` and ``alpha`` (m, 3) its optical depth and the
+    entry node's albedo per channel."""
+
+    points: np.ndarray
+    power: np.ndarray
+    entry: np.ndarray
+    depth: np.ndarray
+    tau: np.ndarray
+    alpha: np.ndarray
+
+
 def beam_deposits(level, bvh, mm_per_unit: float, beam, sigma_t_s, alpha_s, eta: float, diag: float,
-                  n_segments: int = N_SEGMENTS) -> tuple:
-    """The lamps' calibrated volume source (eq. 7 with eq. 8's depth weight W) as point deposits: ``(points (m, 3) in
-    object units, power (m, 3))``, power in the units of the system's right-hand side (mm^2 W/m^2).
+                  n_segments: int = N_SEGMENTS) -> Deposits:
+    """The lamps' calibrated volume source (eq. 7 with eq. 8's depth weight W) as point deposits (:class:`Deposits`).
 
     ``level``: the graph level whose surface nodes the beams enter at; ``beam``: ``(q_beam, mu, to_light)``
     there (:class:`..scene.lights.LampBeams`): the lamps' entering light (W/m^2, after the Fresnel
@@ -198,7 +235,8 @@ def beam_deposits(level, bvh, mm_per_unit: float, beam, sigma_t_s, alpha_s, eta:
     q_b, mu, to_light = (np.asarray(a, dtype=np.float64) for a in beam)
     lit = np.flatnonzero(q_b.mean(axis=1) > 0)
     if lit.size == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3))
+        return Deposits(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros(0),
+                        np.zeros((0, 3)), np.zeros((0, 3)))
     s = float(mm_per_unit)
     n = np.asarray(level.normal, dtype=np.float64)[lit]
     p = np.asarray(level.surface_position, dtype=np.float64)[lit]
@@ -220,18 +258,48 @@ def beam_deposits(level, bvh, mm_per_unit: float, beam, sigma_t_s, alpha_s, eta:
     mid = a + np.where(sw > 1e-6, 1.0 / st_min[:, None] - width / np.expm1(np.minimum(sw, 700.0)), 0.5 * width)
     through = np.exp(-st[:, None, :] * edges[:, :, None])  # (n, K+1, C) uncollided fraction
     collided = through[:, :-1] - through[:, 1:]  # (n, K, C) exact per channel
-    weight = depth_weight(al[:, None, :], st[:, None, :] * (mid * nu[:, None])[:, :, None], eta)  # eq. (8)
+    depth = mid * nu[:, None]  # (n, K) mm below the entry point's tangent plane
+    tau = st[:, None, :] * depth[:, :, None]
+    weight = depth_weight(al[:, None, :], tau, eta)  # eq. (8)
     x = p[:, None, :] + (mid / s)[:, :, None] * w[:, None, :]
-    return x.reshape(-1, 3), (power[:, None, :] * collided * weight).reshape(-1, 3)
+    return Deposits(x.reshape(-1, 3), (power[:, None, :] * collided * weight).reshape(-1, 3),
+                    np.repeat(lit, n_segments), depth.reshape(-1), tau.reshape(-1, 3),
+                    np.repeat(al, n_segments, axis=0))
 
 
-def deposit_in_cells(inner_tree, n_inner: int, points, power) -> np.ndarray:
+def shallow_to_boundary(dep: Deposits, node_distance_mm: np.ndarray, area_mm2: np.ndarray, eta: float,
+                        at_entry=True) -> tuple:
+    """``(power left in the volume (m, 3), boundary source (n_surface, 3) in W/m^2)``: eq. (9) of the module
+    docstring.  A deposit nearer to the surface than to the inner node whose cell would hold it
+    (``node_distance_mm``, per deposit) is a source the graph cannot place: its cell's node sits deeper, and the
+    diffusion would return ``P_d`` of the node's depth, not of the deposit's (a 40 mm skin sphere at Preview,
+    nodes ~4 mm apart against a 0.7-1.3 mm mean free path: 0.66-0.87 of a random walk at the lit pole).  It
+    enters as a boundary source at its entry node instead, of the strength whose half-space return B
+    (:func:`.split.semi_infinite_albedo`, what the graph's fitted surface links reproduce) is the deposit's
+    calibrated return ``power P_d(tau)`` (:func:`diffusion_return`); where B vanishes (low albedo at eta > 1)
+    the deposit stays in the volume.  ``at_entry`` (per deposit, or True): whether the entry node is the surface
+    node nearest to the deposit; one a grazing beam carried sideways past it stays in the volume (the boundary
+    source would move its light back towards the lamp)."""
+    from .split import semi_infinite_albedo
+
+    B = semi_infinite_albedo(dep.alpha, eta)
+    move = ((dep.depth < node_distance_mm) & at_entry)[:, None] & (B > 1e-3)
+    moved = np.where(move, dep.power * diffusion_return(dep.alpha, dep.tau, eta) / np.where(B > 1e-3, B, 1.0), 0.0)
+    q = np.zeros((len(area_mm2), 3))
+    for c in range(3):
+        q[:, c] = np.bincount(dep.entry, moved[:, c], len(area_mm2))
+    q /= np.asarray(area_mm2, dtype=np.float64)[:, None]
+    return np.where(move, 0.0, dep.power), q
+
+
+def deposit_in_cells(inner_tree, n_inner: int, points, power, cell=None) -> np.ndarray:
     """(n_inner, 3): each deposit's power in the cell of its nearest inner node (``inner_tree``: a k-d tree
-    of the level's inner node positions, object units)."""
+    of the level's inner node positions, object units; ``cell``: those nodes where already queried)."""
     out = np.zeros((n_inner, 3))
     if len(points) == 0 or n_inner == 0:
         return out
-    _, cell = inner_tree.query(points, workers=-1)
+    if cell is None:
+        _, cell = inner_tree.query(points, workers=-1)
     for c in range(3):
         out[:, c] = np.bincount(cell, weights=power[:, c], minlength=n_inner)
     return out

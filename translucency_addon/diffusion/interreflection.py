@@ -345,11 +345,12 @@ class DirectLight:
     hq: np.ndarray
 
 
-def direct_light(solver, system, q_light, beam, cols, single, beam_in_volume: bool = False):
+def direct_light(solver, system, q_light, beam, cols, single, beam_in_volume: bool = False, beam_at_surface=None):
     """:class:`DirectLight` of the finest level's entering light ``q_light`` (n_s, 3) with the lamps' part
     ``beam`` = (q_beam, mu), as the two-pass solve's output sees it (``split_radiance_at`` along the
     normal); None without a split or without lamps.  ``beam_in_volume``: the lamps' light enters the
-    diffusion as a volume source (:mod:`.beam_source`), so m takes none of it."""
+    diffusion as a volume source (:mod:`.beam_source`), so m takes none of it but ``beam_at_surface`` (per unit
+    of the lamps' light, (n_s, 3), or None: its shallowest collisions, taken at the boundary)."""
     if beam is None or system.m is None:
         return None
     from .split import half_space_split
@@ -357,7 +358,8 @@ def direct_light(solver, system, q_light, beam, cols, single, beam_in_volume: bo
     split = half_space_split(solver.eta)
     on = np.array([bool(single[c]) for c in cols])
     cl = list(cols)
-    m_all = split.source_factors(solver.surface_albedo[-1], q_light, beam, beam_in_volume=beam_in_volume)
+    m_all = split.source_factors(solver.surface_albedo[-1], q_light, beam, beam_in_volume=beam_in_volume,
+                                 beam_at_surface=beam_at_surface)
     idx, w = solver.bake.vertex_map
     shape, single_v = solver.split_terms_at(q_light, beam, idx, w, beam_in_volume=beam_in_volume)
     Bg, _ = system.factors
@@ -383,7 +385,8 @@ def solve_finest_bounced(solver, q_light, coarser, warm_start, cols, single) -> 
     return drain(finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single))
 
 
-def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, partial=None, beam=None, volume=None):
+def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, partial=None, beam=None, volume=None,
+                         at_surface=None):
     """The finest level of ``DiffusionSolver.solve(bounced=True)``: the block system (1) -- (1') in the
     split's channels -- by Chebyshev, in the channels ``cols``; a generator that returns the
     :class:`FinestStep` and yields after every sweep (and once before the first, where the start is not
@@ -398,14 +401,16 @@ def finest_bounced_steps(solver, q_light, coarser, warm_start, cols, single, par
     source, its once-scattered light the bounce sends back (H q) and phi0's shape follow their incidence
     (eq. 6 of :mod:`.split`, :class:`DirectLight`); the bounce's own light is diffuse light.  ``volume``:
     the lamps' volume source at the inner nodes (n_inner, 3) (:mod:`.beam_source`), or None: it drives
-    phi0 and phi1 alike, and the lamps' part of ``q_light`` then leaves the boundary source.
+    phi0 and phi1 alike, and the lamps' part of ``q_light`` then leaves the boundary source but for
+    ``at_surface`` (:meth:`DiffusionSolver.lamp_volume`'s, per unit of the lamps' light, or None).
     """
     opts = solver.options
     fine = len(solver.bake.levels) - 1
     system = bounced_system(solver, cols, single)
     base = system.base
     qd = np.asarray(q_light)[:, list(cols)]
-    direct = direct_light(solver, system, q_light, beam, cols, single, beam_in_volume=volume is not None)
+    direct = direct_light(solver, system, q_light, beam, cols, single, beam_in_volume=volume is not None,
+                          beam_at_surface=at_surface)
     system.set_frame(direct)
     vol = None if volume is None else np.asarray(volume)[:, list(cols)]
     B = system.rhs(qd, direct, vol)

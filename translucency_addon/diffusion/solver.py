@@ -475,8 +475,8 @@ class DiffusionSolver:
             warnings = list(self.warnings)
         q_light = q
         single = self.split_channels(single)
-        volume = self.lamp_volume(beams, single)
-        q, q_incident, single = self.split_source(q, single, beams, volume)
+        volume, at_surface = self.lamp_volume(beams, single)
+        q, q_incident, single = self.split_source(q, single, beams, volume, at_surface)
         if q_incident is None:
             beams = None
         t1 = time.perf_counter()
@@ -503,7 +503,8 @@ class DiffusionSolver:
                 step = yield from finest_bounced_steps(self, q_light[fine], phi[fine - 1] if levels else None,
                                                        warm_start if usable else None, cols, single, partial,
                                                        beam=None if beams is None else beams[fine],
-                                                       volume=None if volume is None else volume[fine])
+                                                       volume=None if volume is None else volume[fine],
+                                                       at_surface=None if at_surface is None else at_surface[fine])
                 phi[fine], q = step.phi, list(q)
                 q[fine], first_pass = step.q, step.first_pass
                 if q_incident is not None:
@@ -530,17 +531,22 @@ class DiffusionSolver:
             single = (bool(self.options.single_scattering),) * 3
         return tuple(bool(c) for c in single)
 
-    def lamp_volume(self, beams, single) -> list | None:
-        """The lamps' volume source per level, (n_inner, 3), in the split's channels ``single`` (zero in the
-        others, where the lamps stay boundary sources), or None: with ``options.lamp_source == "volume"``
-        and lamp light on some level (:mod:`.beam_source`; ``beams`` per level ``(q_beam, mu, to_light)``)."""
+    def lamp_volume(self, beams, single) -> tuple:
+        """``(volume, at_surface)``: the lamps' volume source per level, (n_inner, 3), in the split's channels
+        ``single`` (zero in the others, where the lamps stay boundary sources), and per level the part of the
+        lamps' light that enters the diffusion at the boundary instead, per unit of it (n_surface, 3), or None
+        (:func:`.beam_source.shallow_to_boundary`: collisions nearer to the surface than to the node whose cell
+        would hold them; on the level the beams are traced from, the finest lit one -- a coarser level, only
+        the finer one's starting guess, takes all of it in the volume).  ``(None, None)`` unless
+        ``options.lamp_source == "volume"`` and some level has lamp light (:mod:`.beam_source`; ``beams`` per
+        level ``(q_beam, mu, to_light)``)."""
         if self.options.lamp_source != "volume" or beams is None or not any(single):
-            return None
+            return None, None
         if all(b is None or not np.any(b[0]) for b in beams):
-            return None
+            return None, None
         from scipy.spatial import cKDTree
 
-        from .beam_source import beam_deposits, deposit_in_cells
+        from .beam_source import beam_deposits, deposit_in_cells, shallow_to_boundary
 
         # The beams are traced once, from the finest level that has them (its surface is the closest to
         # the mesh), and their deposits binned into every level's cells, scaled on a coarser level to the
@@ -551,12 +557,14 @@ class DiffusionSolver:
         def lamp_power(i):
             return (self.bake.levels[i].area[:, None] * np.asarray(beams[i][0])).sum(axis=0)
         p_src = lamp_power(src)
-        points, power = beam_deposits(self.bake.levels[src], self.shadow_bvh(None), self.bake.mm_per_unit,
-                                      beams[src], self.surface_sigma_t[src], self.surface_albedo[src], self.eta,
-                                      self.mesh_diagonal())
-        power = power * np.array(single, dtype=float)
+        dep = beam_deposits(self.bake.levels[src], self.shadow_bvh(None), self.bake.mm_per_unit, beams[src],
+                            self.surface_sigma_t[src], self.surface_albedo[src], self.eta, self.mesh_diagonal())
+        on = np.array(single, dtype=float)
+        power = dep.power * on
         trees = self.cache.setdefault("inner_tree", {})
         out = []
+        at_surface = [None] * len(beams)
+        mm = float(self.bake.mm_per_unit)
         for i, beam in enumerate(beams):
             lv = self.bake.levels[i]
             if beam is None or lv.n_inner == 0:
@@ -564,13 +572,23 @@ class DiffusionSolver:
                 continue
             if i not in trees:
                 trees[i] = cKDTree(np.asarray(lv.position[: lv.n_inner], dtype=np.float64))
-            scale = 1.0
-            if i != src:
-                scale = np.where(p_src > 0, lamp_power(i) / np.where(p_src > 0, p_src, 1.0), 0.0)
-            out.append(deposit_in_cells(trees[i], lv.n_inner, points, power) * scale)
-        return out
+            if i == src and len(dep.points):
+                dist, cell = trees[i].query(dep.points, workers=-1)
+                surface = self.cache.get(("surface_tree", i))
+                if surface is None:
+                    surface = self.cache[("surface_tree", i)] = cKDTree(np.asarray(lv.surface_position, dtype=np.float64))
+                _, nearest = surface.query(dep.points, workers=-1)
+                inside, q_surface = shallow_to_boundary(dep._replace(power=power), dist * mm, lv.area * mm * mm,
+                                                        self.eta, at_entry=nearest == dep.entry)
+                q_b = np.asarray(beam[0], dtype=np.float64)
+                at_surface[i] = np.where(q_b > 0, q_surface / np.where(q_b > 0, q_b, 1.0), 0.0)
+                out.append(deposit_in_cells(trees[i], lv.n_inner, dep.points, inside, cell=cell))
+            else:
+                scale = np.where(p_src > 0, lamp_power(i) / np.where(p_src > 0, p_src, 1.0), 0.0) if i != src else 1.0
+                out.append(deposit_in_cells(trees[i], lv.n_inner, dep.points, power) * scale)
+        return out, at_surface
 
-    def split_source(self, q, single=None, beams=None, volume=None):
+    def split_source(self, q, single=None, beams=None, volume=None, at_surface=None):
         """``(diffusion source per level, incident q per level or None, channels)`` of the split.
 
         In the channels of ``single`` (default: all when ``options.single_scattering``) the light that
@@ -582,7 +600,7 @@ class DiffusionSolver:
         level ``(q_beam, mu)`` or None): the lamps' part of q is split by its incidence (eq. 6 there).
         ``volume`` (:meth:`lamp_volume`, or None): on the levels where it holds a source, the lamps' light
         enters the diffusion through it, so their part of q leaves the boundary source (the output still
-        adds their single scattering).
+        adds their single scattering), but for ``at_surface`` per level (:meth:`lamp_volume`'s).
         """
         single = self.split_channels(single)
         if not any(single):
@@ -595,7 +613,8 @@ class DiffusionSolver:
                 out.append(None)
                 continue
             m = split.source_factors(self.surface_albedo[i], qi, None if beams is None else beams[i],
-                                     beam_in_volume=volume is not None and volume[i] is not None)
+                                     beam_in_volume=volume is not None and volume[i] is not None,
+                                     beam_at_surface=None if at_surface is None else at_surface[i])
             out.append(np.asarray(qi) * np.where(on, m, 1.0))
         return out, list(q), single
 

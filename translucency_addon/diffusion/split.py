@@ -519,11 +519,16 @@ class HalfSpaceSplit:
         mixed = (diffuse * q_d + beam_f(mu) * q_b) / np.where(q > 0, q, 1.0)
         return np.where(q > 0, mixed, diffuse)
 
-    def source_factors(self, alpha, q, beam=None, beam_in_volume: bool = False) -> np.ndarray:
+    def source_factors(self, alpha, q, beam=None, beam_in_volume: bool = False, beam_at_surface=None) -> np.ndarray:
         """The diffusion's source per unit entering light q (n, C): ``m(alpha)`` for diffuse light, eq. (6)'s
-        ``m(alpha, mu)`` for the part ``beam`` = (q_beam, mu) of q that came from lamps -- or none of that
-        part with ``beam_in_volume``, where it enters the diffusion as a volume source (:mod:`.beam_source`)."""
-        beam_f = (lambda mu: 0.0) if beam_in_volume else (lambda mu: self.beam_source_factor(alpha, mu))
+        ``m(alpha, mu)`` for the part ``beam`` = (q_beam, mu) of q that came from lamps -- or, with
+        ``beam_in_volume``, where that part enters the diffusion as a volume source (:mod:`.beam_source`), none
+        of it but ``beam_at_surface`` (n, C) per unit q_beam: the beam's shallowest collisions, which the graph
+        takes at the boundary (:func:`.beam_source.shallow_to_boundary`)."""
+        if beam_in_volume:
+            beam_f = (lambda mu: 0.0) if beam_at_surface is None else (lambda mu: beam_at_surface)
+        else:
+            beam_f = lambda mu: self.beam_source_factor(alpha, mu)  # noqa: E731
         return self._mixed(self.source_factor(alpha), beam_f, q, beam)
 
     def single_escapes(self, alpha, q, beam=None) -> np.ndarray:
