@@ -138,7 +138,6 @@ def _depth_weight_table(eta: float) -> tuple:
     keep = ht.z <= _TAU_MAX
     w = ht.exitance_weights()
     n = len(ht.z)
-    A = boundary_A(eta)
     alpha = 1.0 - np.linspace(0.0, 1.0, N_ALPHA) ** 2  # 1 -> 0
     W = np.zeros((N_ALPHA, int(keep.sum())))
     for i, a in enumerate(alpha):
@@ -147,8 +146,8 @@ def _depth_weight_table(eta: float) -> tuple:
         elif a > 0.0:
             y = linalg.solve((np.eye(n) - a * ht.K).T, w)
             G = a * (y @ ht.K) / ht.h
-            s = np.sqrt(3.0 * (1.0 - a))
-            W[i] = (G * (1.0 + 2.0 * A * s / 3.0) * np.exp(s * ht.z))[keep]  # G / diffusion_return
+            W[i] = G[keep] / diffusion_return(a, ht.z[keep], eta)  # e^{-s tau} >= e^{-105} up to _TAU_MAX
+            s = np.sqrt(3.0 * (1.0 - a))  # the diffusion's decay per mean free path, as in diffusion_return
             if s > 1.0:  # G's rounding (~1e-17) times e^{s tau} would outgrow the beam's e^{-tau} past here:
                 deep = ht.z[keep] > 25.0 / (s - 1.0)  # hold W (deposits there carry < e^{-25} of the beam)
                 if deep.any():

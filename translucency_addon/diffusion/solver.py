@@ -561,7 +561,8 @@ class DiffusionSolver:
                             self.surface_sigma_t[src], self.surface_albedo[src], self.eta, self.mesh_diagonal())
         on = np.array(single, dtype=float)
         power = dep.power * on
-        trees = self.cache.setdefault("inner_tree", {})
+        trees = self.cache.setdefault("inner_tree", {})  # per level, of its inner nodes (the cells) ...
+        surface_trees = self.cache.setdefault("surface_tree", {})  # ... and of its surface nodes
         out = []
         at_surface = [None] * len(beams)
         mm = float(self.bake.mm_per_unit)
@@ -574,10 +575,9 @@ class DiffusionSolver:
                 trees[i] = cKDTree(np.asarray(lv.position[: lv.n_inner], dtype=np.float64))
             if i == src and len(dep.points):
                 dist, cell = trees[i].query(dep.points, workers=-1)
-                surface = self.cache.get(("surface_tree", i))
-                if surface is None:
-                    surface = self.cache[("surface_tree", i)] = cKDTree(np.asarray(lv.surface_position, dtype=np.float64))
-                _, nearest = surface.query(dep.points, workers=-1)
+                if i not in surface_trees:
+                    surface_trees[i] = cKDTree(np.asarray(lv.surface_position, dtype=np.float64))
+                _, nearest = surface_trees[i].query(dep.points, workers=-1)
                 inside, q_surface = shallow_to_boundary(dep._replace(power=power), dist * mm, lv.area * mm * mm,
                                                         self.eta, at_entry=nearest == dep.entry)
                 q_b = np.asarray(beam[0], dtype=np.float64)
