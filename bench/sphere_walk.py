@@ -56,6 +56,7 @@ class WalkResult:
     radiance: np.ndarray  # (orders, 2)
     stderr: float  # of the total
     n_paths: int
+    single_light_side: float = 0.0  # one collision, reflected inside only after it (on the light's side)
 
     @property
     def total(self) -> float:
@@ -65,6 +66,12 @@ class WalkResult:
     def single_straight(self) -> float:
         """One collision, no internal reflection: the single-scattering pass's term."""
         return float(self.radiance[1, 0])
+
+    @property
+    def single_light_reflected(self) -> float:
+        """One collision, no reflection before it (on the view's side) and at least one after it: the world's
+        light reflected inside before it scattered (``single_scattering/entry.py`` eq. 3)."""
+        return self.single_light_side - self.single_straight
 
     @property
     def single(self) -> float:
@@ -79,23 +86,55 @@ def sphere_walk(radius_mfp: float, albedo: float, eta: float, n: int = 200_000, 
                 cos_view: float = 1.0, orders: int = 4, max_events: int = 10_000) -> WalkResult:
     """L_o at a point of a sphere of radius ``radius_mfp`` mean free paths (sigma_t = 1) under a white
     world of radiance 1, seen at outside cosine ``cos_view``; see the module docstring."""
-    rng = np.random.default_rng(seed)
     R = float(radius_mfp)
+
+    def boundary(p, d):
+        t = to_boundary(p, d, R)
+        pb = p + t[:, None] * d
+        return t, pb / np.linalg.norm(pb, axis=1, keepdims=True)
+
+    return _walk(np.array([0.0, 0.0, R]), boundary, albedo, eta, n, seed, cos_view, orders, max_events)
+
+
+def box_walk(size_mfp, albedo: float, eta: float, n: int = 200_000, seed: int = 1, cos_view: float = 1.0,
+             orders: int = 4, max_events: int = 10_000) -> WalkResult:
+    """L_o at the centre of the top face (+z) of a box of sides ``size_mfp`` (3,) mean free paths, centred at 0,
+    under a white world of radiance 1, seen at outside cosine ``cos_view``: the sphere's walk between six planes
+    (a chord past the critical angle at one face meets the next nearly along its normal)."""
+    half = 0.5 * np.asarray(size_mfp, dtype=np.float64).reshape(3)
+
+    def boundary(p, d):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ts = np.where(d > 0, (half - p) / d, np.where(d < 0, (-half - p) / d, np.inf))
+        axis = np.argmin(ts, axis=1)
+        nb = np.zeros_like(p)
+        nb[np.arange(len(p)), axis] = np.sign(d[np.arange(len(p)), axis])
+        return np.maximum(ts[np.arange(len(p)), axis], 0.0), nb
+
+    return _walk(np.array([0.0, 0.0, half[2]]), boundary, albedo, eta, n, seed, cos_view, orders, max_events)
+
+
+def _walk(start, boundary, albedo, eta, n, seed, cos_view, orders, max_events) -> WalkResult:
+    """The adjoint walk from ``start`` (a surface point whose outward normal is +z) in the medium that
+    ``boundary(p, d) -> (distance, outward normal)`` bounds (sigma_t = 1)."""
+    rng = np.random.default_rng(seed)
     mu_o = float(cos_view)
     sin_in = np.sqrt(max(0.0, 1.0 - mu_o * mu_o)) / eta
     cos_in = np.sqrt(1.0 - sin_in * sin_in)
-    p = np.tile([0.0, 0.0, R], (n, 1))
+    p = np.tile(np.asarray(start, dtype=np.float64), (n, 1))
     d = np.tile([sin_in, 0.0, -cos_in], (n, 1))
     w = np.full(n, 1.0 - float(fresnel_unpolarised(mu_o, 1.0, eta)))
     k = np.zeros(n, dtype=np.int64)
     refl = np.zeros(n, dtype=np.int64)
+    before = np.zeros(n, dtype=bool)  # reflected inside before the first collision (the adjoint path's view side)
+    light_side = np.zeros(n)
     alive = np.ones(n, dtype=bool)
     score = np.zeros((n, orders, 2))
     for _ in range(max_events):
         idx = np.flatnonzero(alive)
         if idx.size == 0:
             break
-        t_out = to_boundary(p[idx], d[idx], R)
+        t_out, n_out = boundary(p[idx], d[idx])
         s = -np.log(rng.random(idx.size))
         coll = s < t_out
         ic, ib = idx[coll], idx[~coll]
@@ -109,21 +148,25 @@ def sphere_walk(radius_mfp: float, albedo: float, eta: float, n: int = 200_000, 
         d[ic] = np.stack([r * np.cos(phi), r * np.sin(phi), u], axis=1)
         # boundary: T leaves and sees the world, R is reflected
         pb = p[ib] + t_out[~coll, None] * d[ib]
-        nb = pb / np.linalg.norm(pb, axis=1, keepdims=True)
+        nb = n_out[~coll]
         cos_b = np.einsum("ij,ij->i", d[ib], nb)
         Rf = fresnel_unpolarised(cos_b, eta, 1.0)
         np.add.at(score, (ib, np.minimum(k[ib], orders - 1), np.minimum(refl[ib], 1)), w[ib] * (1.0 - Rf))
+        once = (k[ib] == 1) & ~before[ib]
+        light_side[ib[once]] += w[ib[once]] * (1.0 - Rf[once])
         w[ib] *= Rf
+        before[ib] |= k[ib] == 0
         refl[ib] += 1
         d[ib] -= 2.0 * cos_b[:, None] * nb
-        p[ib] = pb * (1.0 - 1e-12)
+        p[ib] = pb - 1e-12 * nb
         small = np.flatnonzero(alive & (w < 1e-4))
         keep = rng.random(small.size) < 0.1
         w[small[keep]] *= 10.0
         w[small[~keep]] = 0.0
         alive[small[~keep]] = False
     per_path = score.sum(axis=(1, 2))
-    return WalkResult(radiance=score.sum(axis=0) / n, stderr=float(per_path.std() / np.sqrt(n)), n_paths=n)
+    return WalkResult(radiance=score.sum(axis=0) / n, stderr=float(per_path.std() / np.sqrt(n)), n_paths=n,
+                      single_light_side=float(light_side.sum() / n))
 
 
 def spot_mask(cos_angle, size: float, blend: float) -> np.ndarray:

@@ -22,8 +22,10 @@ import numpy as np
 
 from ..errors import CacheError
 
-FORMAT_VERSION = 2  # 2: sh_env (entry.py, the critical cone); version 1 is read, and its key is stale
-READABLE_VERSIONS = (1, 2)
+# 2: sh_env (entry.py eq. 2, the critical cone); 3: sh_env with the world's light reflected inside (eq. 3).
+# Versions 1 and 2 are read and render (their world term as it was baked), and their key is stale.
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 
 
 def read_prefixed(d, prefix: str, what: str, version):

@@ -208,6 +208,10 @@ def first_moment(volume, directions: np.ndarray, *, progress=None) -> np.ndarray
 
 
 PSI_NEGLIGIBLE = 1e-7  # sample_sh: a chord this black adds < 1e-6 of the world's light to any coefficient
+# sample_sh: the SH order of the world's light reflected inside (entry.py eq. 3): the engine's environment is
+# order 2 (scene.environment_map.ENGINE_ORDER: a World's SH beside its extracted sun, a lamp), so higher
+# coefficients of that term would multiply zeros; kept to order 2 they cost a third of order 4's
+REFLECTED_ORDER = 2
 
 
 def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *, batch: int = 32,
@@ -218,9 +222,11 @@ def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *,
     points (in tau, not in exp(-tau): the exponential of an interpolated depth
     stays right where tau grows by several units per voxel, as in dense media).
     ``entry``: a :class:`.entry.WorldEntry` of the points (eq. 2: the world light's weight g and the outside
-    direction w_out its light comes from, per point and direction); then the coefficients of ``g psi`` on the
-    SH basis at ``w_out`` too, from the same depths: ``(psi's, g psi's)``.  Its chords are cast only where
-    psi reaches :data:`PSI_NEGLIGIBLE` in some channel (in dense media most chords into the object are black).
+    direction w_out its light comes from, per point and direction; eq. 3: the same for the chord's light
+    reflected inside, its reflected chords' depth by :func:`.chords.segment_depth`); then the coefficients of
+    ``g psi`` on the SH basis at ``w_out`` too, summed over eq. 3's terms, from the same depths:
+    ``(psi's, g psi's)``.  Its chords are cast only where psi reaches :data:`PSI_NEGLIGIBLE` in some channel
+    (in dense media most chords into the object are black).
     """
     dirs = np.asarray(directions, dtype=np.float64)
     n = len(dirs)
@@ -232,6 +238,13 @@ def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *,
     N = len(u)
     coef = np.zeros((K, N * 3), dtype=np.float64)
     coef_entry = None if entry is None else np.zeros((N, K, 3), dtype=np.float64)  # point-major: row updates
+    if entry is not None:
+        from .chords import ChordField, segment_depth
+
+        chord_field = ChordField(volume)
+
+        def depth(a, b):
+            return segment_depth(chord_field, a, b)
     for start in range(0, n, batch):
         idx = np.arange(start, min(n, start + batch))
         psi = np.empty((len(idx), N * 3), dtype=np.float64)
@@ -247,9 +260,12 @@ def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *,
                 need = np.flatnonzero(p3.max(axis=1) > PSI_NEGLIGIBLE)
                 if not need.size:
                     continue
-                g, w_out = entry(dirs[di], need)
-                Yo = shmod.sh_basis(w_out, order) * (4.0 * np.pi / n)  # (m, K)
-                coef_entry[need] += Yo[:, :, None] * (g[:, None] * p3[need])[:, None, :]  # rows of (K, 3)
+                for k, (rows, g, w_out) in enumerate(entry.paths(dirs[di], need, p3[need], depth)):
+                    at = need[rows]
+                    o = order if k == 0 else min(order, REFLECTED_ORDER)
+                    Yo = shmod.sh_basis(w_out, o) * (4.0 * np.pi / n)  # (m, K or fewer)
+                    gp = (g[:, None] if g.ndim == 1 else g) * p3[at]
+                    coef_entry[at, :Yo.shape[1]] += Yo[:, :, None] * gp[:, None, :]  # rows of (K, 3)
         if progress is not None:
             progress(float(idx[-1] + 1) / n)
     sh = np.ascontiguousarray(coef.reshape(K, N, 3).transpose(1, 0, 2)).astype(np.float32)

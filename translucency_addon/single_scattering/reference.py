@@ -18,8 +18,9 @@ keeps dense media (marble at the scale of a bunny) affordable.  The
 medium is the trilinear voxel field of :class:`~.volume.VoxelVolume` (the same
 model the bake reads); Fresnel and eta conventions are those of
 :mod:`.runtime` (``F_in`` at entry; the exit factor is applied by the caller), and, given the
-mesh (``reference_vertices`` passes it), the world's light enters through the critical cone as in the
-bake (:mod:`.entry` eq. 2: each march point's weights, in place of ``F_in``).
+mesh (``reference_vertices`` passes it), the world's light enters through the critical cone and after
+reflections inside as in the bake (:mod:`.entry` eqs. 2-3: each march point's weights, in place of ``F_in``;
+the reflected chords marched here, :func:`entered_world`).
 
 ``reference_vertices`` starts each view ray outside the surface and ends it beyond the far side by
 :func:`.runtime.medium_margin`, so that it crosses the whole voxel field (its trilinear boundary ramp
@@ -36,7 +37,7 @@ import numpy as np
 
 from ..scene import sh as shmod
 from ..scene.lights import emitter_samples, light_irradiance
-from .entry import world_entry
+from .entry import WorldEntry
 from .runtime import entry_transmittance
 from .volume import trilinear
 
@@ -115,7 +116,8 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
     ray stops once that depth exceeds ``tau_cut``.  Then a shadow ray is
     marched from every step to each light (and to ``env_dirs`` directions),
     all shadow rays at once (in chunks of ``chunk`` rays).  ``mesh``: ``(V, F)`` (and its ``bvh``) for the
-    world's entry weights and directions (:func:`.entry.world_entry`); without it the straight model, ``F_in``.
+    world's light through the critical cone and after reflections inside (:func:`entered_world`, :mod:`.entry`
+    eq. 3); without it the straight model, ``F_in``.
     """
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
@@ -175,10 +177,9 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
             smax.append(np.full(P * env_dirs, np.inf))
             if mesh is None:
                 w_env = np.tile(Lenv * (4.0 * np.pi / env_dirs), (P, 1))
-            else:  # g / F_in per march point and direction (Wv carries F_in), the world looked up at w'
-                g, w_out = world_entry(mesh[0], mesh[1], x, W, eta, bvh)
-                L_out = env_radiance(environment, w_out.transpose(1, 0, 2).reshape(-1, 3))
-                w_env = L_out * (4.0 * np.pi / env_dirs) * (g.T.reshape(-1) / f_in)[:, None]
+            else:  # entry.py eq. 3 per march point and direction, / F_in (Wv carries F_in)
+                w_env = entered_world(mesh, x, W, eta, environment, volume, bvh, shadow_step) \
+                    * (4.0 * np.pi / env_dirs / f_in)
             weight.append(w_env)
         ts = march_optical_depth(volume, np.concatenate(src), np.concatenate(sdir), tmax=np.concatenate(smax),
                                  step=shadow_step, tau_cut=tau_cut)
@@ -195,6 +196,26 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
         for ch in range(3):
             out[:, ch] += np.bincount(r, weights=val[:, ch], minlength=len(o))
     return out
+
+
+def entered_world(mesh, x, W, eta: float, environment, volume, bvh=None, step=None) -> np.ndarray:
+    """``sum_k g_k L_world(w'_k)`` of :mod:`.entry` eq. 3 for every point of ``x`` and direction of ``W``,
+    ((len(x) * len(W), 3), point-major): the world's light that comes back along each chord, through the
+    critical cone and after reflections inside, per unit of the chord's own transmittance.  The reflected
+    chords' depth is marched here (:func:`march_optical_depth`, trilinear, ``step``), not by the bake's
+    :func:`.chords.segment_depth`."""
+    entry = WorldEntry(mesh[0], mesh[1], x, eta, bvh)
+
+    def depth(a, b):
+        d = b - a
+        t = np.linalg.norm(d, axis=1)
+        return march_optical_depth(volume, a, d / np.maximum(t, 1e-300)[:, None], tmax=t, step=step)
+
+    out = np.zeros((len(x), len(W), 3))
+    for j, w in enumerate(np.asarray(W, dtype=np.float64)):
+        for rows, g, w_out in entry.paths(w, None, None, depth):
+            out[rows, j] += (g[:, None] if g.ndim == 1 else g) * env_radiance(environment, w_out)
+    return out.reshape(-1, 3)
 
 
 def reference_vertices(volume, V, F, normals, lights, environment, eta: float, *, camera_position=None,
