@@ -124,13 +124,13 @@ def test_chord_depth_is_exact_in_a_homogeneous_field_and_zero_outside_and_both_p
     rng = np.random.default_rng(3)
     a, b = rng.uniform(-4.9, 4.9, (500, 3)), rng.uniform(-4.9, 4.9, (500, 3))
     want = np.linalg.norm(b - a, axis=1)[:, None] * np.array([0.1, 0.2, 0.4])
-    field = chords.ChordField(vol)
+    field = chords.ChordField.of_volume(vol)
     np.testing.assert_allclose(chords.segment_depth(field, a, b), want, rtol=1e-6)
     out = chords.segment_depth(field, np.array([[20.0, 0, 0]]), np.array([[30.0, 0, 0]]))
     assert np.all(out == 0.0)
     vol.sigma_t[:10] *= 3.0  # a step across x = 0
     vol.sigma_t[:, :, 5:7] = 0.0  # and a slab of nothing
-    field = chords.ChordField(vol)
+    field = chords.ChordField.of_volume(vol)
     compiled = chords.segment_depth(field, a, b)
     assert chords.available() == "" or pytest.skip(f"no compiled path here: {chords.available()}")
     monkeypatch.setenv("TRANSLUCENCY_NUMPY_CHORDS", "1")

@@ -33,12 +33,18 @@ class ChordField:
     """The voxel field of eq. 1 in the layout both paths read: sigma_t (n_voxels, 3) float64, C-ordered
     (x, y, z), with the grid's origin, voxel edge and mm per object unit."""
 
-    def __init__(self, volume):
-        self.flat = np.ascontiguousarray(np.asarray(volume.sigma_t, dtype=np.float64).reshape(-1, 3))
-        self.shape = np.asarray(volume.shape, dtype=np.int64).reshape(3)
-        self.origin = np.asarray(volume.origin, dtype=np.float64).reshape(3)
-        self.h = float(volume.h)
-        self.mm = float(volume.mm_per_unit)
+    def __init__(self, sigma_t, origin, h: float, mm_per_unit: float):
+        sigma_t = np.asarray(sigma_t)
+        self.flat = np.ascontiguousarray(sigma_t.reshape(-1, 3), dtype=np.float64)
+        self.shape = np.asarray(sigma_t.shape[:3], dtype=np.int64)
+        self.origin = np.asarray(origin, dtype=np.float64).reshape(3)
+        self.h = float(h)
+        self.mm = float(mm_per_unit)
+
+    @classmethod
+    def of_volume(cls, volume) -> "ChordField":
+        """The field of a :class:`.volume.VoxelVolume` (the bake's)."""
+        return cls(volume.sigma_t, volume.origin, volume.h, volume.mm_per_unit)
 
 
 def available() -> str:
@@ -90,8 +96,7 @@ def _kernel() -> dict:
     def load():
         from . import compiled_chords as k
 
-        f = ChordField.__new__(ChordField)
-        f.flat, f.shape, f.origin, f.h, f.mm = np.ones((8, 3)), np.full(3, 2, np.int64), np.zeros(3), 1.0, 1.0
+        f = ChordField(np.ones((2, 2, 2, 3)), np.zeros(3), 1.0, 1.0)
         k.segment_depth(f.flat, f.shape, f.origin, f.h, f.mm, np.full((1, 3), 0.5), np.full((1, 3), 1.5),
                         np.zeros((1, 3)))
         return {"depth": k.segment_depth}

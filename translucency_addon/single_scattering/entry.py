@@ -64,6 +64,15 @@ REFLECTIONS = 4  # eq. 3: a chord is followed through at most this many reflecti
 THROUGHPUT_CUT = 1e-3  # eq. 3: and while psi g is above this in some channel (a uniform world of radiance 1)
 
 
+def facet_normals(V, F) -> np.ndarray:
+    """Outward unit normals of the facets of the closed mesh ``(V, F)`` (outward from its signed volume, so
+    either winding gives the same)."""
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    return n * (np.sign(signed_volume(V, F)) / np.maximum(np.linalg.norm(n, axis=1), 1e-300))[:, None]
+
+
 def inside_transmittance(mu, eta: float) -> np.ndarray:
     """``T(mu) [mu > mu_c]``: the Fresnel transmittance of light leaving the medium at inside cosine ``mu``
     (zero past the critical angle), the same as entering at the refracted outside angle."""
@@ -91,8 +100,7 @@ class WorldEntry:
         V = np.asarray(V, dtype=np.float64)
         F = np.asarray(F, dtype=np.int64)
         self.bvh = bvh if bvh is not None else mesh_bvh(V, F)
-        n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-        self.normals = n * (np.sign(signed_volume(V, F)) / np.maximum(np.linalg.norm(n, axis=1), 1e-300))[:, None]
+        self.normals = facet_normals(V, F)
         self.eps = 1e-7 * float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))  # a reflected chord leaves its facet
 
     def __call__(self, direction, index=None) -> tuple[np.ndarray, np.ndarray]:

@@ -241,7 +241,7 @@ def sample_sh(volume, directions: np.ndarray, points: np.ndarray, order: int, *,
     if entry is not None:
         from .chords import ChordField, segment_depth
 
-        chord_field = ChordField(volume)
+        chord_field = ChordField.of_volume(volume)
 
         def depth(a, b):
             return segment_depth(chord_field, a, b)
