@@ -61,6 +61,7 @@ except ImportError:  # top-level package (repo root on sys.path)
 
 TEX_W = 4096  # width of every 1D-in-2D texture of the kernel (texels)
 LOCAL_X = 64  # local group size (LOCAL_X x 1 x 1), one invocation per ray
+KEPT_RAY_SETS = 3  # ray sets whose textures stay resident: a frame's view rays and their reflections inside
 BIG = 1.0e30  # "no far clip" (t_exit = inf) in the ray texture
 _F = "FLOAT_2D_ARRAY"
 _U = "UINT_2D_ARRAY"
@@ -189,6 +190,7 @@ class GPUSingleScattering:
         }
         self.uploads["bake"] += 1
         self._rays = None  # the ViewRays (or tuple) whose textures are resident
+        self._kept: list = []  # (ViewRays, ray textures, ray count, output texture), newest first
         self._ray_tex: dict = {}
         self._n_rays = 0
         self._out = None
@@ -205,9 +207,18 @@ class GPUSingleScattering:
         self.uploads["rays"] += 1
 
     def _ensure_rays(self, rays) -> None:
-        if self._rays is not rays:
-            self.set_rays(rays.origins, rays.dirs, rays.t_exit, rays.cos_o)
-            self._rays = rays
+        """Make ``rays`` the resident set.  The last :data:`KEPT_RAY_SETS` sets keep their textures: a frame
+        integrates its view rays and their reflections inside (``single_scattering/view_reflection.py``), so
+        a frame that moves only the lights uploads none of them again."""
+        if self._rays is rays:
+            return
+        for r, tex, n, out in self._kept:
+            if r is rays:
+                self._ray_tex, self._n_rays, self._out, self._rays = tex, n, out, rays
+                return
+        self.set_rays(rays.origins, rays.dirs, rays.t_exit, rays.cos_o)
+        self._rays = rays
+        self._kept = [(rays, self._ray_tex, self._n_rays, self._out)] + self._kept[:KEPT_RAY_SETS - 1]
 
     def run(self, coef, per_ray_psi: bool, eta: float, mm_per_unit: float) -> np.ndarray:
         """Dispatch over the resident rays with the per-sample coefficient ``coef`` (N, 3)."""
@@ -248,6 +259,7 @@ class GPUSingleScattering:
         self._ray_tex = {}
         self._out = None
         self._rays = None
+        self._kept = []
         _LIVE.discard(self)
 
 

@@ -211,6 +211,31 @@ def test_only_per_frame_inputs_are_uploaded(sphere):
 
 
 @pytest.mark.gpu
+def test_a_frame_with_reflected_view_rays_matches_the_cpu_and_keeps_its_rays_resident():
+    """A thin dark box (eta 1.3): the frame integrates its refracted view rays and the far side's reflections of
+    them (single_scattering/view_reflection.py) on the GPU as on the CPU; once uploaded, every ray set stays
+    resident, so a frame that moves only the lights uploads no rays."""
+    from translucency_addon.scene.materials import Medium
+
+    V, F = primitives.box((2.0, 2.0, 4.0), n=4)
+    N = vertex_normals(V, F)
+    data = bake_single_scattering(V, F, Material(Medium((0.8,) * 3, (0.2,) * 3, "dark"), None, ETA), None,
+                                  SingleScatteringSettings(quality="draft", n_dirs=32, n_samples=2000), mm_per_unit=1.0)
+    g = gss.GPUSingleScattering(data)
+    ev, cpu = FrameEvaluator(data, V, F, N, integrator=g), FrameEvaluator(data, V, F, N)
+    view = ("ORTHO", (-0.65, 0.0, 0.76))
+    env = Environment((1.0, 1.0, 1.0))
+    a = ev.radiance([], env, ETA, 1.0, view)
+    n_sets = 1 + len(ev.reflected())
+    assert n_sets >= 2 and dict(g.uploads)["rays"] == n_sets
+    assert rel_err(a, cpu.radiance([], env, ETA, 1.0, view)) < PARITY_TOL
+    b = ev.radiance(LIGHTS[:1], env, ETA, 1.0, view)
+    assert dict(g.uploads)["rays"] == n_sets
+    assert rel_err(b, cpu.radiance(LIGHTS[:1], env, ETA, 1.0, view)) < PARITY_TOL
+    g.free()
+
+
+@pytest.mark.gpu
 def test_gpu_preference_and_texture_limits(sphere):
     _, _, _, data = sphere
     g, backend, message = gss.make_integrator(data, "GPU")

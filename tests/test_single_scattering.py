@@ -37,7 +37,7 @@ from translucency_addon.single_scattering.volume import trilinear
 
 # Relative RMS error over the visible vertices (all channels), RBF/SH vs reference.
 TOL_SPHERE = 0.12  # measured 0.096 .. 0.098 (seeds 0..2)
-TOL_LAYERS = 0.36  # measured 0.289 .. 0.303
+TOL_LAYERS = 0.36  # measured 0.248 (0.272 .. 0.303 with straight view rays)
 TOL_TORUS = 0.58  # measured 0.478 .. 0.483 (order-4 SH cannot hold the torus's sharp shadow)
 
 BASE = SingleScatteringSettings(quality=32, n_dirs=128, n_samples=6000, sh_order=4, seed=0)
@@ -285,7 +285,10 @@ def test_sphere_without_far_clip_matches_reference(sphere):
 def test_layered_cube_matches_reference(layered):
     L = layered.render(layered.data)
     assert rel_rms(L, layered.ref) < TOL_LAYERS
-    np.testing.assert_allclose(L.sum(0) / layered.ref.sum(0), 1.0, atol=0.10)  # measured 0.933 .. 0.984
+    # measured 1.10 .. 1.12 with the view rays refracted (0.95 .. 1.02 straight, before runtime.refract_in): the
+    # face seen at 80 degrees 1.14 .. 1.25, the main face 1.00 .. 1.04 (0.82 .. 0.88 straight); relative RMS 0.25
+    # (0.27 straight)
+    np.testing.assert_allclose(L.sum(0) / layered.ref.sum(0), 1.0, atol=0.16)
 
 
 def test_torus_cube_matches_reference(torus):
@@ -322,8 +325,9 @@ def test_error_falls_with_directions_samples_and_order(layered):
     data = layered.data
     e_order = [rel_rms(layered.render(data.with_order(o)), ref) for o in (2, 3, 4)]
     print("dirs", e_dirs, "samples", e_samples, "order", e_order)
-    # measured: dirs 0.357 / 0.303 / 0.280, samples 0.374 / 0.325 / 0.276, order 0.451 / 0.365 / 0.303
-    assert e_dirs[0] > e_dirs[1] + 0.02 and e_dirs[2] < e_dirs[1]
+    # measured: dirs 0.266 / 0.248 / 0.235, samples 0.335 / 0.286 / 0.229, order 0.393 / 0.338 / 0.248 (view rays
+    # refracted; straight: dirs 0.357 / 0.303 / 0.280, samples 0.374 / 0.325 / 0.276, order 0.451 / 0.365 / 0.303)
+    assert e_dirs[0] > e_dirs[1] + 0.01 and e_dirs[2] < e_dirs[1]
     assert e_samples[0] > e_samples[1] + 0.02 and e_samples[1] > e_samples[2] + 0.02
     assert e_order[0] > e_order[1] + 0.04 and e_order[1] > e_order[2] + 0.04
 

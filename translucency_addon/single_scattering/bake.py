@@ -181,7 +181,8 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
         "grid_dims": [int(x) for x in grid.dims],
     }
     data = SingleScatteringData(centers=centers, sigma=sigma, weight=weight, support=support, poisson_radius=delta,
-                                sigma_s=sig_s, sh=sh, sh_env=sh_env, entry_eta=eta, order=order, n_dirs=int(s.n_dirs), mm_per_unit=float(volume.mm_per_unit),
+                                sigma_s=sig_s, sh=sh, sh_env=sh_env, entry_eta=eta, order=order,
+                                extinction=None if eta == 1.0 else np.asarray(volume.sigma_t, dtype=np.float32), n_dirs=int(s.n_dirs), mm_per_unit=float(volume.mm_per_unit),
                                 grid=grid, voxel_origin=np.asarray(volume.origin), voxel_size=float(volume.h),
                                 voxel_shape=np.asarray(volume.shape, dtype=np.int64), stats=stats)
     if keep_volume:

@@ -46,6 +46,14 @@ class ChordField:
         """The field of a :class:`.volume.VoxelVolume` (the bake's)."""
         return cls(volume.sigma_t, volume.origin, volume.h, volume.mm_per_unit)
 
+    @classmethod
+    def of_data(cls, data) -> "ChordField | None":
+        """The field a :class:`.data.SingleScatteringData` keeps (``extinction``), or None where it has none."""
+        ext = getattr(data, "extinction", None)
+        if ext is None:
+            return None
+        return cls(ext, data.voxel_origin, data.voxel_size, data.mm_per_unit)
+
 
 def available() -> str:
     """'' where eq. 1 runs compiled, else why not (numba missing, a failed compile, or

@@ -22,7 +22,8 @@ import numpy as np
 
 from ..errors import CacheError
 
-# 2: sh_env (entry.py eq. 2, the critical cone); 3: sh_env with the world's light reflected inside (eq. 3).
+# 2: sh_env (entry.py eq. 2, the critical cone); 3: sh_env with the world's light reflected inside (eq. 3), and
+# the extinction voxels the view rays' reflections inside are attenuated along (view_reflection.py).
 # Versions 1 and 2 are read and render (their world term as it was baked), and their key is stale.
 FORMAT_VERSION = 3
 READABLE_VERSIONS = (1, 2, 3)
@@ -130,6 +131,9 @@ class SingleScatteringData:
     # None where that is 1 (no interface) or in data of format 1 (the straight model: runtime.light_term)
     sh_env: np.ndarray | None = None  # (N, K, 3) float32
     entry_eta: float = 1.0
+    # sigma_t per mm on the bake's voxels, (nx, ny, nz, 3) float32, where eta is not 1: the view rays' reflections
+    # inside (view_reflection.py) are attenuated along it; None without an interface or in data of formats 1-2
+    extinction: np.ndarray | None = None
     # Arrays the ray-pair loops derive from the samples once (``ray_pairs._cache``: cell-ordered centres, the
     # Gaussians' constants), keyed by the arrays they came from; never saved, not part of equality.
     ray_cache: dict = field(default_factory=dict, compare=False, repr=False)
@@ -181,6 +185,8 @@ class SingleScatteringData:
         }
         if self.sh_env is not None:
             arrays["sh_env"] = np.asarray(self.sh_env, dtype=np.float32)
+        if self.extinction is not None:
+            arrays["extinction"] = np.asarray(self.extinction, dtype=np.float32)
         return {prefix + k: v for k, v in arrays.items()}
 
     @classmethod
@@ -210,12 +216,20 @@ class SingleScatteringData:
             if arr["sh_env"].shape != shapes["sh"]:
                 raise CacheError(f"single-scattering array {prefix}sh_env has shape {arr['sh_env'].shape}, "
                                  f"expected {shapes['sh']}")
-        for k in ("centers", "sigma", "weight", "support", "sigma_s", "sh", "sh_env"):
+        if prefix + "extinction" in d:
+            arr["extinction"] = get("extinction")
+            want = tuple(int(v) for v in arr["voxel_shape"]) + (3,)
+            if arr["extinction"].shape != want:
+                raise CacheError(f"single-scattering array {prefix}extinction has shape {arr['extinction'].shape}, "
+                                 f"expected {want}")
+        for k in ("centers", "sigma", "weight", "support", "sigma_s", "sh", "sh_env", "extinction"):
             if k not in arr and k != "centers":
                 continue
             a = centers if k == "centers" else arr[k]
             if not np.all(np.isfinite(a)):
                 raise CacheError(f"single-scattering array {prefix + k} contains NaN or Inf")
+        if "extinction" in arr and np.any(arr["extinction"] < 0):
+            raise CacheError(f"single-scattering array {prefix}extinction is negative")
         grid = SampleGrid(origin=arr["grid_origin"].astype(np.float64), cell_size=float(meta["cell_size"]), dims=dims,
                           cell_start=start, cell_items=items)
         return cls(centers=centers, sigma=arr["sigma"].astype(np.float64), weight=arr["weight"].astype(np.float64),
@@ -225,7 +239,8 @@ class SingleScatteringData:
                    voxel_origin=arr["voxel_origin"].astype(np.float64), voxel_size=float(meta["voxel_size"]),
                    voxel_shape=arr["voxel_shape"].astype(np.int64), stats=dict(meta.get("stats", {})),
                    sh_env=arr["sh_env"].astype(np.float32) if "sh_env" in arr else None,
-                   entry_eta=float(meta.get("entry_eta", 1.0)))
+                   entry_eta=float(meta.get("entry_eta", 1.0)),
+                   extinction=arr["extinction"].astype(np.float32) if "extinction" in arr else None)
 
     # ------------------------------------------------------------------ GPU
     def kernel_arrays(self) -> dict:

@@ -25,6 +25,7 @@ import time
 import numpy as np
 
 from .runtime import CPUIntegrator, light_term, medium_margin, rays_from_points, view_term
+from .view_reflection import integrate_with_reflections
 
 
 def _view_key(view):
@@ -59,6 +60,8 @@ class FrameEvaluator:
         self.integrator = integrator if integrator is not None else CPUIntegrator(data)
         self._rays = None
         self._rays_key = object()
+        self._reflected = None  # view_reflection.reflected_rays of the current rays
+        self._facet_normals = None
         self.seconds = {}
 
     @property
@@ -69,38 +72,63 @@ class FrameEvaluator:
             self._bvh = mesh_bvh(self.V, self.F)
         return self._bvh
 
-    def rays(self, view):
-        key = _view_key(view)
+    def rays(self, view, eta: float = 1.0):
+        """The view rays of ``view``, refracted into a medium of index ``eta`` (:func:`.runtime.refract_in`),
+        kept while the view and eta stay."""
+        key = (_view_key(view), float(eta))
         if self._rays is None or self._rays_key != key:
             bvh = self.bvh if self.far_clip else None
-            margin = medium_margin(self.data.voxel_size)
+            kw = dict(bvh=bvh, margin=medium_margin(self.data.voxel_size), eta=float(eta))
             if view is None:
-                r = rays_from_points(self.points, self.normals, view_dirs=self.normals, bvh=bvh, margin=margin)
+                r = rays_from_points(self.points, self.normals, view_dirs=self.normals, **kw)
             elif view[0] == "ORTHO":
-                r = rays_from_points(self.points, self.normals, view_dir=view[1], bvh=bvh, margin=margin)
+                r = rays_from_points(self.points, self.normals, view_dir=view[1], **kw)
             else:
-                r = rays_from_points(self.points, self.normals, camera_position=view[1], bvh=bvh, margin=margin)
+                r = rays_from_points(self.points, self.normals, camera_position=view[1], **kw)
             self._rays, self._rays_key = r, key
+            self._reflected = None
         return self._rays
+
+    def reflected(self) -> list:
+        """The current view rays' reflections inside (:mod:`.view_reflection` eq. 1), kept with them; none where
+        the data keeps no extinction voxels (eta 1, data of formats 1-2), the rays are not refracted, or without
+        the far side's clip."""
+        from .chords import ChordField, segment_depth
+        from .entry import facet_normals
+        from .view_reflection import reflected_rays
+
+        rays = self._rays
+        field = ChordField.of_data(self.data)
+        if field is None or rays is None or not rays.refracted or not self.far_clip:
+            return []
+        if self._reflected is None:
+            if self._facet_normals is None:
+                self._facet_normals = facet_normals(self.V, self.F)
+            eta = self._rays_key[1]
+            self._reflected = reflected_rays(rays, self.points, self.bvh, self._facet_normals, eta,
+                                             lambda a, b: segment_depth(field, a, b),
+                                             medium_margin(self.data.voxel_size))
+        return self._reflected
 
     def radiance(self, lights, environment, eta: float, mm_per_unit: float | None = None, view=None, *,
                  use_gpu: bool = True) -> np.ndarray:
         """Outgoing single-scattering radiance at the points, (n_points, 3), W/(m^2 sr)."""
         mm = self.data.mm_per_unit if mm_per_unit is None else float(mm_per_unit)
         t0 = time.perf_counter()
-        rays = self.rays(view)
+        rays = self.rays(view, eta)
+        reflected = self.reflected()
         t1 = time.perf_counter()
         out = np.zeros((len(self.points), 3))
         if len(rays.vertices):
             LT = light_term(self.data, lights, environment, eta, mm)
-            VT = None
-            if view is not None and view[0] == "ORTHO":
-                VT = view_term(self.data, view_dir=view[1])
-            elif view is not None:
-                VT = view_term(self.data, camera_position=view[1])
+            VT = None  # psi per sample towards the camera, where the rays go straight to it
+            if rays.view_dir is not None:
+                VT = view_term(self.data, view_dir=rays.view_dir)
+            elif rays.camera_position is not None:
+                VT = view_term(self.data, camera_position=rays.camera_position)
             t2 = time.perf_counter()
-            out[rays.vertices] = self.integrator.integrate(LT, rays, view_term=VT, eta=eta, mm_per_unit=mm,
-                                                           use_gpu=use_gpu)
+            out[rays.vertices] = integrate_with_reflections(self.integrator, LT, rays, reflected, view_term=VT,
+                                                            eta=eta, mm_per_unit=mm, use_gpu=use_gpu)
         else:
             t2 = t1
         t3 = time.perf_counter()

@@ -222,7 +222,7 @@ def reference_vertices(volume, V, F, normals, lights, environment, eta: float, *
                        view_dir=None, vertices=None, bvh=None, far_clip: bool = True, **kw) -> np.ndarray:
     """Outgoing radiance at vertices from the brute-force reference (same exit factor as ``render_vertices``)."""
     from ..geometry.raycast import TriangleBVH
-    from .runtime import extend_rays, exit_factor, medium_margin
+    from .runtime import extend_rays, exit_factor, medium_margin, refract_in
 
     V = np.asarray(V, dtype=np.float64)
     idx = np.arange(len(V)) if vertices is None else np.asarray(vertices, dtype=np.int64)
@@ -239,15 +239,33 @@ def reference_vertices(volume, V, F, normals, lights, environment, eta: float, *
     out = np.zeros((len(V), 3))
     if not vis.any():
         return out
+    d = refract_in(wo[vis], np.asarray(normals)[idx][vis], eta) if eta != 1.0 else -wo[vis]  # as the frame's rays
     if far_clip:
         bvh = bvh if bvh is not None else TriangleBVH(V, F)
         diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
-        t, tri, _, _ = bvh.intersect(P[vis], -wo[vis], tmin=1e-7 * diag)
+        t, tri, _, _ = bvh.intersect(P[vis], d, tmin=1e-7 * diag)
         t_exit = np.where(tri >= 0, t, 0.0)
     else:
         t_exit = np.full(int(vis.sum()), np.inf)
-    o, t_exit = extend_rays(P[vis], -wo[vis], t_exit, medium_margin(volume.h))  # the whole voxel field's ramp
+    margin = medium_margin(volume.h)
+    o, t_exit = extend_rays(P[vis], d, t_exit, margin)  # the whole voxel field's ramp
     kw.setdefault("mesh", (V, F))
-    L = reference_radiance(volume, o, -wo[vis], t_exit, lights, environment, eta, bvh=bvh, **kw)
+    L = reference_radiance(volume, o, d, t_exit, lights, environment, eta, bvh=bvh, **kw)
+    if far_clip and eta != 1.0:  # the far side's reflections (view_reflection.py eq. 1), the segments marched here
+        from .entry import facet_normals
+        from .runtime import ViewRays
+        from .view_reflection import reflected_rays
+
+        def depth(a, b):
+            seg = b - a
+            t = np.linalg.norm(seg, axis=1)
+            return march_optical_depth(volume, a, seg / np.maximum(t, 1e-300)[:, None], tmax=t)
+
+        rays = ViewRays(n_vertices=len(V), vertices=idx[vis], origins=o, dirs=d, t_exit=t_exit, cos_o=cos_o[vis],
+                        refracted=True)
+        for child, weight in reflected_rays(rays, V, bvh, facet_normals(V, F), eta, depth, margin):
+            live = weight.max(axis=1) > 0
+            L[live] += weight[live] * reference_radiance(volume, child.origins[live], child.dirs[live],
+                                                         child.t_exit[live], lights, environment, eta, bvh=bvh, **kw)
     out[idx[vis]] = L * exit_factor(cos_o[vis], eta)[:, None]
     return out
