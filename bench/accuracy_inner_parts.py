@@ -438,12 +438,11 @@ def findings(results) -> list:
                      "and scatters or lets out elsewhere -- in a medium 2.5-3.9 optical depths across it is not "
                      "a half-space's share.  Single scattering lets the world's light in through the outer "
                      "surface's critical cone and follows each chord through its reflections inside before the "
-                     "light scatters (`single_scattering/entry.py` eqs. 2-3; without eq. 3 the hollow cube was "
-                     "29 % off with the orders after the first, mean 0.63, and the stone 31 %); what is left is "
-                     "the view's side of the same reflections (a view ray the far side reflects: a trial with "
-                     "the paper's straight view rays brought the hollow cube to 15 %, but on a ball a straight ray "
-                     "that enters at a grazing angle is totally reflected where a refracted one never is, so it "
-                     "waits for refracted view rays), the cavity's own interface, and the Voxel Number Map's "
+                     "light scatters (`single_scattering/entry.py` eqs. 2-3), and refracts the view rays where "
+                     "they enter and adds what the far side reflects into them (`runtime.refract_in`, "
+                     "`single_scattering/view_reflection.py`).  Before these (2026-12-07) the hollow cube was 29 % "
+                     "off with the orders after the first (mean 0.63) and the stone 31 %; with the light's side "
+                     "alone 18 % and 20 %.  What is left: the cavity's own interface and the Voxel Number Map's "
                      "kernel, whose chords stay straight (issue 30, item 3).  ")
         dif = err("cube_cavity_ss", "diffusion")
         if dif:
@@ -468,9 +467,8 @@ def findings(results) -> list:
         out.append(f"* **The bottle of wine (glass 1.5, wine 1.33).**  {b_ss['rel_rms']:.0%} and {b_vn['rel_rms']:.0%} "
                    f"(means {b_ss['mean_ratio']:.2f}, {b_vn['mean_ratio']:.2f}): a thin glass shell guides light by "
                    "total internal reflection, and the refraction at the glass-wine interface bends every chord; "
-                   "both passes assume straight rays, as the paper does (single scattering lets the world's light "
-                   "in through the outer surface's critical cone and follows its reflections inside the outer "
-                   "surface, not at the glass-wine interface).  Diffusion "
+                   "both passes keep their chords straight across the glass-wine interface (single scattering "
+                   "refracts and reflects at the outer surface only).  Diffusion "
                    "cannot render the bottle (4 mm of glass that scatters 0.02/mm is 0.1 transport mean free "
                    "paths thick).")
     return out + [""]

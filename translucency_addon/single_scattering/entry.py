@@ -24,8 +24,9 @@ and keeps those SH coefficients (``SingleScatteringData.sh_env``) beside psi's o
 SH basis at w' (:func:`world_entry`), not at w: a world given by its SH coefficients is then looked up
 where each chord's light comes from outside, ``sum_k c_k L_k``; a uniform world sees only the constant.  The frame's
 world term then uses them in place of ``F_in`` times psi's.  Lamps keep psi and ``F_in``: a lamp's irradiance is carried
-along straight chords, where its refracted path would start elsewhere on the surface.  The view rays and
-their psi toward the viewer are unchanged.
+along straight chords, where its refracted path would start elsewhere on the surface.  The view rays are
+not this module's (they refract where they enter, :func:`.runtime.refract_in`, and the far side's reflections
+of them are :mod:`.view_reflection`).
 
 **Light reflected inside before it scatters** (eq. 3).  Where the chord leaves at x_1, the part
 ``R(mu_1) = 1 - T(mu_1)`` of what comes back along it (all of it past the critical angle) was reflected
@@ -46,7 +47,8 @@ directional sky, seen from its dark side): single scattering 0.50-0.59 of Mitsub
 with eq. 3 (four reflections in that trial).
 
 What eq. 3 leaves out: the cavities' and inner parts' own interfaces (the chords are cast against the
-mesh the bake was given, and cross the inner parts straight), and the view rays' reflections inside.
+mesh the bake was given, and cross the inner parts straight).  The view's side of the same reflections is
+:mod:`.view_reflection`.
 
 Where the chord enters the object rather than leaves it (a sample outside the surface, in the voxel
 model's boundary ramp) or meets nothing, ``g = F_in``: the straight model there.
