@@ -11,13 +11,13 @@ such a medium).  The frame is the engine's (``frame.render_frame`` through ``pyt
 solve``, in-process).
 
 Reference: ``bench/sphere_walk.py``, an analogue random walk of the same sphere (its own Fresnel,
-total internal reflection, every order), split into the once-scattered light that leaves without an
-internal reflection (what the single-scattering pass models) and the rest.  By symmetry the exact
+total internal reflection, every order), split into the once-scattered light, reflected inside or not (what
+the single-scattering pass models: ``single_scattering/entry.py`` eq. 3, ``view_reflection.py``), and the rest.  By symmetry the exact
 radiance is the same at every vertex, so the per-vertex error is ours alone; the noise floor is the
 walk's standard error.
 
 Columns: the mean over the vertices and the per-vertex relative RMS against the walk's total; the
-single-scattering term alone against the walk's straight once-scattered light; the orders after the
+single-scattering term alone against the walk's once-scattered light; the orders after the
 first (``frame.orders_after_the_first``) against the walk's; the frame's cost (solve, single scattering,
 the orders) on two shared CPU cores.
 """
@@ -73,9 +73,9 @@ def run_case(work: Path, mesh: Path, albedo: float, eta: float, n_walk: int) -> 
     return {
         "albedo": a, "eta": eta, "mean": float(L.mean() / ref - 1.0),
         "rms": float(np.sqrt(np.mean((L / ref - 1.0) ** 2))),
-        "single": float(ss.mean() / share / walk.single_straight - 1.0) if ss.any() else None,
-        "orders": float(orders / share / (ref - walk.single_straight) - 1.0) if orders > 0 else None,
-        "walk": ref, "walk_single": walk.single_straight, "walk_rest": ref - walk.single_straight,
+        "single": float(ss.mean() / share / walk.single - 1.0) if ss.any() else None,
+        "orders": float(orders / share / (ref - walk.single) - 1.0) if orders > 0 else None,
+        "walk": ref, "walk_single": walk.single, "walk_rest": ref - walk.single,
         "noise": walk.stderr / ref, "ours": float(L.mean()), "share": share,
         "plan": plan,
         "seconds": {"frame": sec["total"] - sec["load"], "single_scattering": sec["single_scattering"],
@@ -95,7 +95,7 @@ def markdown(results: dict, command: str) -> str:
              "(Fresnel boundary, total internal reflection, every order).  *mean*: our mean over the "
              "vertices against the walk; *RMS*: per vertex (the exact radiance is the same at every vertex, "
              "so this includes our vertex-to-vertex noise); *single*: the single-scattering term against the "
-             "walk's once-scattered light that leaves without an internal reflection; *rest*: the orders "
+             "walk's once-scattered light (reflected inside or not); *rest*: the orders "
              "after the first against the walk's rest (both divided by their share of the frame where the "
              f"planner blends them with diffusion, reduced albedo {ALBEDO_MIN} to {ALBEDO_FULL}: "
              "`planner_rules.diffusion_weight`).  Noise floor: the walk's standard error.\n",
