@@ -93,21 +93,17 @@ class FrameEvaluator:
         """The current view rays' reflections inside (:mod:`.view_reflection` eq. 1), kept with them; none where
         the data keeps no extinction voxels (eta 1, data of formats 1-2), the rays are not refracted, or without
         the far side's clip."""
-        from .chords import ChordField, segment_depth
         from .entry import facet_normals
-        from .view_reflection import reflected_rays
+        from .view_reflection import reflected_rays_of
 
         rays = self._rays
-        field = ChordField.of_data(self.data)
-        if field is None or rays is None or not rays.refracted or not self.far_clip:
+        if rays is None or not rays.refracted or not self.far_clip:
             return []
         if self._reflected is None:
             if self._facet_normals is None:
                 self._facet_normals = facet_normals(self.V, self.F)
-            eta = self._rays_key[1]
-            self._reflected = reflected_rays(rays, self.points, self.bvh, self._facet_normals, eta,
-                                             lambda a, b: segment_depth(field, a, b),
-                                             medium_margin(self.data.voxel_size))
+            self._reflected = reflected_rays_of(self.data, rays, self.points, self.bvh, self._facet_normals,
+                                                self._rays_key[1])
         return self._reflected
 
     def radiance(self, lights, environment, eta: float, mm_per_unit: float | None = None, view=None, *,

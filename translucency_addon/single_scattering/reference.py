@@ -198,6 +198,19 @@ def reference_radiance(volume, origins, dirs, t_exit, lights, environment, eta: 
     return out
 
 
+def marched_depth(volume, step=None):
+    """``depth(a, b)``: tau (m, 3) along the segments a -> b by :func:`march_optical_depth` (trilinear, midpoint
+    rule at ``step``): the reference's own integral of the reflected chords and rays (the bake's and the frame's
+    is :func:`.chords.segment_depth`)."""
+
+    def depth(a, b):
+        d = b - a
+        t = np.linalg.norm(d, axis=1)
+        return march_optical_depth(volume, a, d / np.maximum(t, 1e-300)[:, None], tmax=t, step=step)
+
+    return depth
+
+
 def entered_world(mesh, x, W, eta: float, environment, volume, bvh=None, step=None) -> np.ndarray:
     """``sum_k g_k L_world(w'_k)`` of :mod:`.entry` eq. 3 for every point of ``x`` and direction of ``W``,
     ((len(x) * len(W), 3), point-major): the world's light that comes back along each chord, through the
@@ -205,12 +218,7 @@ def entered_world(mesh, x, W, eta: float, environment, volume, bvh=None, step=No
     chords' depth is marched here (:func:`march_optical_depth`, trilinear, ``step``), not by the bake's
     :func:`.chords.segment_depth`."""
     entry = WorldEntry(mesh[0], mesh[1], x, eta, bvh)
-
-    def depth(a, b):
-        d = b - a
-        t = np.linalg.norm(d, axis=1)
-        return march_optical_depth(volume, a, d / np.maximum(t, 1e-300)[:, None], tmax=t, step=step)
-
+    depth = marched_depth(volume, step)
     out = np.zeros((len(x), len(W), 3))
     for j, w in enumerate(np.asarray(W, dtype=np.float64)):
         for rows, g, w_out in entry.paths(w, None, None, depth):
@@ -256,14 +264,9 @@ def reference_vertices(volume, V, F, normals, lights, environment, eta: float, *
         from .runtime import ViewRays
         from .view_reflection import reflected_rays
 
-        def depth(a, b):
-            seg = b - a
-            t = np.linalg.norm(seg, axis=1)
-            return march_optical_depth(volume, a, seg / np.maximum(t, 1e-300)[:, None], tmax=t)
-
         rays = ViewRays(n_vertices=len(V), vertices=idx[vis], origins=o, dirs=d, t_exit=t_exit, cos_o=cos_o[vis],
                         refracted=True)
-        for child, weight in reflected_rays(rays, V, bvh, facet_normals(V, F), eta, depth, margin):
+        for child, weight in reflected_rays(rays, V, bvh, facet_normals(V, F), eta, marched_depth(volume), margin):
             live = weight.max(axis=1) > 0
             L[live] += weight[live] * reference_radiance(volume, child.origins[live], child.dirs[live],
                                                          child.t_exit[live], lights, environment, eta, bvh=bvh, **kw)

@@ -64,7 +64,6 @@ import numpy as np
 from ..scene import sh as shmod
 from ..scene.fresnel import diffuse_reflectance_external, fresnel_transmittance, check_eta
 from ..scene.lights import emitter_samples, light_irradiance
-from .chords import ChordField
 from .projected import ImageBins, exit_distances
 from .ray_pairs import all_ray_sample_pairs, projected_pairs, ray_sample_pairs
 
@@ -150,15 +149,25 @@ def pair_psi_weights(data, pairs, dirs) -> np.ndarray:
     (:class:`CPUIntegrator`) so that a frame that moves only the lights is one weighted sum, as it is with a
     view term (measured on the bunny, refracted rays: a lights-only frame 0.7 s -> tens of ms)."""
     r, s, g = pairs
-    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
-    order = int(round(np.sqrt(data.sh.shape[1]))) - 1
-    Y = shmod.sh_basis(-d, order).astype(np.float32)
-    sh32 = np.asarray(data.sh, dtype=np.float32)
+    Y, sh32 = _psi_basis(data, dirs)
     out = np.empty((len(r), 3), dtype=np.float32)
     for p0 in range(0, len(r), 1 << 15):  # bounds the per-pair SH memory
         sl = slice(p0, p0 + (1 << 15))
-        out[sl] = np.clip(np.einsum("pk,pkc->pc", Y[r[sl]], sh32[s[sl]]), 0.0, 1.0) * g[sl, None]
+        out[sl] = _pair_psi(Y, sh32, r[sl], s[sl], g[sl])
     return out
+
+
+def _psi_basis(data, dirs):
+    """``(Y, sh)`` in float32: the SH basis at each ray's reversed direction (towards its origin) and the
+    samples' psi coefficients, what :func:`_pair_psi` reads."""
+    order = int(round(np.sqrt(data.sh.shape[1]))) - 1
+    Y = shmod.sh_basis(-np.asarray(dirs, dtype=np.float64).reshape(-1, 3), order).astype(np.float32)
+    return Y, np.asarray(data.sh, dtype=np.float32)
+
+
+def _pair_psi(Y, sh32, r, s, g) -> np.ndarray:
+    """``psi_s(-dir_r) g`` for ray-sample pairs, (m, 3): psi from the SH, clamped to [0, 1]."""
+    return np.clip(np.einsum("pk,pkc->pc", Y[r], sh32[s]), 0.0, 1.0) * g[:, None]
 
 
 def integrate_view_rays(data, light_term, origins, dirs, t_exit, mm_per_unit: float | None = None, *,
@@ -189,10 +198,8 @@ def integrate_view_rays(data, light_term, origins, dirs, t_exit, mm_per_unit: fl
     LT = np.asarray(light_term, dtype=np.float64)
     A = np.ascontiguousarray((LT * np.asarray(view_term, dtype=np.float64)).T) if view_term is not None else None
     Y = sh32 = None
-    if A is None:  # psi toward the viewer (= -dir) per ray, from the SH
-        order = int(round(np.sqrt(data.sh.shape[1]))) - 1
-        Y = shmod.sh_basis(-d, order).astype(np.float32)
-        sh32 = np.asarray(data.sh, dtype=np.float32)
+    if A is None and pair_weights is None:  # psi toward the viewer (= -dir) per ray, from the SH
+        Y, sh32 = _psi_basis(data, d)
 
     def accumulate(r, s, g):
         if A is not None:
@@ -205,8 +212,7 @@ def integrate_view_rays(data, light_term, origins, dirs, t_exit, mm_per_unit: fl
             return
         for p0 in range(0, len(r), 1 << 15):  # bounds the per-pair SH memory
             rr, ss, gg = r[p0 : p0 + (1 << 15)], s[p0 : p0 + (1 << 15)], g[p0 : p0 + (1 << 15)]
-            psi = np.clip(np.einsum("pk,pkc->pc", Y[rr], sh32[ss]), 0.0, 1.0)
-            val = LT[ss] * psi * gg[:, None]
+            val = LT[ss] * _pair_psi(Y, sh32, rr, ss, gg)
             for ch in range(3):
                 out[ch] += np.bincount(rr, weights=val[:, ch], minlength=n)
 
@@ -454,17 +460,14 @@ def render_vertices(data, V, F, normals, lights, environment, material, mm_per_u
         pairs = rays.pairs
     Lin = integrate_view_rays(data, LT, rays.origins, rays.dirs, rays.t_exit, mm, view_term=VT, chunk=chunk,
                               pairs=pairs, camera_position=rays.camera_position, view_dir=rays.view_dir)
-    field = ChordField.of_data(data)
-    if far_clip and field is not None and rays.refracted:  # the view rays' reflections inside, view_reflection.py
+    if far_clip and rays.refracted:  # the view rays' reflections inside, view_reflection.py
         from ..geometry.raycast import mesh_bvh
-        from .chords import segment_depth
         from .entry import facet_normals
-        from .view_reflection import reflected_rays
+        from .view_reflection import reflected_rays_of
 
         V = np.asarray(V, dtype=np.float64)
         tree = bvh if bvh is not None else mesh_bvh(V, F)
-        for child, weight in reflected_rays(rays, V, tree, facet_normals(V, F), eta,
-                                            lambda a, b: segment_depth(field, a, b), medium_margin(data.voxel_size)):
+        for child, weight in reflected_rays_of(data, rays, V, tree, facet_normals(V, F), eta):
             Lin = Lin + weight * integrate_view_rays(data, LT, child.origins, child.dirs, child.t_exit, mm,
                                                      chunk=chunk)
     out[rays.vertices] = Lin * exit_factor(rays.cos_o, eta)[:, None]

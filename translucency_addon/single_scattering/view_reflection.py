@@ -76,6 +76,20 @@ def reflected_rays(rays, points, bvh, normals, eta: float, depth, margin: float)
     return out
 
 
+def reflected_rays_of(data, rays, points, bvh, normals, eta: float) -> list:
+    """:func:`reflected_rays` with the segments' depth on ``data``'s extinction voxels (:mod:`.chords` eq. 1)
+    and its medium margin; none where the data keeps no extinction voxels (eta 1, formats 1-2) or the rays are
+    not refracted."""
+    from .chords import ChordField, segment_depth
+    from .runtime import medium_margin
+
+    field = ChordField.of_data(data)
+    if field is None or not rays.refracted:
+        return []
+    return reflected_rays(rays, points, bvh, normals, eta, lambda a, b: segment_depth(field, a, b),
+                          medium_margin(data.voxel_size))
+
+
 def integrate_with_reflections(integrator, light_term, rays, reflected, *, view_term, eta: float, mm_per_unit,
                                use_gpu: bool = True) -> np.ndarray:
     """Eq. 1 at the vertices of ``rays``: the integrator's pass over the view rays (``view_term`` as given) plus
