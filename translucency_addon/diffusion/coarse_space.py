@@ -139,8 +139,12 @@ def _galerkin(system, op, agg, n_agg) -> CoarseSpace | None:
     mark = np.zeros(n_agg * n_agg, dtype=bool)
     mark[pair] = True
     occupied = np.flatnonzero(mark)  # ascending: row-major, so CSR order
-    rank = np.cumsum(mark, dtype=np.int64)
-    entry = rank[pair] - 1
+    # each pair's rank among the occupied ones, written only where a pair is (a cumulative sum over all
+    # n_agg^2 marks, 7.4 M on the Final sphere, cost 40 ms warm and 330 ms in a fresh process's first frame;
+    # this, 19 and 67 ms)
+    rank = np.empty(n_agg * n_agg, dtype=np.int32 if len(occupied) < 2**31 else np.int64)
+    rank[occupied] = np.arange(len(occupied), dtype=rank.dtype)
+    entry = rank[pair]
     indptr = np.zeros(n_agg + 1, dtype=np.int64)
     np.cumsum(np.bincount(occupied // n_agg, minlength=n_agg), out=indptr[1:])
     cols = occupied % n_agg
