@@ -207,3 +207,62 @@ def test_collisions_the_graph_cannot_place_enter_at_the_boundary(sphere_under_a_
     assert np.all(np.abs(cap_ratio() - 1.0) < 0.08)
     monkeypatch.setattr(beam_source, "shallow_to_boundary", lambda dep, d, area, *a, **k: (dep.power, np.zeros((len(area), 3))))
     assert cap_ratio()[2] < 0.8
+
+
+def test_merged_pieces_keep_each_group_s_power_and_first_moment():
+    """A coarser level bins the chords' pieces merged four at a time (beam_source.merged_pieces): per group the
+    powers summed, per channel, and the position the power-weighted mean along the chord; a group without power
+    sits at its pieces' mean; shapes that do not divide are refused."""
+    rng = np.random.default_rng(5)
+    n_chords, K = 7, beam_source.N_SEGMENTS
+    start, w = rng.normal(size=(n_chords, 3)), rng.normal(size=(n_chords, 3))
+    t = np.sort(rng.uniform(0, 2, (n_chords, K)), axis=1)
+    points = (start[:, None, :] + t[:, :, None] * w[:, None, :]).reshape(-1, 3)
+    power = rng.uniform(0, 1, (n_chords * K, 3))
+    power[:4] = 0.0  # the first chord's first group carries nothing
+    x, p = beam_source.merged_pieces(points, power)
+    g = beam_source.COARSE_GROUP
+    assert x.shape == (n_chords * K // g, 3) and p.shape == (n_chords * K // g, 3)
+    assert np.allclose(p, power.reshape(-1, g, 3).sum(axis=1))
+    wgt = power.sum(axis=1).reshape(-1, g)
+    X = points.reshape(-1, g, 3)
+    want = np.einsum("gk,gkd->gd", wgt, X) / np.maximum(wgt.sum(axis=1), 1e-300)[:, None]
+    assert np.allclose(x[1:], want[1:]) and np.allclose(x[0], X[0].mean(axis=0))
+    tc = ((x.reshape(n_chords, -1, 3) - start[:, None, :]) * w[:, None, :]).sum(-1) / (w**2).sum(-1)[:, None]
+    assert np.allclose(start[:, None, :] + tc[:, :, None] * w[:, None, :], x.reshape(n_chords, -1, 3))  # on the chord
+    with pytest.raises(ValueError, match="16 per chord"):
+        beam_source.merged_pieces(points[:-1], power[:-1])
+
+
+def test_the_volume_source_asks_the_nearest_surface_node_only_where_it_counts(sphere_under_a_sun, monkeypatch):
+    """Eq. 9's test whether a deposit's entry node is the surface node nearest to it matters only for a deposit
+    nearer to the surface than to its cell's node; the solver asks the k-d tree only for those (the others, deep
+    and equidistant from many surface nodes, were a third of the volume source's cost).  The deposits it moves to
+    the boundary are exactly those that asking for every deposit moves; the coarser levels keep the lamps' power."""
+    from scipy.spatial import cKDTree
+
+    bk, _, _ = sphere_under_a_sun
+    mat = replace(materials.material_from_preset("skin1"), eta=1.0)
+    s = dmod.DiffusionSolver(bk, mat, options=dmod.SolveOptions(single_scattering=True))
+    seen = {}
+    real = beam_source.shallow_to_boundary
+
+    def spy(dep, node_distance_mm, area_mm2, eta, at_entry=True):
+        seen.update(dep=dep, dist=node_distance_mm, at_entry=np.asarray(at_entry))
+        return real(dep, node_distance_mm, area_mm2, eta, at_entry=at_entry)
+
+    monkeypatch.setattr(beam_source, "shallow_to_boundary", spy)
+    sun = Light(kind="sun", irradiance=1.0, direction=(1.0, -0.2, -0.3))  # grazing chords near the terminator
+    beams = [None] * len(bk.levels)
+    s.incident([sun], None, levels=list(range(len(bk.levels))), beams=beams)
+    volume, at_surface = s.lamp_volume(beams, (True, True, True))
+    dep, fine = seen["dep"], bk.levels[-1]
+    _, nearest = cKDTree(np.asarray(fine.surface_position, dtype=np.float64)).query(dep.points)
+    shallow = dep.depth < seen["dist"]
+    assert 0 < shallow.sum() < len(shallow) and not np.all((nearest == dep.entry)[shallow])
+    assert np.array_equal(shallow & seen["at_entry"], shallow & (nearest == dep.entry))
+    assert at_surface[-1].sum() > 0
+    for i in range(len(bk.levels) - 1):  # each coarser level: all of the deposits, scaled to its own lamp light
+        lamp = (bk.levels[i].area[:, None] * np.asarray(beams[i][0])).sum(axis=0)
+        full = dep.power.sum(axis=0) * lamp / (fine.area[:, None] * np.asarray(beams[-1][0])).sum(axis=0)
+        assert np.allclose(volume[i].sum(axis=0), full, rtol=1e-9)

@@ -100,6 +100,7 @@ from ..scene.fresnel import boundary_A
 from .split import albedo_index, inside_transmittance, refracted_cosine
 
 N_SEGMENTS = 16  # pieces of equal collision probability per chord
+COARSE_GROUP = 4  # a coarser level (the finer one's starting guess) takes the pieces merged this many at a time
 _TAU_MAX = 60.0
 
 
@@ -292,6 +293,27 @@ def shallow_to_boundary(dep: Deposits, node_distance_mm: np.ndarray, area_mm2: n
         q[:, c] = np.bincount(dep.entry, moved[:, c], len(area_mm2))
     q /= np.asarray(area_mm2, dtype=np.float64)[:, None]
     return np.where(move, 0.0, dep.power), q
+
+
+def merged_pieces(points, power, n_segments: int = N_SEGMENTS, group: int = COARSE_GROUP) -> tuple:
+    """``(points, power)`` of :func:`beam_deposits`' pieces merged ``group`` consecutive ones of a chord at a time:
+    their powers summed and their position the power-weighted mean (summed over the channels), so each merged
+    deposit keeps its pieces' power and first moment along the chord.  A coarser level's cells are the finer
+    one's starting guess only (:meth:`.solver.DiffusionSolver.lamp_volume`), and several times larger than the
+    pieces' spacing near the surface: binning a quarter of the deposits saves two thirds of the volume source's
+    k-d tree queries there (the Final sphere: 60 -> 15 ms per coarser level).  ``points`` (m, 3), ``power``
+    (m, C) in chord-major order, m a multiple of ``n_segments``; ``group`` must divide ``n_segments``."""
+    points, power = np.asarray(points, dtype=np.float64), np.asarray(power, dtype=np.float64)
+    if group <= 1 or len(points) == 0:
+        return points, power
+    if n_segments % group or len(points) % n_segments:
+        raise ValueError(f"merged_pieces: {len(points)} deposits, {n_segments} per chord, groups of {group}")
+    X = points.reshape(-1, group, 3)
+    Pw = power.reshape(-1, group, power.shape[1])
+    weight = Pw.sum(axis=2)  # (m / group, group)
+    total = weight.sum(axis=1, keepdims=True)
+    weight = np.where(total > 0, weight / np.where(total > 0, total, 1.0), 1.0 / group)
+    return np.einsum("gk,gkd->gd", weight, X), Pw.sum(axis=1)
 
 
 def deposit_in_cells(inner_tree, n_inner: int, points, power, cell=None) -> np.ndarray:
