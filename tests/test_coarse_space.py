@@ -170,3 +170,33 @@ def test_without_the_compiled_step_large_levels_keep_chebyshev_and_cg_its_numpy_
     assert not iterative.prefers_cg(system)
     monkeypatch.setattr(compiled_cg, "_KERNEL", {})  # the kernels load again: CG there
     assert iterative.prefers_cg(system) == (compiled_cg.available() == "")
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_compiled_reorderings_are_numpy_s(monkeypatch, dtype):
+    """SweepOperator.to_cm / from_cm (node-major <-> channel-major in the sweep order), compiled where numba runs
+    (cg_kernels.to_channel_major / from_channel_major), give numpy's arrays exactly, in either precision, and
+    undo each other."""
+    from translucency_addon.diffusion import compiled_cg, sweeps
+
+    if compiled_cg.available():
+        pytest.skip(f"the compiled kernels cannot run here: {compiled_cg.available()}")
+    from bakes import baked
+    from translucency_addon.diffusion.solver import DiffusionSolver
+
+    system = DiffusionSolver(baked("sphere", "draft"), material_from_preset("marble")).systems[-1]  # RCM-ordered
+    op = system.sweep_operator(np.float64)
+    v = np.random.default_rng(2).normal(size=(system.n, 3))
+    monkeypatch.setattr(sweeps, "COMPILED_PERM_MIN_NODES", 0)
+    assert op._perm_compiled()
+    cm, back = op.to_cm(v, dtype), op.from_cm(op.to_cm(v, dtype))
+    wide = op.to_cm(v[:, :2].copy())  # two channels, the operator's own precision
+    monkeypatch.setattr(sweeps, "COMPILED_PERM_MIN_NODES", 10**12)
+    assert not op._perm_compiled()
+    assert cm.dtype == dtype and cm.flags.c_contiguous
+    np.testing.assert_array_equal(cm, op.to_cm(v, dtype))
+    np.testing.assert_array_equal(back, op.from_cm(op.to_cm(v, dtype)))
+    np.testing.assert_array_equal(wide, op.to_cm(v[:, :2].copy()))
+    if dtype is np.float64:
+        np.testing.assert_array_equal(back, v)
+    assert not np.array_equal(op.perm, np.arange(system.n))  # a real reordering was checked

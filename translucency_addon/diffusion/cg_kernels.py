@@ -79,3 +79,28 @@ def link_product(nbr, off, neg_diag, D, R, accumulate, nchunk):
                     R[c, i] = acc
             dots[k, c] = s
     return dots.sum(axis=0)
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def to_channel_major(v, perm, out, nchunk):
+    """``out[c, i] = v[perm[i], c]``: node-major (N, C) to channel-major (C, N) in the operator's order, cast to
+    out's dtype on the way (:meth:`.sweeps.SweepOperator.to_cm`)."""
+    n, C = perm.shape[0], v.shape[1]
+    for k in numba.prange(nchunk):
+        lo, hi = (n * k) // nchunk, (n * (k + 1)) // nchunk
+        for i in range(lo, hi):
+            p = perm[i]
+            for c in range(C):
+                out[c, i] = v[p, c]
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def from_channel_major(V, perm, out, nchunk):
+    """``out[perm[i], c] = V[c, i]``: :func:`to_channel_major` undone (:meth:`.sweeps.SweepOperator.from_cm`)."""
+    C, n = V.shape
+    for k in numba.prange(nchunk):
+        lo, hi = (n * k) // nchunk, (n * (k + 1)) // nchunk
+        for i in range(lo, hi):
+            p = perm[i]
+            for c in range(C):
+                out[p, c] = V[c, i]

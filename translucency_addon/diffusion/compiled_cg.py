@@ -60,6 +60,24 @@ def link_product(nbr, off, neg_diag, D, R, accumulate: bool) -> np.ndarray:
     return k["link_product"](nbr, off, neg_diag, D, R, bool(accumulate), k["nchunk"])
 
 
+def to_channel_major(v, perm, dtype) -> np.ndarray:
+    """``v`` (N, C) node-major -> (C, N) channel-major in the order ``perm``, as ``dtype``: one compiled pass
+    (:func:`.cg_kernels.to_channel_major`); numpy's ``take`` of the transpose, the fallback, strides through v."""
+    k = _kernel()
+    v = np.ascontiguousarray(v)
+    out = np.empty((v.shape[1], len(perm)), dtype=dtype)
+    k["to_channel_major"](v, perm, out, k["nchunk"])
+    return out
+
+
+def from_channel_major(V, perm) -> np.ndarray:
+    """(C, N) channel-major in the order ``perm`` -> (N, C) node-major fp64 (:func:`to_channel_major` undone)."""
+    k = _kernel()
+    out = np.empty((V.shape[1], V.shape[0]))
+    k["from_channel_major"](np.ascontiguousarray(V), perm, out, k["nchunk"])
+    return out
+
+
 class CompiledStep:
     """:func:`.iterative.cg_steps`'s vector work in the two compiled passes (its numpy twin:
     :class:`.iterative.NumpyStep`, the same calls): the coarse space's aggregates (one aggregate whose
@@ -102,6 +120,11 @@ def _kernel() -> dict:
             D = np.zeros((1, 4), dtype=dt)
             k.link_product(np.full((4, 1), -1, dtype=np.int32), np.zeros((1, 4, 1), dtype=dt), D[:1], D, D.copy(),
                            True, nchunk)
-        return dict(update=k.update, direction=k.direction, link_product=k.link_product, nchunk=nchunk)
+        perm, v = np.arange(4), np.zeros((4, 3))
+        for dt in (np.float32, np.float64):
+            k.to_channel_major(v, perm, np.zeros((3, 4), dtype=dt), nchunk)
+            k.from_channel_major(np.zeros((3, 4), dtype=dt), perm, v, nchunk)
+        return dict(update=k.update, direction=k.direction, link_product=k.link_product, nchunk=nchunk,
+                    to_channel_major=k.to_channel_major, from_channel_major=k.from_channel_major)
 
     return load_kernels(_KERNEL, load, "the CG kernels")
