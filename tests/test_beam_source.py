@@ -266,3 +266,33 @@ def test_the_volume_source_asks_the_nearest_surface_node_only_where_it_counts(sp
         lamp = (bk.levels[i].area[:, None] * np.asarray(beams[i][0])).sum(axis=0)
         full = dep.power.sum(axis=0) * lamp / (fine.area[:, None] * np.asarray(beams[-1][0])).sum(axis=0)
         assert np.allclose(volume[i].sum(axis=0), full, rtol=1e-9)
+
+
+@pytest.mark.parametrize("eta", [1.0, 1.3])
+def test_the_compiled_output_is_the_numpy_output(sphere_under_a_sun, monkeypatch, eta):
+    """On large meshes, where the lamps enter through the volume, the split's output per vertex (eq. 9 of split.py,
+    then shape L + single) runs as one compiled pass (diffusion/compiled_map.py) with the map's compiled gather:
+    numpy's vertex radiance to rounding, seen along the normal (one cosine for all) and from a camera (a cosine
+    per vertex)."""
+    from translucency_addon.diffusion import compiled_map, radiance
+
+    if compiled_map.available():
+        pytest.skip(f"the compiled output cannot run here: {compiled_map.available()}")
+    bk, _, _ = sphere_under_a_sun
+    mat = replace(materials.material_from_preset("skin1"), eta=eta)
+    s = dmod.DiffusionSolver(bk, mat, options=dmod.SolveOptions(single_scattering=True))
+    res = s.solve([Light(kind="sun", irradiance=1.0, direction=(0.3, -0.2, -1.0))])
+    assert res.volume is not None
+    view = np.array([0.2, 0.5, 1.0]) - 0.0 * bk.mesh_vertices
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    calls = []
+    real = compiled_map.transported_output
+    monkeypatch.setattr(compiled_map, "transported_output", lambda *a: calls.append(1) or real(*a))
+    got = {}
+    for threshold in (0, 10**12):
+        monkeypatch.setattr(radiance, "COMPILED_MAP_MIN_POINTS", threshold)
+        got[threshold] = (s.vertex_radiance(res), s.vertex_radiance(res, view))
+    assert len(calls) == 2
+    for a, b in zip(got[0], got[10**12]):
+        assert np.abs(b).max() > 0
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15 * np.abs(b).max())

@@ -401,6 +401,33 @@ def test_the_vertex_map_is_one_sparse_product_equal_to_the_gather():
     np.testing.assert_allclose(got2, np.einsum("vk,vkc->vc", w2.astype(np.float64), a[idx]), rtol=1e-14, atol=0)
 
 
+@pytest.mark.parametrize("dtypes", [(np.int32, np.float32), (np.int64, np.float64)])
+def test_the_compiled_vertex_map_is_the_sparse_product(monkeypatch, dtypes):
+    """On large meshes map_to_points runs the compiled gather (diffusion/compiled_map.py) where numba runs: the
+    CSR product's sums to rounding, padded slots and a node named twice in a row included, for the maps' index
+    and weight types (a bake's int32 / float32, a fluid's int64 / float64)."""
+    from translucency_addon.diffusion import compiled_map, radiance
+
+    if compiled_map.available():
+        pytest.skip(f"the compiled gather cannot run here: {compiled_map.available()}")
+    rng = np.random.default_rng(4)
+    n_nodes, n, k = 60, 500, 6
+    idx = rng.integers(0, n_nodes, (n, k)).astype(dtypes[0])
+    idx[:, 2] = idx[:, 0]
+    w = rng.random((n, k)).astype(dtypes[1])
+    w[:, -1] = 0.0
+    a, b = rng.random((n_nodes, 3)), rng.random(n_nodes)
+    monkeypatch.setattr(radiance, "COMPILED_MAP_MIN_POINTS", 0)
+    calls = []
+    real = compiled_map.gather
+    monkeypatch.setattr(compiled_map, "gather", lambda *args: calls.append(1) or real(*args))
+    got_a, got_b = radiance.map_to_points(idx, w, a, b)
+    assert calls == [1] and got_b.shape == (n,)
+    want = radiance.mapping_operator(idx, w, n_nodes) @ np.hstack([a, b[:, None]])
+    np.testing.assert_allclose(got_a, want[:, :3], rtol=1e-15, atol=0)
+    np.testing.assert_allclose(got_b, want[:, 3], rtol=1e-15, atol=0)
+
+
 def test_the_drivers_sparse_upsample_is_eq_10s_gather():
     """DiffusionSolver.upsample (eq. 10 as one sparse product, kernels.shepard_matrix) gives what the GPU
     kernel's twin, kernels.shepard_upsample (a gather of the 8 coarse neighbours), gives, empty slots

@@ -86,12 +86,22 @@ def mapping_operator(idx, w, n_nodes: int):
     return op
 
 
+COMPILED_MAP_MIN_POINTS = 65536  # from this many points the compiled gather (:mod:`.compiled_map`) runs
+
+
 def map_to_points(idx, w, *node_arrays) -> list:
     """Each of ``node_arrays`` ((n_nodes,) or (n_nodes, C)) carried to the points of the map ``idx``/``w``,
-    by one sparse product over all their columns (:func:`mapping_operator`)."""
+    by one product over all their columns: the compiled gather on large meshes where numba runs
+    (:mod:`.compiled_map`), else the sparse product (:func:`mapping_operator`); the same sums."""
+    from . import compiled_map
+
     n_nodes = len(node_arrays[0])
     cols = [np.asarray(a, dtype=np.float64).reshape(n_nodes, -1) for a in node_arrays]
-    out = mapping_operator(idx, w, n_nodes) @ (cols[0] if len(cols) == 1 else np.hstack(cols))
+    X = cols[0] if len(cols) == 1 else np.hstack(cols)
+    if len(idx) >= COMPILED_MAP_MIN_POINTS and not compiled_map.available():
+        out = compiled_map.gather(idx, w, X)
+    else:
+        out = mapping_operator(idx, w, n_nodes) @ X
     res, j = [], 0
     for a, c in zip(node_arrays, cols):
         m = out[:, j:j + c.shape[1]]
