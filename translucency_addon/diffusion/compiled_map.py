@@ -23,11 +23,11 @@ import numpy as np
 
 from ..compiled import load_kernels
 
-_KERNEL = {}  # {"gather": fn, "first_call_s": float} or {"error": "why not"}
+_KERNEL = {}  # {"gather": fn, "transported_output": fn, "first_call_s": float} or {"error": "why not"}
 
 
 def available() -> str:
-    """'' when the compiled gather can run, else why not (numba missing, or its compile failed)."""
+    """'' when the compiled kernels can run, else why not (numba missing, or their compile failed)."""
     _kernel()
     return _KERNEL.get("error", "")
 
@@ -67,4 +67,4 @@ def _kernel() -> dict:
         m.transported_output(one, terms, terms, terms, np.ones(1), np.ones(1), 0.5, np.empty((2, 1)))
         return {"gather": m.gather, "transported_output": m.transported_output}
 
-    return load_kernels(_KERNEL, load, "the vertex map's gather")
+    return load_kernels(_KERNEL, load, "the output's kernels")

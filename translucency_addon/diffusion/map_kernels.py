@@ -1,7 +1,8 @@
-"""The numba kernel of :mod:`.compiled_map` (see its docstring): the vertex map's gather.
+"""The numba kernels of :mod:`.compiled_map` (see its docstring): the vertex map's gather and the split's
+per-vertex output where the lamps enter through the volume.
 
-Imported only by :func:`.compiled_map._kernel`, inside a guard: importing this module needs numba.  A
-module-level function, so numba's on-disk cache (``cache=True``) finds it again in a new process.
+Imported only by :func:`.compiled_map._kernel`, inside a guard: importing this module needs numba.  Module-level
+functions, so numba's on-disk cache (``cache=True``) finds them again in a new process.
 """
 
 from __future__ import annotations
