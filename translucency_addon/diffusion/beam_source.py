@@ -96,8 +96,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..scene.fresnel import boundary_A
-from .split import albedo_index, inside_transmittance, refracted_cosine
+from ..scene.fresnel import boundary_A, refract_into
+from .split import albedo_index, inside_transmittance
 
 N_SEGMENTS = 16  # pieces of equal collision probability per chord
 COARSE_GROUP = 4  # a coarser level (the finer one's starting guess) takes the pieces merged this many at a time
@@ -184,11 +184,8 @@ def depth_weight(alpha, tau, eta: float) -> np.ndarray:
 
 def refract_inward(to_light: np.ndarray, normals: np.ndarray, eta: float) -> tuple:
     """(inside direction of the beam, inside cosine nu): light arriving from ``to_light`` (unit, towards
-    the lamp) through a surface of outward ``normals``, refracted by Snell's law."""
-    mu = np.clip(np.einsum("ij,ij->i", to_light, normals), 0.0, 1.0)
-    nu = refracted_cosine(mu, eta)
-    w = -to_light / eta + ((mu / eta) - nu)[:, None] * normals
-    return w / np.linalg.norm(w, axis=1, keepdims=True), nu
+    the lamp) through a surface of outward ``normals``, refracted by Snell's law (:func:`..scene.fresnel.refract_into`)."""
+    return refract_into(to_light, normals, eta)
 
 
 def chord_lengths(bvh, points, normals, directions, diag: float) -> np.ndarray:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..scene.fresnel import fresnel_transmittance
+from . import compiled_map
 from .kernels import partial_current
 
 
@@ -93,8 +94,6 @@ def map_to_points(idx, w, *node_arrays) -> list:
     """Each of ``node_arrays`` ((n_nodes,) or (n_nodes, C)) carried to the points of the map ``idx``/``w``,
     by one product over all their columns: the compiled gather on large meshes where numba runs
     (:mod:`.compiled_map`), else the sparse product (:func:`mapping_operator`); the same sums."""
-    from . import compiled_map
-
     n_nodes = len(node_arrays[0])
     cols = [np.asarray(a, dtype=np.float64).reshape(n_nodes, -1) for a in node_arrays]
     X = cols[0] if len(cols) == 1 else np.hstack(cols)

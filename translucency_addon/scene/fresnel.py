@@ -60,6 +60,24 @@ def fresnel_transmittance(cos_i, eta: float):
     return 1.0 - fresnel_reflectance(cos_i, eta)
 
 
+def refract_into(toward, normals, eta: float) -> tuple:
+    """Snell's law into the medium: ``(d, nu)`` for light arriving from ``toward`` (unit, (n, 3), pointing
+    away from the surface: towards a lamp, or a viewer whose ray is followed back) through a surface of unit
+    outward ``normals`` (n, 3) with outside cosine ``mu = n . toward`` (clipped to [0, 1])::
+
+        d = -toward / eta + (mu / eta - nu) n,   nu = sqrt(1 - (1 - mu^2) / eta^2)
+
+    d (unit, inside the medium) and nu its inside cosine; with eta >= 1 it always exists.  The lamps' beams
+    (:func:`..diffusion.beam_source.refract_inward`) and the view rays of single scattering
+    (:func:`..single_scattering.runtime.refract_in`) both enter this way."""
+    toward = np.asarray(toward, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    mu = np.clip(np.einsum("ij,ij->i", n, toward), 0.0, 1.0)
+    nu = np.sqrt(np.clip(1.0 - (1.0 - mu * mu) / (eta * eta), 0.0, 1.0))
+    d = -toward / eta + (mu / eta - nu)[:, None] * n
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300), nu
+
+
 @lru_cache(maxsize=64)
 def diffuse_reflectance_external(eta: float) -> float:
     """Cosine-weighted average of ``F_r`` over the outside hemisphere."""

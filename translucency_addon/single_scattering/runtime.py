@@ -295,14 +295,13 @@ def view_rays(V, F, normals, *, camera_position=None, view_dir=None, view_dirs=N
 
 def refract_in(wo, normals, eta: float) -> np.ndarray:
     """The directions inside the medium of view rays that leave it towards ``wo`` (unit, (n, 3), towards the
-    viewer) through surfaces of outward ``normals`` with outside cosine ``n . wo`` > 0: Snell's law,
-    ``d = -wo / eta + (c / eta - sqrt(1 - (1 - c^2) / eta^2)) n`` (into the denser medium it always exists)."""
-    wo = np.asarray(wo, dtype=np.float64).reshape(-1, 3)
+    viewer) through surfaces of outward ``normals`` (normalised here) with outside cosine ``n . wo`` > 0:
+    Snell's law (:func:`..scene.fresnel.refract_into`, as the lamps' beams enter)."""
+    from ..scene.fresnel import refract_into
+
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    c = np.clip(np.einsum("ij,ij->i", n, wo), 0.0, 1.0)
-    d = -wo / eta + (c / eta - np.sqrt(np.clip(1.0 - (1.0 - c * c) / (eta * eta), 0.0, 1.0)))[:, None] * n
-    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    return refract_into(wo, n, eta)[0]
 
 
 def rays_from_points(P, normals, *, camera_position=None, view_dir=None, view_dirs=None, points=None,
