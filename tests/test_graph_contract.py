@@ -108,13 +108,24 @@ def test_a_broken_graph_is_refused_with_its_reason(break_it, message):
         assemble(g, np.full((g.n_nodes, 3), 0.05), np.full((g.n_nodes, 3), 1.0), 1.3, 1.0)
 
 
+def _compiled_or_skip(compiled):
+    from translucency_addon.diffusion import assembly
+
+    if compiled and assembly.available():
+        pytest.skip(f"the compiled assembly cannot run here: {assembly.available()}")
+
+
+@pytest.mark.parametrize("compiled", [False, True])
 @pytest.mark.parametrize("sigma_a, sigma_s", [(0.01, 1.0), (0.05, 2.0), (0.3, 0.7)])
-def test_another_graph_kind_solves_against_the_closed_form_slab(sigma_a, sigma_s):
-    """Same assembly and solvers on a 6-slot cell column: phi at both faces within 0.02 % of eq. 1-2's slab."""
+def test_another_graph_kind_solves_against_the_closed_form_slab(sigma_a, sigma_s, compiled):
+    """Same assembly and solvers on a 6-slot cell column: phi at both faces within 0.02 % of eq. 1-2's slab,
+    with the links assembled by numpy and by the compiled kernel (diffusion/assembly_kernels.py)."""
+    _compiled_or_skip(compiled)
     eta, thickness, q = 1.3, 6.0, 1.0
     g = CellColumn.slab(400, thickness)
     n = g.n_nodes
-    system = assemble(g, np.full((n, 3), sigma_a), np.full((n, 3), sigma_s), eta, mm_per_unit=1.0)
+    system = assemble(g, np.full((n, 3), sigma_a), np.full((n, 3), sigma_s), eta, mm_per_unit=1.0,
+                      compiled=compiled)
     qs = np.array([[q] * 3, [0.0] * 3])
     b = system.rhs(qs)
     x_direct, _ = solve_direct(system, b)
@@ -125,3 +136,30 @@ def test_another_graph_kind_solves_against_the_closed_form_slab(sigma_a, sigma_s
     top, bottom = slab_phi(sigma_a, sigma_s, eta, thickness, q)
     np.testing.assert_allclose(x_direct[g.n_inner, 0], top, rtol=2e-4)  # measured <= 4.2e-5 (400 cells)
     np.testing.assert_allclose(x_direct[g.n_inner + 1, 0], bottom, rtol=2e-4)  # measured <= 4.2e-5 (400 cells)
+
+
+def test_the_compiled_assembly_is_numpys(monkeypatch):
+    """From COMPILED_ASSEMBLY_MIN_NODES nodes assemble() builds the conservative scheme's links in one compiled
+    pass where numba runs: the numpy lines' system to rounding on a QuadGraph level and a fluid's cell graph
+    (surface links fitted, harmonic means of coefficients that vary per node, a scale of 0.7 mm per unit)."""
+    from translucency_addon.diffusion import assembly
+    from translucency_addon.fluid import build_cells, build_graph
+
+    _compiled_or_skip(True)
+    rng = np.random.default_rng(3)
+    lattice = np.stack(np.meshgrid(*[np.arange(12.0)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    fluid = build_graph(build_cells(lattice + rng.uniform(-0.1, 0.1, lattice.shape), 1.0))
+    for g in (baked("sphere").finest, fluid):
+        n = g.n_nodes
+        sa, ss = rng.uniform(0.005, 0.5, (n, 3)), rng.uniform(0.5, 3.0, (n, 3))
+        want = assemble(g, sa, ss, 1.3, 0.7, compiled=False)
+        calls = []
+        real = assembly._compiled_fv
+        monkeypatch.setattr(assembly, "_compiled_fv", lambda *a: calls.append(1) or real(*a))
+        monkeypatch.setattr(assembly, "COMPILED_ASSEMBLY_MIN_NODES", n)  # auto takes it from here
+        got = assemble(g, sa, ss, 1.3, 0.7)
+        assert calls == [1]
+        for name in ("off", "diag", "b_scale", "boundary_diag"):
+            np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-13, atol=0, err_msg=name)
+        np.testing.assert_array_equal(got.nbr, want.nbr)
+        monkeypatch.undo()
