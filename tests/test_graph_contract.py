@@ -153,9 +153,8 @@ def test_the_compiled_assembly_is_numpys(monkeypatch):
         n = g.n_nodes
         sa, ss = rng.uniform(0.005, 0.5, (n, 3)), rng.uniform(0.5, 3.0, (n, 3))
         want = assemble(g, sa, ss, 1.3, 0.7, compiled=False)
-        calls = []
-        real = assembly._compiled_fv
-        monkeypatch.setattr(assembly, "_compiled_fv", lambda *a: calls.append(1) or real(*a))
+        calls, real = [], assembly._compiled_fv
+        monkeypatch.setattr(assembly, "_compiled_fv", lambda *a, c=calls, f=real: c.append(1) or f(*a))
         monkeypatch.setattr(assembly, "COMPILED_ASSEMBLY_MIN_NODES", n)  # auto takes it from here
         got = assemble(g, sa, ss, 1.3, 0.7)
         assert calls == [1]
