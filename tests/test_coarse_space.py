@@ -32,13 +32,25 @@ def _frame():
     return system, b, np.ascontiguousarray(x0[: system.n])
 
 
-def test_the_coarse_correction_is_p_ac_inverse_pt():
+@pytest.mark.parametrize("compiled", [True, False])
+def test_the_coarse_correction_is_p_ac_inverse_pt(monkeypatch, compiled):
     """add_correction adds P (P^T A P)^-1 P^T r per channel, with A from assembly.sparse_matrix and P the
-    aggregates' 0/1 matrix, both built here independently of the module's bincount Galerkin sum."""
+    aggregates' 0/1 matrix, both built here independently of the module's Galerkin sums: the compiled passes
+    over the sweeps' link slots (compiled_cg.galerkin_sums, where numba runs) and numpy's bincount."""
+    from translucency_addon.diffusion import compiled_cg
+
     system, _, _ = _frame()
     assert system.n >= cs.MIN_NODES
     op = system.sweep_operator(np.float64)
+    if compiled and op.links is None:
+        pytest.skip(f"the compiled CG kernels cannot run here: {compiled_cg.available()}")
+    if not compiled:
+        monkeypatch.setattr(op, "links", None)  # the numpy sums (slot_values then reads the system)
+    calls, real = [], compiled_cg.galerkin_sums
+    monkeypatch.setattr(compiled_cg, "galerkin_sums", lambda *a: calls.append(1) or real(*a))
+    system.cache.pop("coarse_space", None)
     space = cs.coarse_space(system, op)
+    assert len(calls) == int(compiled)
     assert space is not None and cs.MIN_AGGREGATES // 2 <= space.n_agg <= cs.MAX_AGGREGATES
     agg = np.empty(system.n, dtype=np.int64)
     agg[op.perm] = space.agg  # node order
@@ -117,7 +129,9 @@ def test_a_coarse_operator_that_is_not_positive_definite_leaves_jacobi_alone():
 
     system, _, _ = _frame()
     op = system.sweep_operator(np.float64)
-    flipped = SimpleNamespace(perm=op.perm, C=op.C, slot_values=lambda c: tuple(-v for v in op.slot_values(c)))
+    links = None if op.links is None else (op.links[0], -op.links[1], -op.links[2])  # the compiled sums' input
+    flipped = SimpleNamespace(perm=op.perm, C=op.C, links=links,
+                              slot_values=lambda c: tuple(-v for v in op.slot_values(c)))
     system.cache.pop("coarse_space", None)
     assert cs.coarse_space(system, flipped) is None
     system.cache.pop("coarse_space", None)

@@ -104,3 +104,39 @@ def from_channel_major(V, perm, out, nchunk):
             p = perm[i]
             for c in range(C):
                 out[p, c] = V[c, i]
+
+
+@numba.njit(cache=True, nogil=True)
+def aggregate_pairs(links, agg, n_agg, mark):
+    """The coarse space's occupied (aggregate, aggregate) pairs (:func:`.coarse_space._galerkin`): ``mark[a
+    n_agg + b]`` set for every link from aggregate a to b and every node's own (a, a)."""
+    N, K = links.shape
+    for n in range(N):
+        a = agg[n]
+        mark[a * (n_agg + 1)] = True
+        for k in range(K):
+            j = links[n, k]
+            if j >= 0:
+                mark[a * n_agg + agg[j]] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def aggregate_sums(links, agg, n_agg, rank, off, neg_diag, out):
+    """``out[c, rank[a n_agg + b]] = sum`` of channel c's ``-A`` entries from aggregate a to b (``P^T (-A) P``),
+    all channels in one pass over the link slots: each node's slots in order, then its diagonal."""
+    N, K = links.shape
+    C = off.shape[0]
+    for c in range(C):
+        for e in range(out.shape[1]):
+            out[c, e] = 0.0
+    for n in range(N):
+        a = agg[n]
+        for k in range(K):
+            j = links[n, k]
+            if j >= 0:
+                e = rank[a * n_agg + agg[j]]
+                for c in range(C):
+                    out[c, e] += off[c, n, k]
+        e = rank[a * (n_agg + 1)]
+        for c in range(C):
+            out[c, e] += neg_diag[c, n]

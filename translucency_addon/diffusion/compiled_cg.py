@@ -78,6 +78,23 @@ def from_channel_major(V, perm) -> np.ndarray:
     return out
 
 
+def galerkin_pattern(links, agg, n_agg: int) -> np.ndarray:
+    """The occupied pairs of ``P^T A P`` as marks over the n_agg^2 grid (:func:`.cg_kernels.aggregate_pairs`)."""
+    k = _kernel()
+    mark = np.zeros(n_agg * n_agg, dtype=bool)
+    k["aggregate_pairs"](links, agg, int(n_agg), mark)
+    return mark
+
+
+def galerkin_sums(links, agg, n_agg: int, rank, off, neg_diag, n_occupied: int) -> np.ndarray:
+    """(C0, n_occupied): ``P^T (-A) P`` of every base channel at its occupied pairs (``rank``: a pair's place
+    among them), one pass over the link slots (:func:`.cg_kernels.aggregate_sums`)."""
+    k = _kernel()
+    out = np.empty((off.shape[0], n_occupied))
+    k["aggregate_sums"](links, agg, int(n_agg), rank, off, neg_diag, out)
+    return out
+
+
 class CompiledStep:
     """:func:`.iterative.cg_steps`'s vector work in the two compiled passes (its numpy twin:
     :class:`.iterative.NumpyStep`, the same calls): the coarse space's aggregates (one aggregate whose
@@ -124,7 +141,14 @@ def _kernel() -> dict:
         for dt in (np.float32, np.float64):
             k.to_channel_major(v, perm, np.zeros((3, 4), dtype=dt), nchunk)
             k.from_channel_major(np.zeros((3, 4), dtype=dt), perm, v, nchunk)
+        for dt in (np.float32, np.float64):  # the coarse space's Galerkin sums, over either sweep precision
+            mark = np.zeros(1, dtype=bool)
+            links1 = np.full((4, 1), -1, dtype=np.int32)
+            k.aggregate_pairs(links1, agg, 1, mark)
+            k.aggregate_sums(links1, agg, 1, np.zeros(1, dtype=np.int32), np.zeros((1, 4, 1), dtype=dt),
+                             np.zeros((1, 4), dtype=dt), np.zeros((1, 1)))
         return dict(update=k.update, direction=k.direction, link_product=k.link_product, nchunk=nchunk,
+                    aggregate_pairs=k.aggregate_pairs, aggregate_sums=k.aggregate_sums,
                     to_channel_major=k.to_channel_major, from_channel_major=k.from_channel_major)
 
     return load_kernels(_KERNEL, load, "the CG kernels")
