@@ -502,3 +502,34 @@ def test_a_new_process_loads_the_compiled_kernels_from_numbas_cache():
     assert all(r.returncode == 0 for r in runs), [r.stderr[-2000:] for r in runs]
     hits_and_misses = [int(x) for x in runs[1].stdout.split()]
     assert hits_and_misses[1::2] == [0, 0, 0] and all(h >= 1 for h in hits_and_misses[0::2]), hits_and_misses
+
+
+@pytest.mark.parametrize("with_unlit", [False, True])
+def test_the_graphs_compiled_links_are_numpys(with_unlit):
+    """build_graph sorts the faces' links by (source, destination) and lays them into slots in compiled
+    passes when the cells came from the compiled path (compiled_kernels.directed_links, fill_slots): the
+    numpy lines' graph exactly, with unlit pieces and isolated particles left out or not."""
+    from dataclasses import replace
+
+    from translucency_addon.fluid import compiled_faces
+
+    if compiled_faces.available():
+        pytest.skip(f"the compiled cells cannot run here: {compiled_faces.available()}")
+    rng = np.random.default_rng(5)
+    P = lattice(9) + rng.uniform(-0.1, 0.1, (729, 3))
+    if with_unlit:
+        o = np.array([-20.0, 5, 5])  # as in the test above: a piece with no lit face, two caps and a far particle
+        P = np.vstack([P, o + [[0.0, 0, 0], [1.5, 0, 0], [-2.05, 0, 0], [3.55, 0, 0]], [[30.0, 30, 30]]])
+    cells = build_cells(P, 1.0, method="compiled")
+    assert cells.path == "compiled"
+    calls, real = [], compiled_faces.directed_links
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(compiled_faces, "directed_links", lambda *a: calls.append(1) or real(*a))
+        got = build_graph(cells)
+    assert calls == [1]
+    want = build_graph(replace(cells, path="numpy"))
+    for name in ("neighbors", "edge_length", "face_area", "position", "volume", "normal", "area", "cell",
+                 "surface_cell"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+    assert got.stats == want.stats and got.warnings == want.warnings
+    assert ("pieces without" in " ".join(got.warnings)) == with_unlit

@@ -139,9 +139,28 @@ def _kernel() -> dict:
         from . import compiled_kernels as k
 
         _warm_up(k)
-        return dict(fn=k.faces, sort=k.sort_rows, frames=k.frames, voxels=k.ball_voxels, lists=k.neighbour_lists)
+        return dict(fn=k.faces, sort=k.sort_rows, frames=k.frames, voxels=k.ball_voxels, lists=k.neighbour_lists,
+                    directed_links=k.directed_links, fill_slots=k.fill_slots)
 
     return load_kernels(_KERNEL, load, "the kernel")
+
+
+def directed_links(a, b, n: int) -> tuple:
+    """``(src, dst, link, first)``: both directions of every face (a[f], b[f]) sorted by (source,
+    destination), each link's face and the rows' starts (:func:`.compiled_kernels.directed_links`)."""
+    k = _kernel()
+    E = len(a)
+    src, dst, link = (np.empty(2 * E, dtype=np.int64) for _ in range(3))
+    first = np.empty(n + 1, dtype=np.int64)
+    k["directed_links"](np.ascontiguousarray(a, dtype=np.int64), np.ascontiguousarray(b, dtype=np.int64), int(n),
+                        src, dst, link, first)
+    return src, dst, link, first
+
+
+def fill_slots(first, dst, link, face_distance, face_area, nbr, d, A) -> None:
+    """Each row's links into its first slots of ``nbr``, ``d``, ``A`` (:func:`.compiled_kernels.fill_slots`)."""
+    _kernel()["fill_slots"](first, dst, link, np.ascontiguousarray(face_distance, dtype=np.float64),
+                            np.ascontiguousarray(face_area, dtype=np.float64), nbr, d, A)
 
 
 def ball_voxels():
@@ -162,6 +181,10 @@ def _warm_up(k) -> None:
     k.faces(P, 1.0, i, j, n, e1, e2, 0.5 * d, np.sqrt(1.0 - 0.25 * d * d), start, nbr, area, omega)
     k.neighbour_lists(P, 1.0, np.zeros((2, 3), dtype=np.int64), np.ones(3, dtype=np.int64),
                       np.zeros(1, dtype=np.int64), np.array([0, 2], dtype=np.int64), np.zeros(3, dtype=np.int64))
+    src, dst, link, first = (np.empty(2, dtype=np.int64) for _ in range(4))
+    k.directed_links(i, j, 2, src, dst, link, np.empty(3, dtype=np.int64))
+    k.fill_slots(np.array([0, 1, 2], dtype=np.int64), dst, link, np.ones(1), np.ones(1),
+                 np.full((2, 1), -1, dtype=np.int32), np.zeros((2, 1)), np.zeros((2, 1)))
     off = np.zeros((1, 3), dtype=np.int64)
     k.ball_voxels(P, np.full(3, -2.0), 0.5, 1.0, np.array([49, 7, 1], dtype=np.int64), off,
                   np.zeros(1, dtype=np.int64), np.zeros(1), np.zeros(7 ** 3, dtype=bool))

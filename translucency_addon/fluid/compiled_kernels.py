@@ -303,3 +303,50 @@ def neighbour_lists(P, R, g, dims, ukeys, ustart, start):
         for i in range(ustart[u], ustart[u + 1]):
             _scan(i, P, two_r, m, lo, hi, nbr, dist, start[i])
     return nbr, dist
+
+
+@numba.njit(cache=True, nogil=True)
+def directed_links(a, b, n, src, dst, link, first):
+    """Both directions of every face (a[f], b[f]) as links sorted by (source, destination), with the face
+    of each (:func:`.cellgraph.build_graph`'s argsort of ``src n + dst``, the same order: no two links share
+    a key): a counting sort by source, then each row (~15 links) sorted by destination in place."""
+    E = len(a)
+    for i in range(n + 1):
+        first[i] = 0
+    for f in range(E):
+        first[a[f] + 1] += 1
+        first[b[f] + 1] += 1
+    for i in range(n):
+        first[i + 1] += first[i]
+    pos = first[:n].copy()
+    for f in range(E):
+        p = pos[a[f]]
+        dst[p], link[p] = b[f], f
+        pos[a[f]] = p + 1
+        p = pos[b[f]]
+        dst[p], link[p] = a[f], f
+        pos[b[f]] = p + 1
+    for i in range(n):
+        lo, hi = first[i], first[i + 1]
+        for e in range(lo, hi):
+            src[e] = i
+        for e in range(lo + 1, hi):  # insertion sort of the row by destination, the faces carried along
+            d, f = dst[e], link[e]
+            k = e - 1
+            while k >= lo and dst[k] > d:
+                dst[k + 1], link[k + 1] = dst[k], link[k]
+                k -= 1
+            dst[k + 1], link[k + 1] = d, f
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def fill_slots(first, dst, link, face_distance, face_area, nbr, d, A):
+    """Row r's links into its slots 0, 1, ...: neighbour, link length and face area (the graph's layout)."""
+    for r in numba.prange(len(first) - 1):
+        lo = first[r]
+        for s in range(first[r + 1] - lo):
+            e = lo + s
+            f = link[e]
+            nbr[r, s] = dst[e]
+            d[r, s] = face_distance[f]
+            A[r, s] = face_area[f]
