@@ -261,13 +261,21 @@ def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK, 
         area, omega, seconds = _face_geometry(Q, R, fc, chunk)
     t2 = time.perf_counter()
     fi, fj, fd, fn = fc.i, fc.j, fc.d, fc.n
-    sum_omega = np.bincount(fi, omega, N) + np.bincount(fj, omega, N)
+    # the sphere part closes the cell: its vector area is minus the faces'
+    if path == "compiled":  # one pass over the faces instead of ten bincounts (16k particles: 9 -> 2 ms)
+        from .compiled_faces import cell_sums
+
+        sum_omega, cones, vec_sorted = cell_sums(fi, fj, area, omega, fd, fn, N)
+        vec = _unsort(vec_sorted, order)
+    else:
+        sum_omega = np.bincount(fi, omega, N) + np.bincount(fj, omega, N)
+        cone = 0.5 * fd * area / 3.0
+        cones = np.bincount(fi, cone, N) + np.bincount(fj, cone, N)
+        vec = np.zeros((N, 3))
+        for a in range(3):
+            vec[order, a] = -np.bincount(fi, area * fn[a], N) + np.bincount(fj, area * fn[a], N)
     sphere = R * R * np.maximum(4.0 * np.pi - sum_omega, 0.0)
-    cone = 0.5 * fd * area / 3.0
-    volume = np.bincount(fi, cone, N) + np.bincount(fj, cone, N) + R * sphere / 3.0
-    vec = np.zeros((N, 3))
-    for a in range(3):  # the sphere part closes the cell: its vector area is minus the faces'
-        vec[order, a] = -np.bincount(fi, area * fn[a], N) + np.bincount(fj, area * fn[a], N)
+    volume = cones + R * sphere / 3.0
     keep = np.nonzero(area > TINY_AREA * R * R)[0]
     oi, oj = order[fi[keep]], order[fj[keep]]
     t3 = time.perf_counter()

@@ -140,7 +140,7 @@ def _kernel() -> dict:
 
         _warm_up(k)
         return dict(fn=k.faces, sort=k.sort_rows, frames=k.frames, voxels=k.ball_voxels, lists=k.neighbour_lists,
-                    directed_links=k.directed_links, fill_slots=k.fill_slots)
+                    directed_links=k.directed_links, fill_slots=k.fill_slots, cell_sums=k.cell_sums)
 
     return load_kernels(_KERNEL, load, "the kernel")
 
@@ -161,6 +161,15 @@ def fill_slots(first, dst, link, face_distance, face_area, nbr, d, A) -> None:
     """Each row's links into its first slots of ``nbr``, ``d``, ``A`` (:func:`.compiled_kernels.fill_slots`)."""
     _kernel()["fill_slots"](first, dst, link, np.ascontiguousarray(face_distance, dtype=np.float64),
                             np.ascontiguousarray(face_area, dtype=np.float64), nbr, d, A)
+
+
+def cell_sums(fi, fj, area, omega, fd, n, N: int) -> tuple:
+    """``(sum_omega, cone, vec)`` per cell of N: its faces' solid angles, cone volumes and vector area
+    (:func:`.compiled_kernels.cell_sums`)."""
+    out = (np.empty(N), np.empty(N), np.empty((N, 3)))
+    _kernel()["cell_sums"](np.ascontiguousarray(fi, dtype=np.int64), np.ascontiguousarray(fj, dtype=np.int64),
+                           area, omega, fd, np.ascontiguousarray(n), *out)
+    return out
 
 
 def ball_voxels():
@@ -185,6 +194,7 @@ def _warm_up(k) -> None:
     k.directed_links(i, j, 2, src, dst, link, np.empty(3, dtype=np.int64))
     k.fill_slots(np.array([0, 1, 2], dtype=np.int64), dst, link, np.ones(1), np.ones(1),
                  np.full((2, 1), -1, dtype=np.int32), np.zeros((2, 1)), np.zeros((2, 1)))
+    k.cell_sums(i, j, np.ones(1), np.ones(1), d, n, np.empty(2), np.empty(2), np.empty((2, 3)))
     off = np.zeros((1, 3), dtype=np.int64)
     k.ball_voxels(P, np.full(3, -2.0), 0.5, 1.0, np.array([49, 7, 1], dtype=np.int64), off,
                   np.zeros(1, dtype=np.int64), np.zeros(1), np.zeros(7 ** 3, dtype=bool))

@@ -350,3 +350,24 @@ def fill_slots(first, dst, link, face_distance, face_area, nbr, d, A):
             nbr[r, s] = dst[e]
             d[r, s] = face_distance[f]
             A[r, s] = face_area[f]
+
+
+@numba.njit(cache=True, nogil=True)
+def cell_sums(fi, fj, area, omega, fd, n, sum_omega, cone, vec):
+    """Per cell, over its faces (i < j, both ends): the solid angles the faces take from its sphere, their
+    cones' volumes ``d S / 6`` and its faces' vector area, minus for i (the normal points i -> j) and plus
+    for j (:func:`.cells.build_cells`'s bincounts, one pass)."""
+    sum_omega[:] = 0.0
+    cone[:] = 0.0
+    vec[:] = 0.0
+    for f in range(len(fi)):
+        i, j = fi[f], fj[f]
+        sum_omega[i] += omega[f]
+        sum_omega[j] += omega[f]
+        c = 0.5 * fd[f] * area[f] / 3.0
+        cone[i] += c
+        cone[j] += c
+        for a in range(3):
+            v = area[f] * n[a, f]
+            vec[i, a] -= v
+            vec[j, a] += v
