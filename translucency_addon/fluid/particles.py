@@ -130,7 +130,9 @@ def prepare_particles(points, radius, ids=None, field_values=None,
     if len(Q):
         from scipy.spatial import cKDTree
 
-        tree = cKDTree(Q)
+        # unbalanced (median of the extent, not of the points): built in 1.6 against 2.7 ms at 16k particles,
+        # its queries here and by the cells, the graph and the occluder as fast (measured)
+        tree = cKDTree(Q, balanced_tree=False)
         dup = tree.query_pairs(DUPLICATE * R, output_type="ndarray")
         if len(dup):
             keep_of = np.arange(len(Q))
@@ -147,7 +149,7 @@ def prepare_particles(points, radius, ids=None, field_values=None,
             owner[src] = new
             src = src[uniq]
             Q = Q[uniq]
-            tree = cKDTree(Q)
+            tree = cKDTree(Q, balanced_tree=False)
         # for the radius checks only: the median over 1,000 particles is within a few tenths of a per cent of
         # the spacing, and costs a quarter of 4,000's query (10 ms a frame at 16k particles)
         spacing = particle_spacing(Q, tree, samples=1000)
