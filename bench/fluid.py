@@ -67,8 +67,13 @@ NOTES = """**Reading the table.**
   vectorised (the Voronoi edges are the Delaunay triangles' dual edges, so no clipping at all) -- 0.67 s for
   the Delaunay of 17k particles alone, 1.37 s in all against numpy's 0.95 s; freud's voro++ -- 0.53 s for the
   plain Voronoi cells of 8k particles (no ball, no face polygons) and no wheel for Python 3.11.
-* *What the cells cost now*: the compiled faces (~70-100 ms at 16k), then the neighbour lists, the
-  contract graph and the occluder. The compiled path's neighbour lists come from a grid of cells of 2R
+* *What the cells cost now*: the compiled faces (~55-60 ms at 16k), then the neighbour lists, the
+  contract graph and the occluder. The graph's links (both directions of every face, sorted by source and
+  destination, then laid into the slots) and each cell's sums over its faces are compiled passes too
+  (`compiled_kernels.directed_links`, `fill_slots`, `cell_sums`: the graph 26 -> 15 ms and the sums 9 -> 2-3 ms
+  at 16k), as are the solve's assembly (`diffusion/assembly_kernels.py`, 20 -> 2.5 ms) and its coarse
+  space's Galerkin sums (`cg_kernels.aggregate_sums`, the set-up 18 -> 5.5 ms): each holds the numpy lines to
+  rounding or exactly in a test. The compiled path's neighbour lists come from a grid of cells of 2R
   (`compiled_kernels.neighbour_lists`: per occupied cell its 27 cells' row ranges, one binary search each,
   then a count and a fill pass over its particles), rows ascending, so the faces i < j come out sorted by
   (i, j): at 16k particles 18 ms (min of 7, one process) where the k-d tree's pairs alone took 17-21 ms and
