@@ -40,6 +40,9 @@ def test_the_link_product_is_the_assembled_matrix(kind, dtype, copies):
     assert op.links is not None and op._neg_a is None  # the link slots, no CSR built
     assert _identity(op.perm) == (kind == "fluid")
     C0, n = system.diag.shape[1], system.n
+    # the slots' one compiled pass (cg_kernels.permuted_slots) also writes the Jacobi preconditioner in sweep order
+    np.testing.assert_array_equal(op.inv_diag, np.tile(1.0 / system.diag[op.perm].T, (copies, 1)).astype(dtype))
+    assert op.links[0] is sweep_links(system)  # one copy of the graph's reordered slots, the coarse space's too
     A = [sparse_matrix(system, c)[op.perm][:, op.perm] for c in range(C0)]  # sweep order
     rng = np.random.default_rng(3)
     d = rng.standard_normal((C0 * copies, n)).astype(dtype)

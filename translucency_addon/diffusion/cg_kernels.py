@@ -140,3 +140,27 @@ def aggregate_sums(links, agg, n_agg, rank, off, neg_diag, out):
         e = rank[a * (n_agg + 1)]
         for c in range(C):
             out[c, e] += neg_diag[c, n]
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def permuted_slots(nbr, off, diag, perm, links, off_cm, neg_diag, inv_diag):
+    """A level's link slots in sweep order ``perm`` (new position -> old node), channel-major, in one pass
+    (:class:`.sweeps.SweepOperator`'s layout; numpy's twin, its gathers and transposes, makes five copies of
+    (N, K, C)): row r is node perm[r], ``links[r, k]`` its slot k's neighbour's new position (-1: empty),
+    ``off_cm[c, r, k]``, ``neg_diag[c, r] = -diag`` and ``inv_diag[c, r] = 1 / diag`` (the sweep precision)."""
+    N, K = nbr.shape
+    C = diag.shape[1]
+    inv = np.empty(N, dtype=np.int64)
+    for r in numba.prange(N):
+        inv[perm[r]] = r
+    for r in numba.prange(N):
+        i = perm[r]
+        for k in range(K):
+            j = nbr[i, k]
+            links[r, k] = inv[j] if j >= 0 else -1
+            for c in range(C):
+                off_cm[c, r, k] = off[i, k, c]
+        for c in range(C):
+            d = diag[i, c]
+            neg_diag[c, r] = -d
+            inv_diag[c, r] = 1.0 / d

@@ -78,6 +78,22 @@ def from_channel_major(V, perm) -> np.ndarray:
     return out
 
 
+def permuted_slots(nbr, off, diag, perm, dtype) -> tuple:
+    """``(links, off_cm, neg_diag, inv_diag)``: a level's link slots in the sweep order ``perm``, channel-major, in
+    the sweep precision ``dtype`` (links int32 below 2^31 nodes), from one compiled pass
+    (:func:`.cg_kernels.permuted_slots`)."""
+    k = _kernel()
+    N, K = nbr.shape
+    C = diag.shape[1]
+    links = np.empty((N, K), dtype=np.int32 if N < 2**31 else np.int64)
+    off_cm, neg_diag, inv_diag = np.empty((C, N, K), dtype=dtype), np.empty((C, N), dtype=dtype), np.empty(
+        (C, N), dtype=dtype)
+    k["permuted_slots"](np.ascontiguousarray(nbr), np.ascontiguousarray(off, dtype=np.float64),
+                        np.ascontiguousarray(diag, dtype=np.float64), np.ascontiguousarray(perm, dtype=np.int64),
+                        links, off_cm, neg_diag, inv_diag)
+    return links, off_cm, neg_diag, inv_diag
+
+
 def galerkin_pattern(links, agg, n_agg: int) -> np.ndarray:
     """The occupied pairs of ``P^T A P`` as marks over the n_agg^2 grid (:func:`.cg_kernels.aggregate_pairs`)."""
     k = _kernel()
@@ -147,8 +163,12 @@ def _kernel() -> dict:
             k.aggregate_pairs(links1, agg, 1, mark)
             k.aggregate_sums(links1, agg, 1, np.zeros(1, dtype=np.int32), np.zeros((1, 4, 1), dtype=dt),
                              np.zeros((1, 4), dtype=dt), np.zeros((1, 1)))
+            k.permuted_slots(np.zeros((4, 1), dtype=np.int32), np.zeros((4, 1, 1)), np.ones((4, 1)), np.arange(4),
+                             np.empty((4, 1), dtype=np.int32), np.empty((1, 4, 1), dtype=dt), np.empty((1, 4), dtype=dt),
+                             np.empty((1, 4), dtype=dt))
         return dict(update=k.update, direction=k.direction, link_product=k.link_product, nchunk=nchunk,
                     aggregate_pairs=k.aggregate_pairs, aggregate_sums=k.aggregate_sums,
+                    permuted_slots=k.permuted_slots,
                     to_channel_major=k.to_channel_major, from_channel_major=k.from_channel_major)
 
     return load_kernels(_KERNEL, load, "the CG kernels")
