@@ -494,7 +494,7 @@ def test_a_new_process_loads_the_compiled_kernels_from_numbas_cache():
     code = ("import numpy as np\n"
             "from translucency_addon.fluid import build_cells, compiled_kernels as k\n"
             "build_cells(np.random.default_rng(0).uniform(0, 4, (200, 3)), 1.0, method='compiled')\n"
-            "print(*(sum(getattr(f.stats, s).values()) for f in (k.faces, k.sort_rows, k.frames)\n"
+            "print(*(sum(getattr(f.stats, s).values()) for f in (k.faces, k.sort_rows, k.upper_faces)\n"
             "        for s in ('cache_hits', 'cache_misses')))\n")
     root = Path(__file__).resolve().parents[1]
     runs = [subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=300)

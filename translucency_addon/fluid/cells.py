@@ -144,31 +144,38 @@ class _Faces:
 
     i: np.ndarray
     j: np.ndarray
-    key: np.ndarray  # i N + j, ascending
+    key: np.ndarray | None  # i N + j, ascending (the numpy path's; None on the compiled one)
     n: np.ndarray  # (3, E) unit vector i -> j: the face's normal
     d: np.ndarray  # |p_j - p_i|
-    h: np.ndarray  # d / 2
-    r: np.ndarray  # disk radius sqrt(R^2 - h^2)
-    mid: np.ndarray  # (3, E) disk centre
-    e1: np.ndarray  # (3, E) in-plane basis, e1 x e2 = n
-    e2: np.ndarray
+    # the rest of each face's frame, for the numpy path (the compiled kernel derives them per face: None)
+    h: np.ndarray | None = None  # d / 2
+    r: np.ndarray | None = None  # disk radius sqrt(R^2 - h^2)
+    mid: np.ndarray | None = None  # (3, E) disk centre
+    e1: np.ndarray | None = None  # (3, E) in-plane basis, e1 x e2 = n
+    e2: np.ndarray | None = None
 
 
-def _faces(P, R, pi, pj, compiled: bool = False, presorted: bool = False) -> _Faces:
-    """The faces of pairs (pi < pj), sorted by (i, j) unless ``presorted`` says they come so."""
+def _compiled_faces(P, R, lists) -> _Faces:
+    """The candidate faces i < j of the compiled path from its neighbour lists (``(start, nbr, dist)``), sorted
+    by (i, j), with their distances and normals (:func:`.compiled_faces.upper_faces`); the faces' kernel
+    derives the rest of each frame."""
+    from .compiled_faces import upper_faces
+
+    start, nbr, _ = lists
+    i, j, d, n = upper_faces(P, start, nbr)
+    ok = d < 2.0 * R  # the grid's own distance may round the other way at exactly 2R
+    if not ok.all():
+        i, j, d, n = i[ok], j[ok], d[ok], n[:, ok]
+    return _Faces(i=i, j=j, key=None, n=n, d=d)
+
+
+def _faces(P, R, pi, pj) -> _Faces:
+    """The faces of pairs (pi < pj), sorted by (i, j), with their frames (the numpy path)."""
     N = len(P)
     key = pi * N + pj
-    if presorted:
-        i, j = pi, pj
-    else:
-        order = np.argsort(key)
-        i, j, key = pi[order], pj[order], key[order]
-    if compiled:  # the same frames in one compiled pass
-        from .compiled_faces import face_frames
-
-        d, n, e1, e2, mid = face_frames(P, i, j)
-    else:
-        d, n, e1, e2, mid = _face_frames(P, i, j)
+    order = np.argsort(key)
+    i, j, key = pi[order], pj[order], key[order]
+    d, n, e1, e2, mid = _face_frames(P, i, j)
     ok = d < 2.0 * R  # the tree's own distance may round the other way at exactly 2R
     if not ok.all():
         i, j, key, d = i[ok], j[ok], key[ok], d[ok]
@@ -180,7 +187,7 @@ def _faces(P, R, pi, pj, compiled: bool = False, presorted: bool = False) -> _Fa
 
 def _face_frames(P, i, j) -> tuple:
     """``(d, n, e1, e2, mid)`` of the faces i -> j in numpy, vectors (3, E): the twin of
-    :func:`.compiled_faces.face_frames`."""
+    :func:`.compiled_faces.upper_faces` (d, n) and :func:`.compiled_kernels.plane_basis`."""
     delta = P[j] - P[i]
     d = np.sqrt(np.einsum("ij,ij->i", delta, delta))
     n = delta / d[:, None]
@@ -245,10 +252,7 @@ def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK, 
 
             tree = cKDTree(P)  # not needed for the faces; the graph and the occluder query it
         lists = neighbour_lists(Q, R, grid)
-        start, nbr, _ = lists
-        rows = np.repeat(np.arange(N, dtype=np.int64), np.diff(start))
-        up = nbr > rows
-        fc = _faces(Q, R, rows[up], nbr[up], compiled=True, presorted=True)
+        fc = _compiled_faces(Q, R, lists)
         t1 = time.perf_counter()
         area, omega, seconds = _compiled_face_geometry(Q, R, fc, lists)
     else:
@@ -294,7 +298,7 @@ def _compiled_face_geometry(P, R, fc: _Faces, lists):
 
     t = time.perf_counter()
     start, nbr, dist = lists
-    area, omega = compiled_faces.face_geometry(P, R, fc.i, fc.j, fc.n, fc.e1, fc.e2, fc.h, fc.r, start, nbr, dist)
+    area, omega = compiled_faces.face_geometry(P, R, fc.i, fc.j, fc.n, fc.d, start, nbr, dist)
     t2 = time.perf_counter()
     return np.maximum(area, 0.0), np.maximum(omega, 0.0), {"compiled faces": t2 - t}
 

@@ -61,13 +61,14 @@ def version() -> str:
     return str(numba.__version__)
 
 
-def face_geometry(P, R, fi, fj, normal, e1, e2, h, rho, nbr_start, nbr, nbr_distance):
+def face_geometry(P, R, fi, fj, normal, d, nbr_start, nbr, nbr_distance):
     """Area and solid angle of each face (i, j) = (``fi[f]``, ``fj[f]``); see the module docstring.
 
-    ``normal, e1, e2``: (3, E) unit normal (i -> j) and in-plane basis (e1 x e2 = n); ``h``: d/2,
-    ``rho``: the disk's radius; ``nbr[nbr_start[i]:nbr_start[i + 1]]``: every particle within 2R of
-    i, at ``nbr_distance`` from it (each list is sorted by it here: the nearest particles empty a face
-    soonest).  Returns ``(area, omega)``, (E,) each.
+    ``normal``: (3, E) unit normal (i -> j), ``d``: the particles' distance (the kernel derives the disk's
+    height d/2, radius and in-plane basis from these, as ``cells._faces`` does in numpy);
+    ``nbr[nbr_start[i]:nbr_start[i + 1]]``: every particle within 2R of i, at ``nbr_distance`` from it
+    (each list is sorted by it here: the nearest particles empty a face soonest).  Returns ``(area,
+    omega)``, (E,) each.
     """
     fn = _kernel().get("fn")
     if fn is None:
@@ -78,15 +79,14 @@ def face_geometry(P, R, fi, fj, normal, e1, e2, h, rho, nbr_start, nbr, nbr_dist
         start, nbr = nbr_start.astype(np.int64), nbr.astype(np.int64)
         _KERNEL["sort"](start, nbr, np.array(nbr_distance, dtype=np.float64))
         fn(np.ascontiguousarray(P, dtype=np.float64), float(R), fi.astype(np.int64), fj.astype(np.int64),
-           np.ascontiguousarray(normal), np.ascontiguousarray(e1), np.ascontiguousarray(e2),
-           np.ascontiguousarray(h, dtype=np.float64), np.ascontiguousarray(rho, dtype=np.float64), start, nbr, area,
+           np.ascontiguousarray(normal), np.ascontiguousarray(d, dtype=np.float64), start, nbr, area,
            omega)  # one signature: C-contiguous float64/int64 (numba compiles once per signature)
     return area, omega
 
 
 def neighbour_lists(P, R, grid) -> tuple:
     """``(start, nbr, dist)``: every particle's neighbours closer than 2R (``nbr[start[i]:start[i + 1]]``,
-    ascending) and their distances, ``|p_k - p_i|`` as :func:`face_frames` computes it.
+    ascending) and their distances, ``|p_k - p_i|`` as :func:`upper_faces` computes it.
 
     ``P`` is sorted by the cells of size 2R that ``grid`` = ``(g, keys)`` gives (``g`` (N, 3) int64 cell
     coordinates, ``keys`` their flat keys, ascending: :func:`.cells._spatial_order`), so each cell is one
@@ -111,18 +111,20 @@ def neighbour_lists(P, R, grid) -> tuple:
     return start, nbr, dist
 
 
-def face_frames(P, i, j) -> tuple:
-    """``(d, n, e1, e2, mid)`` of the faces i -> j, as ``cells._face_frames`` computes them in numpy (one
-    pass instead of some thirty array operations and their temporaries); vectors (3, E)."""
-    if "frames" not in _kernel():
-        raise RuntimeError(f"the compiled cell faces are not available: {_KERNEL['error']}")
-    E = len(i)
-    d = np.empty(E)
-    n, e1, e2, mid = (np.empty((3, E)) for _ in range(4))
-    if E:
-        _KERNEL["frames"](np.ascontiguousarray(P, dtype=np.float64), np.ascontiguousarray(i, dtype=np.int64),
-                          np.ascontiguousarray(j, dtype=np.int64), d, n, e1, e2, mid)
-    return d, n, e1, e2, mid
+def upper_faces(P, start, nbr) -> tuple:
+    """``(i, j, d, n)``: the candidate faces i < j of the neighbour lists ``nbr[start[i]:start[i + 1]]``
+    (ascending), sorted by (i, j), with the particles' distances and the unit normals (3, E), in two compiled
+    passes (a count, then the faces) instead of numpy's row indices, mask and gathers over every list entry."""
+    k = _kernel()
+    N = len(start) - 1
+    count = np.empty(N, dtype=np.int64)
+    k["count_upper"](start, nbr, count)
+    first = np.zeros(N + 1, dtype=np.int64)
+    np.cumsum(count, out=first[1:])
+    E = int(first[-1])
+    i, j, d, n = np.empty(E, dtype=np.int64), np.empty(E, dtype=np.int64), np.empty(E), np.empty((3, E))
+    k["upper_faces"](np.ascontiguousarray(P, dtype=np.float64), start, nbr, first, i, j, d, n)
+    return i, j, d, n
 
 
 def first_call_seconds() -> float:
@@ -139,7 +141,8 @@ def _kernel() -> dict:
         from . import compiled_kernels as k
 
         _warm_up(k)
-        return dict(fn=k.faces, sort=k.sort_rows, frames=k.frames, voxels=k.ball_voxels, lists=k.neighbour_lists,
+        return dict(fn=k.faces, sort=k.sort_rows, count_upper=k.count_upper,
+                    upper_faces=k.upper_faces, voxels=k.ball_voxels, lists=k.neighbour_lists,
                     directed_links=k.directed_links, fill_slots=k.fill_slots, cell_sums=k.cell_sums)
 
     return load_kernels(_KERNEL, load, "the kernel")
@@ -182,12 +185,15 @@ def _warm_up(k) -> None:
     """Two particles, one face: every kernel's first call, with the types the cells pass."""
     P = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     i, j = np.array([0], dtype=np.int64), np.array([1], dtype=np.int64)
-    d, n, e1, e2, mid = np.empty(1), np.empty((3, 1)), np.empty((3, 1)), np.empty((3, 1)), np.empty((3, 1))
-    k.frames(P, i, j, d, n, e1, e2, mid)
+    d, n = np.ones(1), np.array([[1.0], [0.0], [0.0]])
+    two = np.array([0, 1, 2], dtype=np.int64)
+    k.count_upper(two, np.array([1, 0], dtype=np.int64), np.empty(2, dtype=np.int64))
+    k.upper_faces(P, two, np.array([1, 0], dtype=np.int64), np.array([0, 1, 1], dtype=np.int64), np.empty(1, np.int64),
+                  np.empty(1, np.int64), np.empty(1), np.empty((3, 1)))
     start, nbr = np.array([0, 1, 2], dtype=np.int64), np.array([1, 0], dtype=np.int64)
     k.sort_rows(start, nbr, np.array([1.0, 1.0]))
     area, omega = np.zeros(1), np.zeros(1)
-    k.faces(P, 1.0, i, j, n, e1, e2, 0.5 * d, np.sqrt(1.0 - 0.25 * d * d), start, nbr, area, omega)
+    k.faces(P, 1.0, i, j, n, d, start, nbr, area, omega)
     k.neighbour_lists(P, 1.0, np.zeros((2, 3), dtype=np.int64), np.ones(3, dtype=np.int64),
                       np.zeros(1, dtype=np.int64), np.array([0, 2], dtype=np.int64), np.zeros(3, dtype=np.int64))
     src, dst, link, first = (np.empty(2, dtype=np.int64) for _ in range(4))

@@ -21,8 +21,9 @@ def sector(ax, ay, bx, by):
 
 
 @numba.njit(cache=True, nogil=True)
-def clip(j, f, n, e1, e2, h, rho, lo, hi, nbr, dx, dy, dz, dd, ux, uy, vx, vy) -> int:
-    """The region of face f = (i, j) as a counter-clockwise polygon in (ux, uy); its vertex count (0: empty).
+def clip(j, nx, ny, nz, e1x, e1y, e1z, e2x, e2y, e2z, h, rho, lo, hi, nbr, dx, dy, dz, dd, ux, uy, vx, vy) -> int:
+    """The region of face (i, j) as a counter-clockwise polygon in (ux, uy); its vertex count (0: empty).
+    ``n`` is the face's unit normal (i -> j), ``e1, e2`` its in-plane basis (:func:`plane_basis`).
 
     ``nbr[lo:hi]`` is i's neighbour list, ``dx, dy, dz`` each neighbour's offset from p_i and ``dd`` its
     square (:func:`offsets`).  A line is first tested with its normal component only: with
@@ -38,7 +39,6 @@ def clip(j, f, n, e1, e2, h, rho, lo, hi, nbr, dx, dy, dz, dd, ux, uy, vx, vy) -
     s = 2.0 * rho  # the square around the disk, counter-clockwise in (e1, e2)
     ux[0], uy[0], ux[1], uy[1], ux[2], uy[2], ux[3], uy[3] = -s, -s, s, -s, s, s, -s, s
     m = 4
-    nx, ny, nz = n[0, f], n[1, f], n[2, f]
     reach2 = rho * rho  # the region's part in the disk lies within this of the centre: min(rho, |vertex|)^2
     for t in range(lo, hi):
         if nbr[t] == j:
@@ -57,8 +57,8 @@ def clip(j, f, n, e1, e2, h, rho, lo, hi, nbr, dx, dy, dz, dd, ux, uy, vx, vy) -
             if c > 0.0:
                 continue  # all of it is on i's side
             return 0  # k takes all of it
-        a = e1[0, f] * px + e1[1, f] * py + e1[2, f] * pz
-        b = e2[0, f] * px + e2[1, f] * py + e2[2, f] * pz
+        a = e1x * px + e1y * py + e1z * pz
+        b = e2x * px + e2y * py + e2z * pz
         q = 0  # keep a u + b v <= c (Sutherland-Hodgman: the region is convex)
         sn = a * ux[0] + b * uy[0] - c
         for p in range(m):
@@ -157,8 +157,11 @@ def in_disk(m, ux, uy, h, rho, R):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def faces(P, R, fi, fj, n, e1, e2, h, rho, start, nbr, area, omega):
-    """Area and solid angle of every face into ``area``/``omega``: :func:`clip`, then :func:`in_disk`."""
+def faces(P, R, fi, fj, n, d, start, nbr, area, omega):
+    """Area and solid angle of every face into ``area``/``omega``: :func:`clip`, then :func:`in_disk`.  Each
+    face's frame -- h = d/2, the disk's radius ``rho = sqrt(R^2 - h^2)``, the in-plane basis -- is computed
+    here from its distance and normal (``cells._faces``'s numpy twin stores them: nine more arrays per
+    candidate face, 250 MB at 262k particles, whose first touch cost 0.1-0.7 s a frame there)."""
     E = fi.shape[0]
     cap = 8  # a clipped square gains at most one vertex per line: 4 + the lines of a face, and one spare
     for i in range(start.shape[0] - 1):
@@ -169,12 +172,17 @@ def faces(P, R, fi, fj, n, e1, e2, h, rho, start, nbr, area, omega):
     for blk in numba.prange((E + BLOCK - 1) // BLOCK):
         ux, uy, vx, vy = np.empty(cap), np.empty(cap), np.empty(cap), np.empty(cap)
         for f in range(blk * BLOCK, min(E, (blk + 1) * BLOCK)):
-            if not rho[f] > 0.0:
+            h = 0.5 * d[f]
+            rho = np.sqrt(max(R * R - h * h, 0.0))
+            if not rho > 0.0:
                 continue
             i = fi[f]
-            m = clip(fj[f], f, n, e1, e2, h[f], rho[f], start[i], start[i + 1], nbr, dx, dy, dz, dd, ux, uy, vx, vy)
+            nx, ny, nz = n[0, f], n[1, f], n[2, f]
+            e1x, e1y, e1z, e2x, e2y, e2z = plane_basis(nx, ny, nz)
+            m = clip(fj[f], nx, ny, nz, e1x, e1y, e1z, e2x, e2y, e2z, h, rho, start[i], start[i + 1], nbr, dx, dy,
+                     dz, dd, ux, uy, vx, vy)
             if m:
-                area[f], omega[f] = in_disk(m, ux, uy, h[f], rho[f], R)
+                area[f], omega[f] = in_disk(m, ux, uy, h, rho, R)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -190,30 +198,20 @@ def sort_rows(start, nbr, dist):
             nbr[u + 1], dist[u + 1] = k, dk
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def frames(P, i, j, d, n, e1, e2, mid):
-    """Per face i -> j: distance, unit normal, the in-plane basis of ``cells._plane_basis`` (e1 = n x the
-    axis where |n| is smallest, normalised; e2 = n x e1) and the disk centre."""
-    for f in numba.prange(i.shape[0]):
-        a, b = i[f], j[f]
-        dx, dy, dz = P[b, 0] - P[a, 0], P[b, 1] - P[a, 1], P[b, 2] - P[a, 2]
-        dd = np.sqrt(dx * dx + dy * dy + dz * dz)
-        nx, ny, nz = dx / dd, dy / dd, dz / dd
-        ax, ay, az = abs(nx), abs(ny), abs(nz)
-        if ax <= ay and ax <= az:  # n x (1, 0, 0)
-            ux, uy, uz = 0.0, nz, -ny
-        elif ay <= az:  # n x (0, 1, 0)
-            ux, uy, uz = -nz, 0.0, nx
-        else:  # n x (0, 0, 1)
-            ux, uy, uz = ny, -nx, 0.0
-        un = np.sqrt(ux * ux + uy * uy + uz * uz)
-        ux, uy, uz = ux / un, uy / un, uz / un
-        d[f] = dd
-        n[0, f], n[1, f], n[2, f] = nx, ny, nz
-        e1[0, f], e1[1, f], e1[2, f] = ux, uy, uz
-        e2[0, f], e2[1, f], e2[2, f] = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
-        mid[0, f], mid[1, f], mid[2, f] = 0.5 * (P[a, 0] + P[b, 0]), 0.5 * (P[a, 1] + P[b, 1]), \
-            0.5 * (P[a, 2] + P[b, 2])
+@numba.njit(cache=True, nogil=True, inline="always")
+def plane_basis(nx, ny, nz):
+    """The in-plane basis of ``cells._plane_basis`` for the unit normal n: e1 = n x the axis where |n| is
+    smallest (the first of equals), normalised; e2 = n x e1."""
+    ax, ay, az = abs(nx), abs(ny), abs(nz)
+    if ax <= ay and ax <= az:  # n x (1, 0, 0)
+        ux, uy, uz = 0.0, nz, -ny
+    elif ay <= az:  # n x (0, 1, 0)
+        ux, uy, uz = -nz, 0.0, nx
+    else:  # n x (0, 0, 1)
+        ux, uy, uz = ny, -nx, 0.0
+    un = np.sqrt(ux * ux + uy * uy + uz * uz)
+    ux, uy, uz = ux / un, uy / un, uz / un
+    return ux, uy, uz, ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux
 
 
 @numba.njit(cache=True, nogil=True)
@@ -371,3 +369,31 @@ def cell_sums(fi, fj, area, omega, fd, n, sum_omega, cone, vec):
             v = area[f] * n[a, f]
             vec[i, a] -= v
             vec[j, a] += v
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def count_upper(start, nbr, count):
+    """Per particle i, how many of its neighbours j have j > i (its faces i < j)."""
+    for i in numba.prange(start.shape[0] - 1):
+        c = 0
+        for t in range(start[i], start[i + 1]):
+            if nbr[t] > i:
+                c += 1
+        count[i] = c
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def upper_faces(P, start, nbr, first, fi, fj, d, n):
+    """The candidate faces i < j from the neighbour lists (rows ascending, so sorted by (i, j)), written from
+    ``first[i]`` on, with their distances and unit normals (``cells._face_frames``'s arithmetic)."""
+    for i in numba.prange(start.shape[0] - 1):
+        f = first[i]
+        for t in range(start[i], start[i + 1]):
+            j = nbr[t]
+            if j > i:
+                fi[f], fj[f] = i, j
+                dx, dy, dz = P[j, 0] - P[i, 0], P[j, 1] - P[i, 1], P[j, 2] - P[i, 2]
+                dd = np.sqrt(dx * dx + dy * dy + dz * dz)
+                d[f] = dd
+                n[0, f], n[1, f], n[2, f] = dx / dd, dy / dd, dz / dd
+                f += 1
