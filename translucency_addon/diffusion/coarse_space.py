@@ -49,6 +49,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry.extent import bounds
+
 NODES_PER_AGGREGATE = 128  # boxes aimed at: one per this many nodes (fewer where the graph fills its box partly),
 MIN_AGGREGATES, MAX_AGGREGATES = 128, 512  # within these (see the module docstring for the measurements)
 # a graph whose systems are kept from frame to frame (a bake's QuadGraph level: the set-up is paid once per
@@ -63,7 +65,8 @@ def aggregates(position: np.ndarray, target: int) -> tuple[np.ndarray, int]:
     and how many there are.  A flat or thin graph gets bigger boxes (the grid's count, not the volume, is
     held to the target)."""
     X = np.asarray(position, dtype=np.float64)
-    lo, ext = X.min(axis=0), np.ptp(X, axis=0)
+    lo, hi = bounds(X)
+    ext = hi - lo
     h = (float(np.prod(ext)) / max(target, 1)) ** (1.0 / 3.0)
     h = max(h, float(ext.max()) / max(target, 1), 1e-300)
     dims = np.floor(ext / h).astype(np.int64) + 1

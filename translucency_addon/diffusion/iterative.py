@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.extent import bounds
 from . import compiled_cg, kernels
 from .assembly import LevelSystem, sparse_matrix
 from .coarse_space import coarse_space
@@ -458,8 +459,8 @@ def outside_maximum_principle(system: LevelSystem, b: np.ndarray, x: np.ndarray,
         return True
     bound = maximum_principle_bound(system, b)
     tiny = 1e-300
-    return bool(np.any(x.max(axis=0) > bound * (1.0 + slack) + tiny)
-                or np.any(x.min(axis=0) < -slack * bound - tiny))
+    lo, hi = bounds(x)
+    return bool(np.any(hi > bound * (1.0 + slack) + tiny) or np.any(lo < -slack * bound - tiny))
 
 
 def maximum_principle_bound(system: LevelSystem, b: np.ndarray) -> np.ndarray:

@@ -82,6 +82,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..geometry.extent import bounds
+
 from .disk_faces import TWO_PI, allowed_arc, fan, segment_bounds
 
 TRIANGLE_CHUNK = 1 << 18  # candidate triangles per chunk of face rows (memory: ~ 300 bytes each)
@@ -293,7 +295,7 @@ def build_cells(points: np.ndarray, radius: float, chunk: int = TRIANGLE_CHUNK, 
 def _compiled_face_geometry(P, R, fc: _Faces, lists):
     """Area and solid angle of every face by :mod:`.compiled_faces`: each face clipped by the lines of its
     first particle's neighbours (``lists`` = ``(start, nbr, dist)``: every particle within 2R of each,
-    :func:`.compiled_faces.neighbour_lists`)."""
+    :func:`.compiled_faces.neighbour_lists`; their rows come back sorted by distance)."""
     from . import compiled_faces
 
     t = time.perf_counter()
@@ -309,8 +311,8 @@ def _spatial_order(P, R):
     (ascending)."""
     if len(P) == 0:
         return np.zeros(0, dtype=np.int64), (np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64))
-    g = np.floor((P - P.min(axis=0)) / (2.0 * R)).astype(np.int64)
-    dims = g.max(axis=0) + 1
+    g = np.floor((P - bounds(P)[0]) / (2.0 * R)).astype(np.int64)
+    dims = bounds(g)[1] + 1
     key = (g[:, 2] * dims[1] + g[:, 1]) * dims[0] + g[:, 0]
     order = np.argsort(key, kind="stable")
     return order, (g[order], key[order])

@@ -43,6 +43,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..compiled import load_kernels
+from ..geometry.extent import bounds
 
 _KERNEL = {}  # the compiled kernel, built at the first call ({"fn": ...} or {"error": "why not"})
 
@@ -67,8 +68,9 @@ def face_geometry(P, R, fi, fj, normal, d, nbr_start, nbr, nbr_distance):
     ``normal``: (3, E) unit normal (i -> j), ``d``: the particles' distance (the kernel derives the disk's
     height d/2, radius and in-plane basis from these, as ``cells._faces`` does in numpy);
     ``nbr[nbr_start[i]:nbr_start[i + 1]]``: every particle within 2R of i, at ``nbr_distance`` from it
-    (each list is sorted by it here: the nearest particles empty a face soonest).  Returns ``(area,
-    omega)``, (E,) each.
+    (each list is sorted by it here, **in place** where the arrays are int64 and float64 already, as
+    :func:`neighbour_lists` returns them: the nearest particles empty a face soonest, and a copy of the lists
+    cost 30 ms a frame at 262k particles).  Returns ``(area, omega)``, (E,) each.
     """
     fn = _kernel().get("fn")
     if fn is None:
@@ -76,9 +78,10 @@ def face_geometry(P, R, fi, fj, normal, d, nbr_start, nbr, nbr_distance):
     E = len(fi)
     area, omega = np.zeros(E), np.zeros(E)
     if E:
-        start, nbr = nbr_start.astype(np.int64), nbr.astype(np.int64)
-        _KERNEL["sort"](start, nbr, np.array(nbr_distance, dtype=np.float64))
-        fn(np.ascontiguousarray(P, dtype=np.float64), float(R), fi.astype(np.int64), fj.astype(np.int64),
+        start, nbr = np.ascontiguousarray(nbr_start, dtype=np.int64), np.ascontiguousarray(nbr, dtype=np.int64)
+        _KERNEL["sort"](start, nbr, np.ascontiguousarray(nbr_distance, dtype=np.float64))
+        fn(np.ascontiguousarray(P, dtype=np.float64), float(R), np.ascontiguousarray(fi, dtype=np.int64),
+           np.ascontiguousarray(fj, dtype=np.int64),
            np.ascontiguousarray(normal), np.ascontiguousarray(d, dtype=np.float64), start, nbr, area,
            omega)  # one signature: C-contiguous float64/int64 (numba compiles once per signature)
     return area, omega
@@ -102,7 +105,7 @@ def neighbour_lists(P, R, grid) -> tuple:
     start = np.zeros(N + 1, dtype=np.int64)
     if N == 0:
         return start, np.zeros(0, dtype=np.int64), np.zeros(0)
-    dims = g.max(axis=0).astype(np.int64) + 1
+    dims = bounds(g)[1].astype(np.int64) + 1
     first = np.concatenate([[0], np.flatnonzero(np.diff(keys)) + 1])
     ukeys = np.ascontiguousarray(keys[first], dtype=np.int64)
     ustart = np.concatenate([first, [N]]).astype(np.int64)

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry.extent import bounds
+
 MAX_VOXELS = 1 << 26  # above this the voxels grow (coarser shadows) rather than the memory
 
 
@@ -40,11 +42,12 @@ class BallOccluder:
         self.triangles = triangles  # TriangleBVH of other objects, or None
         self.compiled = compiled  # voxelise with .compiled_kernels.ball_voxels (the cells' path: compiled or numpy)
         h = 0.5 * R
-        while np.prod(np.ceil((np.ptp(self.points, axis=0) + 2 * R) / h) + 5) > MAX_VOXELS:
+        lo, hi = bounds(self.points)
+        while np.prod(np.ceil((hi - lo + 2 * R) / h) + 5) > MAX_VOXELS:
             h *= 1.5
         self.h = h
-        self.lo = self.points.min(axis=0) - R - 2 * h  # margin: a stencil never leaves the grid
-        self.shape = np.ceil((self.points.max(axis=0) + R + 2 * h - self.lo) / h).astype(np.int64) + 1
+        self.lo = lo - R - 2 * h  # margin: a stencil never leaves the grid
+        self.shape = np.ceil((hi + R + 2 * h - self.lo) / h).astype(np.int64) + 1
         self._solid = None
 
     @property

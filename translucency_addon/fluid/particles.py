@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ParticleError, RadiusError
+from ..geometry.extent import extent as column_extent
 from ..geometry.meshio import DEFAULT_MEMORY_BUDGET_BYTES
 
 MAX_RADIUS_SPACING = 4.0  # radius / spacing beyond which cells would have hundreds of neighbours
@@ -169,7 +170,7 @@ def _check_shape(Q, R, spacing):
     """Radius against the fluid's extent and spacing; all particles in a plane."""
     if len(Q) < 2:
         return
-    extent = float(np.ptp(Q, axis=0).max())
+    extent = float(column_extent(Q).max())
     if R >= extent:
         raise RadiusError("fluid", R, spacing, extent)
     if spacing > 0 and R > MAX_RADIUS_SPACING * spacing:

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .extent import bounds
+
 LEAF = 4
 _SHARED: dict = {}  # mesh_bvh's cache: content key -> TriangleBVH, most recent last
 SHARED_MAX = 3
@@ -172,8 +174,8 @@ def _range_reduce(op, a: np.ndarray) -> np.ndarray:
 
 
 def _morton_codes(c: np.ndarray) -> np.ndarray:
-    lo = c.min(axis=0)
-    ext = np.maximum(c.max(axis=0) - lo, 1e-300)
+    lo, hi = bounds(c)
+    ext = np.maximum(hi - lo, 1e-300)
     q = np.clip(((c - lo) / ext * 1023.0).astype(np.int64), 0, 1023)
 
     def spread(x):
