@@ -130,10 +130,10 @@ def _galerkin(system, op, agg, n_agg) -> CoarseSpace | None:
     channel is one ``bincount`` into a few times n_agg entries and a CSR built from them, not a dense n_agg^2
     sum and its scan for non-zeros (the Final bunny's 1,587 aggregates: 2.5 M entries per channel).  Where
     the operator keeps the compiled sweeps' link slots (numba runs), the marks and every channel's sums are
-    two compiled passes over the slots (:func:`.compiled_cg.galerkin_pattern`, :func:`.compiled_cg.
-    galerkin_sums`) instead of numpy's masks and gathers over (N, K): a fluid frame at 16k particles
-    (19k nodes, 23 slots) the whole set-up (aggregates, sums, three LUs) 18 -> 5.5 ms.  The same sums in another order: the same A_c to
-    rounding (the test of the correction against P^T A P runs both)."""
+    two compiled passes over the slots (:func:`.compiled_cg.galerkin_pattern`,
+    :func:`.compiled_cg.galerkin_sums`) instead of numpy's masks and gathers over (N, K): at 16k particles
+    (19k nodes, 23 slots) the whole set-up (aggregates, sums, three LUs) 18 -> 5.5 ms.  The same sums in
+    another order: the same A_c to rounding (the test of the correction against P^T A P runs both)."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
