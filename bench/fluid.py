@@ -59,8 +59,8 @@ NOTES = """**Reading the table.**
   (`translucency_addon/fluid/compiled_faces.py`, the default in the test environment and in this table): one
   face per thread, the face's disk clipped by the lines of its particle's neighbours (nearest first, so a
   face that a nearer particle empties stops early), then the clipped polygon's area and solid angle inside
-  the disk in closed form per edge; the faces' frames (normal, in-plane basis, disk centre) in the same
-  compiled module. It gives the numpy path's faces to 1e-14 and is 4-6x faster in wall time on these 2
+  the disk in closed form per edge; each face's normal from the neighbour lists and, in the face's own
+  thread, its disk and in-plane basis. It gives the numpy path's faces to 1e-14 and is 4-6x faster in wall time on these 2
   cores (the table of the two paths); numpy's path (`cells.py`: each Voronoi edge of a
   particle triangle clipped once and shared by its three faces) stays as the fallback where numba is
   missing, and says so. Measured and not taken: scipy's Qhull Delaunay with the same per-face closed forms
