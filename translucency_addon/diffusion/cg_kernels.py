@@ -51,15 +51,16 @@ def direction(P, R, inv_diag, y, agg, beta, nchunk):
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def link_product(nbr, off, neg_diag, D, R, accumulate, nchunk):
+def link_product(nbr, off, neg_diag, D, R, accumulate, width, nchunk):
     """``r (+)= -A d`` per channel over the graph's link slots, and ``d . (-A d)`` per channel.
 
     ``(-A d)_i = -diag_i d_i + sum_k off_ik d_nbr[i,k]`` (slots with ``nbr < 0`` empty): nbr (N, K) in the
     sweep order, off (C0, N, K) and neg_diag (C0, N) per base channel; channel c of d and r (C, N) takes
     base channel ``c % C0`` (the bounce's two copies share one operator).  ``accumulate``: add to r, else
-    overwrite it (no zeroing pass)."""
+    overwrite it (no zeroing pass).  ``width[i]``: row i's slots from its last non-empty one on are empty
+    and not read (a fluid cell fills 14 of 23 on average: 13.3 -> 11.3 ms a product at 262k particles)."""
     C, n = D.shape
-    C0, K = off.shape[0], nbr.shape[1]
+    C0 = off.shape[0]
     dots = np.zeros((nchunk, C))
     for k in numba.prange(nchunk):
         lo, hi = (n * k) // nchunk, (n * (k + 1)) // nchunk
@@ -68,7 +69,7 @@ def link_product(nbr, off, neg_diag, D, R, accumulate, nchunk):
             s = 0.0
             for i in range(lo, hi):
                 acc = neg_diag[b, i] * D[c, i]
-                for m in range(K):
+                for m in range(width[i]):
                     j = nbr[i, m]
                     if j >= 0:
                         acc += off[b, i, m] * D[c, j]
@@ -143,11 +144,12 @@ def aggregate_sums(links, agg, n_agg, rank, off, neg_diag, out):
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def permuted_slots(nbr, off, diag, perm, links, off_cm, neg_diag, inv_diag):
+def permuted_slots(nbr, off, diag, perm, links, off_cm, neg_diag, inv_diag, width):
     """A level's link slots in sweep order ``perm`` (new position -> old node), channel-major, in one pass
     (:class:`.sweeps.SweepOperator`'s layout; numpy's twin, its gathers and transposes, makes five copies of
     (N, K, C)): row r is node perm[r], ``links[r, k]`` its slot k's neighbour's new position (-1: empty),
-    ``off_cm[c, r, k]``, ``neg_diag[c, r] = -diag`` and ``inv_diag[c, r] = 1 / diag`` (the sweep precision)."""
+    ``off_cm[c, r, k]``, ``neg_diag[c, r] = -diag`` and ``inv_diag[c, r] = 1 / diag`` (the sweep precision),
+    ``width[r]`` one past its last non-empty slot (:func:`link_product` reads no further)."""
     N, K = nbr.shape
     C = diag.shape[1]
     inv = np.empty(N, dtype=np.int64)
@@ -155,12 +157,16 @@ def permuted_slots(nbr, off, diag, perm, links, off_cm, neg_diag, inv_diag):
         inv[perm[r]] = r
     for r in numba.prange(N):
         i = perm[r]
+        w = 0
         for k in range(K):
             j = nbr[i, k]
             links[r, k] = inv[j] if j >= 0 else -1
+            if j >= 0:
+                w = k + 1
             for c in range(C):
                 off_cm[c, r, k] = off[i, k, c]
         for c in range(C):
             d = diag[i, c]
             neg_diag[c, r] = -d
             inv_diag[c, r] = 1.0 / d
+        width[r] = w

@@ -53,11 +53,12 @@ def direction(P, R, inv_diag, y, agg, beta) -> None:
                    np.ascontiguousarray(beta, dtype=np.float64), k["nchunk"])
 
 
-def link_product(nbr, off, neg_diag, D, R, accumulate: bool) -> np.ndarray:
-    """``r (+)= -A d`` over the graph's link slots (:func:`.cg_kernels.link_product`); returns ``d . (-A d)``
-    per channel.  Arrays as :class:`.sweeps.SweepOperator` keeps them (one dtype, C-contiguous)."""
+def link_product(nbr, off, neg_diag, D, R, accumulate: bool, width) -> np.ndarray:
+    """``r (+)= -A d`` over the graph's link slots (:func:`.cg_kernels.link_product`; row i's first ``width[i]``
+    slots); returns ``d . (-A d)`` per channel.  Arrays as :class:`.sweeps.SweepOperator` keeps them (one
+    dtype, C-contiguous)."""
     k = _kernel()
-    return k["link_product"](nbr, off, neg_diag, D, R, bool(accumulate), k["nchunk"])
+    return k["link_product"](nbr, off, neg_diag, D, R, bool(accumulate), width, k["nchunk"])
 
 
 def to_channel_major(v, perm, dtype) -> np.ndarray:
@@ -79,19 +80,20 @@ def from_channel_major(V, perm) -> np.ndarray:
 
 
 def permuted_slots(nbr, off, diag, perm, dtype) -> tuple:
-    """``(links, off_cm, neg_diag, inv_diag)``: a level's link slots in the sweep order ``perm``, channel-major, in
-    the sweep precision ``dtype`` (links int32 below 2^31 nodes), from one compiled pass
-    (:func:`.cg_kernels.permuted_slots`)."""
+    """``(links, off_cm, neg_diag, inv_diag, width)``: a level's link slots in the sweep order ``perm``,
+    channel-major, in the sweep precision ``dtype`` (links int32 below 2^31 nodes), and each row's width (one
+    past its last non-empty slot), from one compiled pass (:func:`.cg_kernels.permuted_slots`)."""
     k = _kernel()
     N, K = nbr.shape
     C = diag.shape[1]
     links = np.empty((N, K), dtype=np.int32 if N < 2**31 else np.int64)
     off_cm, neg_diag, inv_diag = np.empty((C, N, K), dtype=dtype), np.empty((C, N), dtype=dtype), np.empty(
         (C, N), dtype=dtype)
+    width = np.empty(N, dtype=np.int32)
     k["permuted_slots"](np.ascontiguousarray(nbr), np.ascontiguousarray(off, dtype=np.float64),
                         np.ascontiguousarray(diag, dtype=np.float64), np.ascontiguousarray(perm, dtype=np.int64),
-                        links, off_cm, neg_diag, inv_diag)
-    return links, off_cm, neg_diag, inv_diag
+                        links, off_cm, neg_diag, inv_diag, width)
+    return links, off_cm, neg_diag, inv_diag, width
 
 
 def galerkin_pattern(links, agg, n_agg: int) -> np.ndarray:
@@ -152,7 +154,7 @@ def _kernel() -> dict:
         for dt in (np.float32, np.float64):  # both sweep precisions (sweeps.FP32_TOL)
             D = np.zeros((1, 4), dtype=dt)
             k.link_product(np.full((4, 1), -1, dtype=np.int32), np.zeros((1, 4, 1), dtype=dt), D[:1], D, D.copy(),
-                           True, nchunk)
+                           True, np.zeros(4, dtype=np.int32), nchunk)
         perm, v = np.arange(4), np.zeros((4, 3))
         for dt in (np.float32, np.float64):
             k.to_channel_major(v, perm, np.zeros((3, 4), dtype=dt), nchunk)
@@ -165,7 +167,7 @@ def _kernel() -> dict:
                              np.zeros((1, 4), dtype=dt), np.zeros((1, 1)))
             k.permuted_slots(np.zeros((4, 1), dtype=np.int32), np.zeros((4, 1, 1)), np.ones((4, 1)), np.arange(4),
                              np.empty((4, 1), dtype=np.int32), np.empty((1, 4, 1), dtype=dt), np.empty((1, 4), dtype=dt),
-                             np.empty((1, 4), dtype=dt))
+                             np.empty((1, 4), dtype=dt), np.empty(4, dtype=np.int32))
         return dict(update=k.update, direction=k.direction, link_product=k.link_product, nchunk=nchunk,
                     aggregate_pairs=k.aggregate_pairs, aggregate_sums=k.aggregate_sums,
                     permuted_slots=k.permuted_slots,

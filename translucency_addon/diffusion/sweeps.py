@@ -184,8 +184,8 @@ class SweepOperator:
         self.links = None
         if not compiled_cg.available():  # the slots, reordered and channel-major, in one compiled pass (the Final
             # bunny's first frame: its three operators 357 -> ~100 ms, the first touch of their pages included)
-            links, off_cm, neg_diag, inv_diag = compiled_cg.permuted_slots(system.nbr, system.off, system.diag,
-                                                                           self.perm, self.dtype)
+            links, off_cm, neg_diag, inv_diag, self.width = compiled_cg.permuted_slots(
+                system.nbr, system.off, system.diag, self.perm, self.dtype)
             links = system.cache.setdefault("sweep_links", links)  # the graph's, shared with the coarse space
             self.links = (links, off_cm, neg_diag)
             self.inv_diag = inv_diag if copies == 1 else np.ascontiguousarray(np.tile(inv_diag, (copies, 1)))
@@ -279,7 +279,7 @@ class SweepOperator:
         if self._compiled():
             from .compiled_cg import link_product
 
-            link_product(*self.links, d, r, True)
+            link_product(*self.links, d, r, True, self.width)
             return
         m = self.neg_a
         if _csr_matvec is not None:
@@ -299,7 +299,7 @@ class SweepOperator:
         if self._compiled() and type(self).sub_a is SweepOperator.sub_a:
             from .compiled_cg import link_product
 
-            return -link_product(*self.links, d, out, False)
+            return -link_product(*self.links, d, out, False, self.width)
         out.fill(0.0)
         self.sub_a(out, d)
         return -np.einsum("cn,cn->c", d, out)
