@@ -192,56 +192,18 @@ def assemble(level: DiffusionGraph, sigma_a: np.ndarray, sigma_s: np.ndarray, et
     A = boundary_A(eta)
     fdr = diffuse_reflectance_internal(eta)
     nI = level.n_inner
-    if scheme == "fv" and compiled is None:
-        compiled = level.n_nodes >= COMPILED_ASSEMBLY_MIN_NODES and not available()
-    if scheme == "fv" and compiled:
-        off, diag = _compiled_fv(level, kappa, mu, s)
-        a_s = (level.area * s * s)[:, None]
-        boundary_diag = np.broadcast_to(a_s / (2.0 * A), (level.n_surface, 3)).copy()
-        diag[nI:] += boundary_diag
-        b_scale = np.broadcast_to(2.0 * a_s / (1.0 + fdr), (level.n_surface, 3)).copy()
-        return LevelSystem(scheme=scheme, level=level, nbr=level.neighbors.astype(np.int32), off=off, diag=diag,
-                           b_scale=b_scale, sigma_a=sigma_a, mm_per_unit=s, boundary_diag=boundary_diag)
-    nbr = level.neighbors.astype(np.int64)
-    has = nbr >= 0
-    d = level.edge_length * s  # mm
     if scheme == "fv":
-        # the face's kappa, the harmonic mean 2 k_i k_j / (k_i + k_j) = 2 / (1/k_i + 1/k_j): one gather of
-        # 1/kappa (inf where a slot has no neighbour, so kf = 0 there) and two passes over (N, K, C)
-        inv = 1.0 / kappa
-        kf = np.take(np.concatenate([inv, np.full((1, inv.shape[1]), np.inf)]), nbr, axis=0)
-        kf += inv[:, None, :]
-        np.divide(2.0, kf, out=kf)
-        # Link length d_ij, not the face-normal distance: on the sphere test
-        # the normal distance lowers node-to-node scatter slightly but biases
-        # the mean, which then stops converging under refinement.
-        G = np.where(has, level.face_area * s * s / np.where(has, d, 1.0), 0.0)  # mm
-        off = kf * G[..., None]
-        diag = np.einsum("nkc->nc", off)  # = off.sum(axis=1), ~5x faster over the middle axis (numpy 2.3)
-        diag[:nI] += mu[:nI] * (level.volume * s**3)[:, None]
-        # Surface links: exponentially fitted flux at the surface end (module docstring).
-        si = np.arange(nI, level.n_nodes)
-        k_in = nbr[nI:, 0]
-        slot = np.argmax(nbr[k_in] == si[:, None], axis=1)  # which of the inner node's links points back
-        kf_s = kf[nI:, 0]  # face kappa of the link
-        mu_s = 0.5 * (mu[nI:] + mu[k_in])
-        x = np.sqrt(mu_s / kf_s) * d[nI:, 0][:, None]  # sigma_tr d
-        T0 = G[nI:, 0][:, None] * kf_s
-        T, C = _fitted_link(T0, x)
-        off[nI:, 0] = T
-        off[k_in, slot] = T
-        diag[nI:] += C - T0  # surface row: C phi_s - T phi_k
-        diag[k_in] += T - T0  # inner row: plain coupling T
-        # The link's absorption (C - T) overlaps the cell's: remove its leading
-        # order (mu a d / 2) from the cell, never more than half the cell's.
-        lead = 0.5 * mu_s * (level.face_area[nI:, 0] * s * s * d[nI:, 0])[:, None]
-        cell = mu[k_in] * (level.volume[k_in] * s**3)[:, None]
-        np.subtract.at(diag, k_in, np.minimum(np.minimum(C - T, lead), 0.5 * cell))
+        if compiled is None:
+            compiled = level.n_nodes >= COMPILED_ASSEMBLY_MIN_NODES and not available()
+        off, diag = (_compiled_fv if compiled else _numpy_fv)(level, kappa, mu, s)
         a_s = (level.area * s * s)[:, None]
         boundary_diag = np.broadcast_to(a_s / (2.0 * A), (level.n_surface, 3)).copy()
         diag[nI:] += boundary_diag
         b_scale = np.broadcast_to(2.0 * a_s / (1.0 + fdr), (level.n_surface, 3)).copy()
     else:
+        nbr = level.neighbors.astype(np.int64)
+        has = nbr >= 0
+        d = level.edge_length * s  # mm
         k_nb = kernels.gather(nbr, kappa)  # (N, K, 3)
         inv_d2 = np.where(has, 1.0 / np.where(has, d, 1.0) ** 2, 0.0)
         off = np.zeros((level.n_nodes, nbr.shape[1], 3))
@@ -265,10 +227,51 @@ def available() -> str:
     return _kernel().get("error", "")
 
 
+def _numpy_fv(level: DiffusionGraph, kappa: np.ndarray, mu: np.ndarray, s: float):
+    """``(off, diag)`` of the conservative scheme, the surface links fitted, before the boundary exchange term,
+    in numpy (the twin of :func:`_compiled_fv`)."""
+    nI = level.n_inner
+    nbr = level.neighbors.astype(np.int64)
+    has = nbr >= 0
+    d = level.edge_length * s  # mm
+    # the face's kappa, the harmonic mean 2 k_i k_j / (k_i + k_j) = 2 / (1/k_i + 1/k_j): one gather of
+    # 1/kappa (inf where a slot has no neighbour, so kf = 0 there) and two passes over (N, K, C)
+    inv = 1.0 / kappa
+    kf = np.take(np.concatenate([inv, np.full((1, inv.shape[1]), np.inf)]), nbr, axis=0)
+    kf += inv[:, None, :]
+    np.divide(2.0, kf, out=kf)
+    # Link length d_ij, not the face-normal distance: on the sphere test
+    # the normal distance lowers node-to-node scatter slightly but biases
+    # the mean, which then stops converging under refinement.
+    G = np.where(has, level.face_area * s * s / np.where(has, d, 1.0), 0.0)  # mm
+    off = kf * G[..., None]
+    diag = np.einsum("nkc->nc", off)  # = off.sum(axis=1), ~5x faster over the middle axis (numpy 2.3)
+    diag[:nI] += mu[:nI] * (level.volume * s**3)[:, None]
+    # Surface links: exponentially fitted flux at the surface end (module docstring).
+    si = np.arange(nI, level.n_nodes)
+    k_in = nbr[nI:, 0]
+    slot = np.argmax(nbr[k_in] == si[:, None], axis=1)  # which of the inner node's links points back
+    kf_s = kf[nI:, 0]  # face kappa of the link
+    mu_s = 0.5 * (mu[nI:] + mu[k_in])
+    x = np.sqrt(mu_s / kf_s) * d[nI:, 0][:, None]  # sigma_tr d
+    T0 = G[nI:, 0][:, None] * kf_s
+    T, C = _fitted_link(T0, x)
+    off[nI:, 0] = T
+    off[k_in, slot] = T
+    diag[nI:] += C - T0  # surface row: C phi_s - T phi_k
+    diag[k_in] += T - T0  # inner row: plain coupling T
+    # The link's absorption (C - T) overlaps the cell's: remove its leading
+    # order (mu a d / 2) from the cell, never more than half the cell's.
+    lead = 0.5 * mu_s * (level.face_area[nI:, 0] * s * s * d[nI:, 0])[:, None]
+    cell = mu[k_in] * (level.volume[k_in] * s**3)[:, None]
+    np.subtract.at(diag, k_in, np.minimum(np.minimum(C - T, lead), 0.5 * cell))
+    return off, diag
+
+
 def _compiled_fv(level: DiffusionGraph, kappa: np.ndarray, mu: np.ndarray, s: float):
     """``(off, diag)`` of the conservative scheme, the surface links fitted, before the boundary exchange term:
     :func:`.assembly_kernels.fv_links` then :func:`.assembly_kernels.fv_surface_links`, the same arithmetic as
-    :func:`assemble`'s numpy lines.  Why hand-written: numpy makes some ten passes over (N, K, C) temporaries
+    :func:`_numpy_fv`'s lines.  Why hand-written: numpy makes some ten passes over (N, K, C) temporaries
     for what is one pass over the link slots (19k fluid cells, 23 slots: 20 ms against ~2)."""
     k = _kernel()
     if "error" in k:

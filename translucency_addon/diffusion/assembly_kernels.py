@@ -3,7 +3,7 @@ coefficient and every row's diagonal in one pass over the graph's link slots.
 
 Imported only by :func:`.assembly._kernel`, inside a guard: importing this module needs numba.  Module-level
 functions, so numba's on-disk cache (``cache=True``) finds them again in a new process.  The arithmetic is
-:func:`.assembly.assemble`'s numpy lines, term by term and in their order, so the two agree to rounding (a row's
+:func:`.assembly._numpy_fv`'s lines, term by term and in their order, so the two agree to rounding (a row's
 diagonal sums its links in slot order, numpy's ``einsum`` in its own): ``tests/test_diffusion.py``.
 """
 
