@@ -191,6 +191,7 @@ def _solve_locked(obj, scene, depsgraph, use_camera, force, retry_load, budget=N
 
     rendered = render_frame(st.bake, frame.plan, _passes(frame), frame.mapping, multiple=multiple,
                             single=lambda: _single_scatter(st, frame),
+                            rest_sources={"single": lambda: st.ss, "voxel_number_map": lambda: st.vnm},
                             voxel_number_map=lambda: inner_parts.vnm_radiance(st, frame), n=frame.n_vertices,
                             eta=float(frame.material.eta), ss_view=frame.ss_view, name=frame.name)
     terms = rendered.terms

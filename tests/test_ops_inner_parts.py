@@ -235,20 +235,25 @@ def engine_map_radiance(b, wine_medium):
                            [InnerPart("Wine", _f32(b["wine"][0]), b["wine"][1], "medium", Medium(*wine_medium, "w"))])
     vnm = bake_voxel_number_map(comp, VNMSettings(quality="draft"), mm_per_unit=MM)
     sun = Light("sun", irradiance=SUN, direction=tuple(rotation_y(SUN_TILT) @ np.array([0.0, 0.0, -1.0])))
-    return VoxelNumberMapEvaluator(vnm, glass, mm_per_unit=MM).radiance([sun], None)
+    ev = VoxelNumberMapEvaluator(vnm, glass, mm_per_unit=MM)
+    return ev, ev.radiance([sun], None)
 
 
-def with_orders(obj, L_map):
-    """The frame's answer from the map's radiance: plus the orders after the first it stands in for
-    (``frame.orders_after_the_first``, with the add-on's plan, vertex map, index and view)."""
+def with_orders(obj, engine):
+    """The frame's answer from the engine's map and its radiance: plus the orders after the first it stands
+    in for (``frame.orders_after_the_first``, with the add-on's plan, vertex map, index and view; glass and
+    wine each at its own albedo, eq. 1)."""
     from translucency.ops import state
     from translucency.ops.frame import gather
     from translucency.translucency_addon.frame import FrameTerms, orders_after_the_first
 
+    ev, L_map = engine
     st = state.get_state(obj)
     frame = gather(obj, bpy.context.scene, bpy.context.evaluated_depsgraph_get(), st, False)
     terms = FrameTerms(L_map, np.zeros_like(L_map), voxel_number_map=L_map)
-    extra = orders_after_the_first(frame.plan, frame.mapping, st.bake, terms, frame.material.eta, frame.ss_view)
+    assert ev.rest_media() is not None  # glass and wine: two media
+    extra = orders_after_the_first(frame.plan, frame.mapping, st.bake, terms, frame.material.eta, frame.ss_view,
+                                   {"voxel_number_map": ev})
     assert extra is not None and np.all(extra >= 0) and extra.max() > 0  # the map replaces diffusion here
     return L_map + extra
 

@@ -110,10 +110,13 @@ def cmd_solve(a) -> int:
         else "the cache holds no Voxel Number Map (bake with --voxel-number-map)" if bake.voxel_number_map is None
         else "the planner leaves it out: " + _why(plan, plan.voxel_number_map))}
 
+    rest_sources: dict = {}  # the map's evaluator, for the orders after the first of several media
+
     def voxel_number_map():
         from .inner_parts.bake import solve_voxel_number_map
 
-        L_vnm, stats_vnm = solve_voxel_number_map(bake, outer_material, lights, env, view, shadows=not a.no_shadows)
+        L_vnm, stats_vnm = solve_voxel_number_map(bake, outer_material, lights, env, view, shadows=not a.no_shadows,
+                                                  keep=rest_sources)
         vnm_stats.clear()
         vnm_stats.update(stats_vnm)
         return L_vnm
@@ -121,7 +124,7 @@ def cmd_solve(a) -> int:
     t1 = time.perf_counter()
     frame = render_frame(bake, plan, passes, bake_mapping(bake), solver=solver, lights=lights, environment=env,
                          view=view, eta=outer_material.eta, tol=a.tol, shadows=not a.no_shadows,
-                         voxel_number_map=voxel_number_map, name=name)
+                         voxel_number_map=voxel_number_map, rest_sources=rest_sources, name=name)
     result, cavity_info, L = frame.result, frame.cavity_exchange, frame.terms.total
     L_ss = frame.terms.single
     if ss_stats is not None:

@@ -208,9 +208,28 @@ def composite_from_files(V, F, material, inner_specs, field=None):
     return CompositeObject(V, F, material, parts, field=field)
 
 
-def solve_voxel_number_map(bake, material, lights, environment, view=None, *, shadows=True):
+class _OnBakeVertices:
+    """A Voxel Number Map evaluator's orders-after-the-first queries (``rest_media``, ``weighted_radiance``)
+    at the bake's vertices, as :func:`solve_voxel_number_map` returns its radiance."""
+
+    def __init__(self, ev, n: int):
+        self.ev, self.n = ev, int(n)
+
+    def rest_media(self):
+        return self.ev.rest_media()
+
+    def weighted_radiance(self, weights):
+        L_outer = self.ev.weighted_radiance(weights)
+        L = np.zeros((self.n, 3))
+        L[: len(L_outer)] = L_outer
+        return L
+
+
+def solve_voxel_number_map(bake, material, lights, environment, view=None, *, shadows=True, keep=None):
     """The Voxel Number Map's radiance at the bake's vertices (outer mesh first, 0 on cavity walls) and
-    its statistics, for ``python -m translucency_addon solve``."""
+    its statistics, for ``python -m translucency_addon solve``.  ``keep`` (a dict): its
+    ``"voxel_number_map"`` entry becomes the evaluator at those vertices, for the frame's orders after the
+    first (``frame.orders_after_the_first``)."""
     import time
 
     from ..voxel_number_map import VoxelNumberMapEvaluator
@@ -222,6 +241,8 @@ def solve_voxel_number_map(bake, material, lights, environment, view=None, *, sh
     L_outer = ev.radiance(lights, environment, view, shadows=shadows)
     L = np.zeros((len(bake.mesh_vertices), 3))
     L[: len(L_outer)] = L_outer
+    if keep is not None:
+        keep["voxel_number_map"] = _OnBakeVertices(ev, len(L))
     seconds = {"prepare": t1 - t0, "frame": dict(ev.seconds), "total": time.perf_counter() - t0}
     seconds["frame"].pop("prepare", None)
     return L, {"enabled": True, "backend": ev.backend + " (BLAS)", "surface_voxels": vnm.n,

@@ -150,6 +150,10 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
     else:
         sh = od.sample_sh(volume, dirs, centers, order, progress=P)
     sig_s = trilinear(volume.sigma_s, volume.origin, volume.h, centers)
+    sig_t = trilinear(volume.sigma_t, volume.origin, volume.h, centers)
+    # which medium scattered: sigma_s / sigma_t of the same interpolation (a homogeneous medium's own albedo
+    # wherever sigma_t > 0, the voxel model's boundary ramp included)
+    albedo = np.clip(sig_s / np.maximum(sig_t, 1e-30), 0.0, 1.0) * (sig_t > 0)
     P.end()
 
     P.begin("grid")
@@ -181,7 +185,7 @@ def bake_single_scattering(V, F, material, field=None, settings: SingleScatterin
         "grid_dims": [int(x) for x in grid.dims],
     }
     data = SingleScatteringData(centers=centers, sigma=sigma, weight=weight, support=support, poisson_radius=delta,
-                                sigma_s=sig_s, sh=sh, sh_env=sh_env, entry_eta=eta, order=order,
+                                sigma_s=sig_s, sh=sh, sh_env=sh_env, entry_eta=eta, order=order, albedo=albedo,
                                 extinction=None if eta == 1.0 else np.asarray(volume.sigma_t, dtype=np.float32), n_dirs=int(s.n_dirs), mm_per_unit=float(volume.mm_per_unit),
                                 grid=grid, voxel_origin=np.asarray(volume.origin), voxel_size=float(volume.h),
                                 voxel_shape=np.asarray(volume.shape, dtype=np.int64), stats=stats)

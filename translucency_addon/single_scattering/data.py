@@ -23,10 +23,12 @@ import numpy as np
 from ..errors import CacheError
 
 # 2: sh_env (entry.py eq. 2, the critical cone); 3: sh_env with the world's light reflected inside (eq. 3), and
-# the extinction voxels the view rays' reflections inside are attenuated along (view_reflection.py).
-# Versions 1 and 2 are read and render (their world term as it was baked), and their key is stale.
-FORMAT_VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+# the extinction voxels the view rays' reflections inside are attenuated along (view_reflection.py); 4: the
+# samples' albedo (the orders after the first of each medium, frame.orders_after_the_first).
+# Versions 1 to 3 are read and render (their world term as it was baked, the orders at the surface's albedo),
+# and their key is stale.
+FORMAT_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 
 
 def read_prefixed(d, prefix: str, what: str, version):
@@ -134,6 +136,9 @@ class SingleScatteringData:
     # sigma_t per mm on the bake's voxels, (nx, ny, nz, 3) float32, where eta is not 1: the view rays' reflections
     # inside (view_reflection.py) are attenuated along it; None without an interface or in data of formats 1-2
     extinction: np.ndarray | None = None
+    # sigma_s / sigma_t at each sample, (N, 3): which medium scattered the light, where an object holds several
+    # (frame.orders_after_the_first); None in data of formats 1-3
+    albedo: np.ndarray | None = None
     # Arrays the ray-pair loops derive from the samples once (``ray_pairs._cache``: cell-ordered centres, the
     # Gaussians' constants), keyed by the arrays they came from; never saved, not part of equality.
     ray_cache: dict = field(default_factory=dict, compare=False, repr=False)
@@ -187,6 +192,8 @@ class SingleScatteringData:
             arrays["sh_env"] = np.asarray(self.sh_env, dtype=np.float32)
         if self.extinction is not None:
             arrays["extinction"] = np.asarray(self.extinction, dtype=np.float32)
+        if self.albedo is not None:
+            arrays["albedo"] = np.asarray(self.albedo, dtype=np.float32)
         return {prefix + k: v for k, v in arrays.items()}
 
     @classmethod
@@ -222,7 +229,12 @@ class SingleScatteringData:
             if arr["extinction"].shape != want:
                 raise CacheError(f"single-scattering array {prefix}extinction has shape {arr['extinction'].shape}, "
                                  f"expected {want}")
-        for k in ("centers", "sigma", "weight", "support", "sigma_s", "sh", "sh_env", "extinction"):
+        if prefix + "albedo" in d:
+            arr["albedo"] = get("albedo")
+            if arr["albedo"].shape != (n, 3):
+                raise CacheError(f"single-scattering array {prefix}albedo has shape {arr['albedo'].shape}, "
+                                 f"expected {(n, 3)}")
+        for k in ("centers", "sigma", "weight", "support", "sigma_s", "sh", "sh_env", "extinction", "albedo"):
             if k not in arr and k != "centers":
                 continue
             a = centers if k == "centers" else arr[k]
@@ -230,6 +242,8 @@ class SingleScatteringData:
                 raise CacheError(f"single-scattering array {prefix + k} contains NaN or Inf")
         if "extinction" in arr and np.any(arr["extinction"] < 0):
             raise CacheError(f"single-scattering array {prefix}extinction is negative")
+        if "albedo" in arr and (np.any(arr["albedo"] < 0) or np.any(arr["albedo"] > 1)):
+            raise CacheError(f"single-scattering array {prefix}albedo is outside [0, 1]")
         grid = SampleGrid(origin=arr["grid_origin"].astype(np.float64), cell_size=float(meta["cell_size"]), dims=dims,
                           cell_start=start, cell_items=items)
         return cls(centers=centers, sigma=arr["sigma"].astype(np.float64), weight=arr["weight"].astype(np.float64),
@@ -240,7 +254,8 @@ class SingleScatteringData:
                    voxel_shape=arr["voxel_shape"].astype(np.int64), stats=dict(meta.get("stats", {})),
                    sh_env=arr["sh_env"].astype(np.float32) if "sh_env" in arr else None,
                    entry_eta=float(meta.get("entry_eta", 1.0)),
-                   extinction=arr["extinction"].astype(np.float32) if "extinction" in arr else None)
+                   extinction=arr["extinction"].astype(np.float32) if "extinction" in arr else None,
+                   albedo=arr["albedo"].astype(np.float64) if "albedo" in arr else None)
 
     # ------------------------------------------------------------------ GPU
     def kernel_arrays(self) -> dict:

@@ -62,6 +62,7 @@ class FrameEvaluator:
         self._rays_key = object()
         self._reflected = None  # view_reflection.reflected_rays of the current rays
         self._facet_normals = None
+        self._last = None  # the last radiance()'s light terms, rays and settings (weighted_radiance)
         self.seconds = {}
 
     @property
@@ -125,10 +126,41 @@ class FrameEvaluator:
             t2 = time.perf_counter()
             out[rays.vertices] = integrate_with_reflections(self.integrator, LT, rays, reflected, view_term=VT,
                                                             eta=eta, mm_per_unit=mm, use_gpu=use_gpu)
+            self._last = (LT, rays, reflected, VT, float(eta), mm, use_gpu)
         else:
             t2 = t1
+            self._last = None
         t3 = time.perf_counter()
         self.seconds = {"rays": t1 - t0, "light_view_terms": t2 - t1, "ray_pass": t3 - t2, "total": t3 - t0}
+        return out
+
+    def rest_media(self) -> np.ndarray | None:
+        """(N, 3) albedo of each sample where the baked object holds media of different albedo (a bottle's
+        glass and wine, a heterogeneous field), else None (one medium: its surface's albedo is every
+        sample's; data of formats 1-3 keep none).  ``frame.orders_after_the_first`` eq. 1."""
+        a = getattr(self.data, "albedo", None)
+        if a is None or not len(a):
+            return None
+        a = np.asarray(a, dtype=np.float64)
+        scattering = np.any(np.asarray(self.data.sigma_s) > 0, axis=1)
+        if not scattering.any() or not np.any(np.ptp(a[scattering], axis=0) > 1e-4):
+            return None
+        return a
+
+    def weighted_radiance(self, weights: np.ndarray) -> np.ndarray:
+        """The last :meth:`radiance` with each sample's light term times ``weights`` (N, 3): the same rays,
+        reflections and view term, ``sum_i w_i k sigma_s(b_i) ...`` (the module's eq. 3 term by term); (n_points,
+        3).  What the frame weighs each medium's once-scattered light by (``frame.orders_after_the_first``)."""
+        out = np.zeros((len(self.points), 3))
+        last = getattr(self, "_last", None)
+        if last is None:
+            return out
+        LT, rays, reflected, VT, eta, mm, use_gpu = last
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != LT.shape:
+            raise ValueError(f"sample weights of shape {w.shape} for {LT.shape} light terms")
+        out[rays.vertices] = integrate_with_reflections(self.integrator, LT * w, rays, reflected, view_term=VT,
+                                                        eta=eta, mm_per_unit=mm, use_gpu=use_gpu)
         return out
 
     @property

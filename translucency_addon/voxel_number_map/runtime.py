@@ -120,15 +120,17 @@ class VoxelNumberMapEvaluator:
             self._shadows[key] = vis
         return vis
 
-    def sources(self, lights=(), environment=None, *, shadows: bool = True, occluders=None):
+    def sources(self, lights=(), environment=None, *, shadows: bool = True, occluders=None, rest=None):
         """``(x, local, E)`` per surface voxel (n, 3): x = A Phi (clamped) for the transport product, the
         near-entry exitance rho(mu) Phi, and the irradiance that entered, E = F_t mu E_perp (W/m^2;
-        for the power balance)."""
+        for the power balance).  ``rest``: a :class:`_RestKernel`, whose near-entry exitance (the same
+        clamped Phi) then takes the place of ``local``."""
         surf = self.vnm.surface
         n = surf.n
         phi = np.zeros((n, 3))
         local = np.zeros((n, 3))
         E_in = np.zeros((n, 3))
+        near = self.kernel if rest is None else rest.kernel
         for light in emitter_samples(lights):
             E, to_light, dist = light_irradiance(light, surf.position, self.mm_per_unit)
             mu = np.einsum("ij,ij->i", surf.normal, to_light)
@@ -143,12 +145,13 @@ class VoxelNumberMapEvaluator:
             rho = self.kernel.rho_at(mu_l)
             fl = fl * self.kernel.clamp(mu_l, rho)
             phi += fl
-            local += fl * rho
+            local += fl * (rho if rest is None else near.rho_at(mu_l))
         if environment is not None and not environment.is_black and self.env_phi is not None:
             L = environment.radiance_at(self.vnm.env_directions)  # (D, 3)
+            env_local = self.env_local if rest is None else rest.env_local
             for c in range(3):
                 phi[:, c] += self.env_phi[c] @ L[:, c]
-                local[:, c] += self.env_local[c] @ L[:, c]
+                local[:, c] += env_local[c] @ L[:, c]
             E_in += self.env_w @ L
         return surf.area[:, None] * phi, local, E_in
 
@@ -178,7 +181,15 @@ class VoxelNumberMapEvaluator:
         """
         t0 = time.perf_counter()
         J = self.exitance(lights, environment, shadows=shadows, occluders=occluders)
+        self._last = (list(lights), environment, shadows, occluders, view, points)
         t1 = time.perf_counter()
+        L = self._outgoing(J, view, points)
+        t2 = time.perf_counter()
+        self.seconds.update({"output": t2 - t1, "total": t2 - t0})
+        return L
+
+    def _outgoing(self, J, view, points):
+        """Eq. 7 at the vertices (or ``points``) seen from ``view``."""
         if points is None:
             (idx, w), V, N = self.vnm.vertex_map, self.vnm.mesh_vertices, self.vnm.mesh_normals
         else:
@@ -193,10 +204,34 @@ class VoxelNumberMapEvaluator:
         else:
             d = np.asarray(view[1], dtype=np.float64)[None, :] - V
             cos_o = np.einsum("ij,ij->i", N, d) / np.maximum(np.linalg.norm(d, axis=1), 1e-300)
-        L = outgoing_radiance(j_v, cos_o, self.eta)
-        t2 = time.perf_counter()
-        self.seconds.update({"output": t2 - t1, "total": t2 - t0})
-        return L
+        return outgoing_radiance(j_v, cos_o, self.eta)
+
+    # -- the orders after the first of several media (frame.orders_after_the_first eq. 1) ------------
+    def rest_media(self) -> np.ndarray | None:
+        """(C, 3) albedo of each component medium where the scattering ones differ (a bottle's glass and
+        wine), else None (one albedo: the frame takes the surface's)."""
+        st, ss = self.coef.sigma_t, self.coef.sigma_s
+        a = np.divide(ss, st, out=np.zeros_like(ss), where=st > 0)
+        scattering = np.any(ss > 0, axis=1)
+        if scattering.sum() < 2 or not np.any(np.ptp(a[scattering], axis=0) > 1e-4):
+            return None
+        return a
+
+    def weighted_radiance(self, weights) -> np.ndarray:
+        """The last :meth:`radiance` with each component's sigma_s times ``weights`` (C, 3) where the light
+        scatters -- the kernel's tau_s and the near-entry albedo (eqs. 4-6); the same entering fluence Phi,
+        chords' extinction and exit.  A second packed kernel per material and weights (built once, BLAS)."""
+        last = getattr(self, "_last", None)
+        if last is None:
+            raise RuntimeError("weighted_radiance follows a radiance() call")
+        lights, environment, shadows, occluders, view, points = last
+        w = np.asarray(weights, dtype=np.float64)
+        key = (w.tobytes(), id(self.coef))
+        rest = getattr(self, "_rest", None)
+        if rest is None or rest.key != key:
+            rest = self._rest = _RestKernel(self, w, key)
+        x, local, _ = self.sources(lights, environment, shadows=shadows, occluders=occluders, rest=rest)
+        return self._outgoing(rest.kernel.product(x) + local, view, points)
 
     def _point_map(self, V: np.ndarray, N: np.ndarray):
         from .surface import vertex_weights
@@ -220,3 +255,20 @@ class VoxelNumberMapEvaluator:
         free = getattr(self.transmission, "free", None)
         if callable(free):
             free()
+
+
+class _RestKernel:
+    """The kernel of :meth:`VoxelNumberMapEvaluator.weighted_radiance`: sigma_s times per-component weights
+    (the chords' tau_s and near-entry albedo), and its world near-entry weights with the evaluator's own
+    clamped fluence per direction."""
+
+    def __init__(self, ev, weights, key):
+        self.key = key
+        c = ev.coef
+        coef = Coefficients(sigma_t=c.sigma_t, sigma_s=c.sigma_s * weights, h_mm=c.h_mm)
+        self.kernel = prepare_kernel(ev.vnm.surface, ev.vnm.lengths, ev.vnm.blocked, coef)
+        self.env_local = None
+        if ev.env_phi is not None:
+            mu = np.clip(ev.vnm.surface.normal @ ev.vnm.env_directions.T, 0.0, 1.0)
+            phi = np.moveaxis(ev.env_phi, 0, 2)  # (n, D, 3), clamped with the evaluator's kernel
+            self.env_local = np.ascontiguousarray(np.moveaxis(phi * self.kernel.rho_at(mu), 2, 0))
