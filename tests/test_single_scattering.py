@@ -223,6 +223,27 @@ def test_grid_traversal_counts_every_pair_exactly_once(sphere):
     data.grid = SampleGrid.build(data.centers, data.support, np.median(data.support))
 
 
+def test_compiled_pair_sums_are_numpys_bit_for_bit(sphere):
+    """The view rays' sums over their pairs (``pair_kernels``): with a view term and with the per-pair psi
+    weights the cached pairs keep, the compiled pass adds the same products per ray in the same order."""
+    from translucency_addon.single_scattering.runtime import _pair_kernels, all_ray_sample_pairs, pair_psi_weights
+
+    if "error" in _pair_kernels():
+        pytest.skip(f"numba cannot run here: {_pair_kernels()['error']}")
+    data = sphere.data
+    rays = view_rays(sphere.V, sphere.F, sphere.N, camera_position=(30.0, 5.0, -8.0))
+    rng = np.random.default_rng(1)
+    lt, vt = rng.random((data.n_samples, 3)), rng.random((data.n_samples, 3))
+    pairs = all_ray_sample_pairs(data, rays.origins, rays.dirs, rays.t_exit)
+    pw = pair_psi_weights(data, pairs, rays.dirs)
+    assert len(pairs[0]) > 20 * len(rays.origins)
+    for kw in ({"view_term": vt}, {"pair_weights": pw}):
+        a, b = (integrate_view_rays(data, lt, rays.origins, rays.dirs, rays.t_exit, 1.0, pairs=pairs,
+                                    compiled=c, **kw) for c in (False, True))
+        assert np.count_nonzero(a.sum(1)) > 100
+        np.testing.assert_array_equal(a, b)
+
+
 def test_rbfs_are_a_partition_of_unity_inside(sphere):
     data = sphere.data
     rng = np.random.default_rng(5)
