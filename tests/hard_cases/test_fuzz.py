@@ -125,3 +125,47 @@ def test_fuzz_covers_lights_inside_and_empty_scenes():
         run = hc.run_solver(scn, "fast")
         _, problems = hc.check(run)
         assert problems == []
+
+
+def test_a_start_worse_than_zero_is_scaled_down():
+    """An example the fuzz drew (2026-12-07): a point light at the centre, inside the object, and a zero-size
+    area light just off its surface.  The coarse level's answer carried up gave the finest level a start
+    9e9 times |b|; its recursive residual drifted from the true one and the check found the true residual
+    12x the running minimum just before stopping (912 sweeps).  ``solver.start_no_worse_than_zero`` scales
+    such a start to its energy-optimal multiple: the bounds hold, in 320 sweeps."""
+    L0 = Light("area", color=(0.2867203370642171, 6.103515625e-05, 0.4634240508384201), intensity=338081.48326945043,
+               irradiance=338081.48326945043, position=(-2.4589691135504753e-37, -1.0001, 0.0),
+               direction=(2.4587232412263525e-37, 1.0, -0.0), spot_size=0.54627421529604, name="L0")
+    L1 = Light("point", color=(0.25397946730531734, 0.088, 0.5033162831135786), intensity=1.0, irradiance=1.0,
+               position=(0.0, 0.0, 0.0), direction=(0.9610626167161931, 0.2763306836936928, 0.0),
+               spot_size=2.584771821872295, name="L1")
+    material = Material(Medium((0.12602345075594426, 1.0, 0.0), (1.0, 0.9999998627552429, 1.0), "a"), None, 2.19)
+    env = 1.8248510271533247
+    scn = hc.Scenario("fuzz", "start", small_bake().with_scale(1.5959013770431274), material, lights=[L0, L1],
+                      environment=Environment((env, 0.5 * env, 0.25 * env)), shadows=True, paper=False)
+    fast = hc.run_solver(scn, "fast")
+    _, problems = hc.check(fast)
+    assert problems == [], problems
+    assert fast.result.level_solves[-1].history[0] < 10.0  # the start's relative residual (9e9 unscaled)
+
+
+def test_start_no_worse_than_zero_keeps_a_good_start():
+    """The scaled start's energy error is no larger than zero's; a start better than zero is kept as it is."""
+    from types import SimpleNamespace
+
+    from translucency_addon.diffusion.solver import start_no_worse_than_zero
+
+    rng = np.random.default_rng(3)
+    M = rng.random((30, 30))
+    A = M @ M.T + 30 * np.eye(30)
+    system = SimpleNamespace(apply=lambda x: A @ x)
+    x = rng.random((30, 2))
+    b = A @ x
+    good = x + 1e-3 * rng.random((30, 2))
+    assert start_no_worse_than_zero(system, b, good) is good
+    bad = 1e4 * rng.random((30, 2))
+    scaled = start_no_worse_than_zero(system, b, bad)
+    for c in range(2):
+        e = x[:, c] - scaled[:, c]
+        assert e @ A @ e <= x[:, c] @ A @ x[:, c] * (1 + 1e-12)
+        assert np.linalg.norm(b[:, c] - A @ scaled[:, c]) < np.linalg.norm(b[:, c] - A @ bad[:, c])
